@@ -1,0 +1,128 @@
+"""The small machine interface every driver implements and the run engine uses.
+
+Conventions (all drivers convert from device units using their profile):
+- force in N, compression positive;
+- crosshead position in mm, positive DOWN (into the specimen), 0 at the machine's zero;
+- speeds in mm/min (what lab people use).
+Errors: every driver raises DeviceError subclasses, never a bare exception from
+pyserial/pymodbus; the engine relies on that to stop safely and record a reason.
+`drivers` knows nothing of `foamlab`.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+
+
+class DeviceError(Exception):
+    """Base class for anything that went wrong talking to a device."""
+
+
+class DeviceTimeout(DeviceError):
+    """The device did not answer in time (after the configured retries)."""
+
+
+class DeviceConnectionLost(DeviceError):
+    """The link (socket, serial port) is gone."""
+
+
+class DeviceProtocolError(DeviceError):
+    """Garbled reply, bad CRC, Modbus exception reply, `*10`-style error reply."""
+
+
+@dataclass(frozen=True)
+class LoadCellStatus:
+    under_range: bool = False
+    over_range: bool = False      # overload: force beyond the cell's capacity
+    stable: bool = False          # no-motion flag
+    tare_set: bool = False
+
+
+@dataclass(frozen=True)
+class CrossheadStatus:
+    moving: bool = False
+    in_position: bool = False
+    upper_limit: bool = False     # travel limit reached going up (position low)
+    lower_limit: bool = False     # travel limit reached going down (position high)
+    fault: bool = False           # stall, following error, watchdog, e-stop latched
+    emergency_stopped: bool = False
+
+
+@dataclass(frozen=True)
+class ForceReading:
+    force_N: float
+    status: LoadCellStatus
+
+
+class LoadCell(abc.ABC):
+    capacity_N: float
+
+    @abc.abstractmethod
+    def read(self) -> ForceReading:
+        """Net force and status, in one request when the device allows it."""
+
+    @abc.abstractmethod
+    def zero(self) -> None:
+        """Set the gross zero (no load on the cell)."""
+
+    @abc.abstractmethod
+    def tare(self) -> None:
+        """Tare: net := 0 at the present load."""
+
+
+class Crosshead(abc.ABC):
+    @abc.abstractmethod
+    def read_position(self) -> float:
+        """Position in mm, positive down."""
+
+    @abc.abstractmethod
+    def status(self) -> CrossheadStatus: ...
+
+    @abc.abstractmethod
+    def move_to(self, target_mm: float, speed_mm_min: float) -> None:
+        """Start a move to an absolute position; returns at once (non-blocking)."""
+
+    @abc.abstractmethod
+    def jog(self, direction: int, speed_mm_min: float) -> None:
+        """Start moving down (+1) or up (-1) until stopped or a limit is hit."""
+
+    @abc.abstractmethod
+    def stop(self) -> None:
+        """Controlled stop (decelerate)."""
+
+    @abc.abstractmethod
+    def emergency_stop(self) -> None:
+        """Immediate stop; latches a fault until reset_fault()."""
+
+    @abc.abstractmethod
+    def reset_fault(self) -> None: ...
+
+    @abc.abstractmethod
+    def set_zero(self) -> None:
+        """Make the present position the machine's zero."""
+
+    @abc.abstractmethod
+    def set_travel_limits(self, upper_mm: float, lower_mm: float) -> None:
+        """Soft limits in mm (upper = smallest position, lower = largest position)."""
+
+
+class Machine(abc.ABC):
+    """A load cell and a crosshead behind one connection (or two)."""
+
+    load_cell: LoadCell
+    crosshead: Crosshead
+
+    @abc.abstractmethod
+    def connect(self) -> None: ...
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Close the link(s); never raises."""
+
+    def __enter__(self) -> "Machine":
+        self.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,57 @@
+"""`foamlab` command line: one subcommand per module in foamlab/commands/.
+
+Each module defines ``register(subparsers)`` which adds its parser and sets
+``func`` (args -> exit code). Errors the user can act on are FoamlabError and
+are printed as one line; nothing ever ends in a traceback for bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from foamlab import FoamlabError, __version__
+
+# Order here is the order in `foamlab --help`.
+COMMAND_MODULES = ["run", "sim", "fit", "diagnose", "gui", "show", "catalog"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="foamlab",
+        description="Compression testing of flexible foam: run, simulate, fit, diagnose.",
+    )
+    parser.add_argument("--version", action="version", version=f"foamlab {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(f"foamlab.commands.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"foamlab.commands.{name}":
+                continue  # command not built yet
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except FoamlabError as exc:
+        print(f"foamlab {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"foamlab {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
