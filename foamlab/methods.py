@@ -1,0 +1,546 @@
+"""Test methods: what the crosshead does during a run and which results it yields.
+
+A method is a TOML file in configs/methods/ (see paper-3cycle.toml for the format):
+sampling rate, contact search (preload), park speed, a list of `[[sequence]]`
+blocks whose `steps` are
+
+    { action = "compress", strain = 0.80, speed_mm_min = 23.6 }  # move down to strain x height
+    { action = "dwell", duration_s = 60.0 }                       # hold the position
+    { action = "return", speed_mm_min = 23.6 }                    # move back to displacement 0
+
+(a block may `repeat`), and the results to compute. Every `compress` starts a new
+cycle (1-based). Strains are fractions of the specimen height measured before the
+run; displacement 0 is the contact point found by the contact search.
+
+Results come from a RunData: per cycle the hysteresis loss (%), the loading and
+unloading energies (J) and the residual strain (displacement at which the plate
+loses contact on unloading / height), plus named values such as ISO 3386-1 CV40
+(`stress_at_strain`) or ASTM D3574-C CFD (`stress_at_dwell_end`), in kPa.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from foamlab import CONFIG_DIR, FoamlabError
+from foamlab.rundata import RunData
+
+METHODS_DIR = CONFIG_DIR / "methods"
+DEFAULT_METHOD = "paper-3cycle"
+
+ACTIONS = ("compress", "return", "dwell")
+PER_CYCLE_QUANTITIES = ("hysteresis_loss", "energy", "residual_strain")
+VALUE_QUANTITIES = ("stress_at_strain", "stress_at_dwell_end")
+MAX_STRAIN = 0.95          # beyond this the plates would meet the densified foam
+MAX_SAMPLING_HZ = 1000.0
+
+
+@dataclass(frozen=True)
+class ContactSearch:
+    preload_N: float
+    search_speed_mm_min: float
+    max_search_mm: float
+
+
+@dataclass(frozen=True)
+class Step:
+    action: str                    # compress | return | dwell
+    cycle: int                     # 1-based; a dwell/return belongs to the last compress
+    label: str = ""                # the sequence it came from ("preflex", "cycle", ...)
+    strain: float | None = None    # compress only: fraction of the specimen height
+    speed_mm_min: float | None = None
+    duration_s: float | None = None  # dwell only
+
+    def target_mm(self, height_mm: float, current_mm: float) -> float:
+        """Displacement (from contact) at the end of this step."""
+        if self.action == "compress":
+            return self.strain * height_mm
+        if self.action == "return":
+            return 0.0
+        return current_mm
+
+    def describe(self) -> str:
+        if self.action == "compress":
+            return f"compress to {self.strain:.0%} at {self.speed_mm_min:g} mm/min"
+        if self.action == "return":
+            return f"return to 0 at {self.speed_mm_min:g} mm/min"
+        return f"dwell {self.duration_s:g} s"
+
+
+@dataclass(frozen=True)
+class PlannedStep:
+    """A step with its displacements and its nominal duration for one specimen height."""
+
+    index: int
+    step: Step
+    start_mm: float
+    end_mm: float
+    duration_s: float              # nominal, machine (virtual) seconds
+
+
+@dataclass(frozen=True)
+class ValueSpec:
+    name: str
+    quantity: str                  # stress_at_strain | stress_at_dwell_end
+    cycle: int
+    strain: float | None = None
+    phase: str = "loading"
+    unit: str = "kPa"
+    description: str = ""
+    dwell_s: float | None = None   # stress_at_dwell_end: the programmed dwell
+
+
+@dataclass(frozen=True)
+class ResultValue:
+    name: str
+    value: float | None            # None when it cannot be computed (see note)
+    unit: str
+    cycle: int | None = None
+    description: str = ""
+    note: str = ""
+
+    def format(self) -> str:
+        where = f" (cycle {self.cycle})" if self.cycle else ""
+        if self.value is None:
+            return f"{self.name}{where}: n/a - {self.note}"
+        return f"{self.name}{where}: {self.value:.4g} {self.unit}"
+
+
+@dataclass
+class MethodResults:
+    values: list[ResultValue] = field(default_factory=list)
+
+    def __iter__(self):
+        return iter(self.values)
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+    def get(self, name: str, cycle: int | None = None) -> ResultValue | None:
+        for v in self.values:
+            if v.name == name and (cycle is None or v.cycle == cycle):
+                return v
+        return None
+
+    def to_dict(self) -> list[dict[str, Any]]:
+        return [
+            {"name": v.name, "value": v.value, "unit": v.unit, "cycle": v.cycle,
+             "description": v.description, "note": v.note}
+            for v in self.values
+        ]
+
+    def summary(self) -> str:
+        return "\n".join(v.format() for v in self.values)
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    title: str
+    sampling_hz: float
+    contact: ContactSearch
+    park_speed_mm_min: float
+    steps: tuple[Step, ...]
+    per_cycle: tuple[str, ...] = ()
+    values: tuple[ValueSpec, ...] = ()
+    reference: str = ""
+    source: str = ""
+
+    @property
+    def n_cycles(self) -> int:
+        return max((s.cycle for s in self.steps), default=0)
+
+    @property
+    def max_strain(self) -> float:
+        return max((s.strain for s in self.steps if s.action == "compress"), default=0.0)
+
+    @property
+    def max_speed_mm_min(self) -> float:
+        speeds = [s.speed_mm_min for s in self.steps if s.speed_mm_min]
+        return max(speeds + [self.contact.search_speed_mm_min, self.park_speed_mm_min])
+
+    def plan(self, height_mm: float) -> list[PlannedStep]:
+        """Each step's displacements and nominal duration for a specimen of `height_mm`."""
+        if not height_mm or height_mm <= 0:
+            raise FoamlabError(f"method {self.name}: the specimen height must be > 0 mm")
+        planned, position = [], 0.0
+        for i, step in enumerate(self.steps):
+            end = step.target_mm(height_mm, position)
+            if step.action == "dwell":
+                duration = float(step.duration_s)
+            else:
+                duration = abs(end - position) / step.speed_mm_min * 60.0
+            planned.append(PlannedStep(i, step, position, end, duration))
+            position = end
+        return planned
+
+    def duration_s(self, height_mm: float) -> float:
+        """Nominal duration of the steps (machine seconds; contact search and park excluded)."""
+        return sum(p.duration_s for p in self.plan(height_mm))
+
+    def expected_samples(self, height_mm: float) -> int:
+        return int(round(self.duration_s(height_mm) * self.sampling_hz))
+
+    def describe(self) -> str:
+        return f"{self.title} ({self.n_cycles} cycles, {self.sampling_hz:g} Hz)"
+
+    def compute_results(self, run: RunData) -> MethodResults:
+        return compute_results(self, run)
+
+
+# --------------------------------------------------------------------------- loading
+
+def available_methods(methods_dir: str | Path | None = None) -> list[str]:
+    folder = Path(methods_dir) if methods_dir else METHODS_DIR
+    return sorted(p.stem for p in folder.glob("*.toml") if not p.name.startswith("_"))
+
+
+def _resolve(name_or_path: str | Path, methods_dir: str | Path | None) -> Path:
+    candidate = Path(name_or_path)
+    if candidate.suffix == ".toml" or len(candidate.parts) > 1:
+        if candidate.is_file():
+            return candidate
+        raise FoamlabError(f"method file not found: {candidate}")
+    folder = Path(methods_dir) if methods_dir else METHODS_DIR
+    path = folder / f"{name_or_path}.toml"
+    if path.is_file():
+        return path
+    names = ", ".join(available_methods(methods_dir)) or "none"
+    raise FoamlabError(f"unknown method {str(name_or_path)!r} (available: {names})")
+
+
+def load_method(name_or_path: str | Path = DEFAULT_METHOD, methods_dir: str | Path | None = None) -> Method:
+    """Load and validate a method by name (configs/methods/NAME.toml) or path."""
+    path = _resolve(name_or_path, methods_dir)
+    try:
+        with path.open("rb") as f:
+            data = tomllib.load(f)
+    except OSError as exc:
+        raise FoamlabError(f"cannot read method {path}: {exc.strerror or exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise FoamlabError(f"method {path.name}: not valid TOML: {exc}") from None
+    return parse_method(data, source=str(path))
+
+
+class _Reader:
+    """Typed access to one TOML table; every error names the file and the place."""
+
+    def __init__(self, table: Any, where: str, file: str):
+        if not isinstance(table, dict):
+            raise FoamlabError(f"method {file}: {where} must be a table")
+        self.table, self.where, self.file = table, where, file
+        self.used: set[str] = set()
+
+    def fail(self, msg: str):
+        raise FoamlabError(f"method {self.file}: {self.where}: {msg}")
+
+    def _get(self, key: str, default: Any, required: bool) -> Any:
+        self.used.add(key)
+        if key not in self.table:
+            if required:
+                self.fail(f"missing `{key}`")
+            return default
+        return self.table[key]
+
+    def number(self, key: str, default: float | None = None, *, required: bool = True,
+               low: float | None = None, high: float | None = None, low_open: bool = False) -> float:
+        value = self._get(key, default, required and default is None)
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            self.fail(f"`{key}` must be a number, got {value!r}")
+        if low is not None and (value <= low if low_open else value < low):
+            self.fail(f"`{key}` must be {'>' if low_open else '>='} {low:g}, got {value!r}")
+        if high is not None and value > high:
+            self.fail(f"`{key}` must be <= {high:g}, got {value!r}")
+        return float(value)
+
+    def integer(self, key: str, default: int | None = None, *, low: int = 1) -> int:
+        value = self._get(key, default, default is None)
+        if isinstance(value, bool) or not isinstance(value, int):
+            self.fail(f"`{key}` must be an integer, got {value!r}")
+        if value < low:
+            self.fail(f"`{key}` must be >= {low}, got {value}")
+        return value
+
+    def text(self, key: str, default: str | None = None, choices=None) -> str:
+        value = self._get(key, default, default is None)
+        if not isinstance(value, str):
+            self.fail(f"`{key}` must be text, got {value!r}")
+        if choices and value not in choices:
+            self.fail(f"`{key}` must be one of {', '.join(choices)}, got {value!r}")
+        return value
+
+    def array(self, key: str, default: list | None = None) -> list:
+        value = self._get(key, default, default is None)
+        if not isinstance(value, list):
+            self.fail(f"`{key}` must be an array, got {value!r}")
+        return value
+
+    def done(self) -> None:
+        unknown = sorted(set(self.table) - self.used)
+        if unknown:
+            self.fail(f"unknown key{'s' if len(unknown) > 1 else ''} {', '.join('`%s`' % k for k in unknown)}")
+
+
+def parse_method(data: dict, source: str = "<method>") -> Method:
+    """Validate a method's TOML content (a dict) and build the Method."""
+    file = Path(source).name
+    top = _Reader(data, "top level", file)
+    name = top.text("name", Path(source).stem)
+    title = top.text("title", name)
+    reference = top.text("reference", "")
+    sampling_hz = top.number("sampling_hz", low=0, low_open=True, high=MAX_SAMPLING_HZ)
+
+    contact_r = _Reader(top._get("contact", None, True), "[contact]", file)
+    contact = ContactSearch(
+        preload_N=contact_r.number("preload_N", low=0, low_open=True),
+        search_speed_mm_min=contact_r.number("search_speed_mm_min", low=0, low_open=True),
+        max_search_mm=contact_r.number("max_search_mm", low=0, low_open=True),
+    )
+    contact_r.done()
+    park_r = _Reader(top._get("park", {}, False), "[park]", file)
+    park_speed = park_r.number("speed_mm_min", 100.0, low=0, low_open=True)
+    park_r.done()
+
+    steps = _parse_sequences(top.array("sequence"), file)
+
+    results_r = _Reader(top._get("results", {}, False), "[results]", file)
+    per_cycle = tuple(results_r.array("per_cycle", list(PER_CYCLE_QUANTITIES)))
+    for q in per_cycle:
+        if q not in PER_CYCLE_QUANTITIES:
+            results_r.fail(f"`per_cycle` entry {q!r} is not one of {', '.join(PER_CYCLE_QUANTITIES)}")
+    values = tuple(_parse_value(v, i, file, steps) for i, v in enumerate(results_r.array("values", []), 1))
+    results_r.done()
+    top.done()
+    return Method(name=name, title=title, sampling_hz=sampling_hz, contact=contact,
+                  park_speed_mm_min=park_speed, steps=steps, per_cycle=per_cycle,
+                  values=values, reference=reference, source=source)
+
+
+def _parse_sequences(sequences: list, file: str) -> tuple[Step, ...]:
+    if not sequences:
+        raise FoamlabError(f"method {file}: needs at least one [[sequence]] with steps")
+    steps: list[Step] = []
+    cycle, position = 0, "zero"           # where the plate is: zero | compressed
+    for si, seq in enumerate(sequences, 1):
+        r = _Reader(seq, f"[[sequence]] {si}", file)
+        label = r.text("label", "")
+        repeat = r.integer("repeat", 1)
+        raw_steps = r.array("steps")
+        r.done()
+        if not raw_steps:
+            r.fail("`steps` is empty")
+        parsed = []
+        for ti, raw in enumerate(raw_steps, 1):
+            sr = _Reader(raw, f"[[sequence]] {si} step {ti}", file)
+            action = sr.text("action", choices=ACTIONS)
+            if action == "compress":
+                parsed.append(("compress", sr.number("strain", low=0, low_open=True, high=MAX_STRAIN),
+                               sr.number("speed_mm_min", low=0, low_open=True), None, sr))
+            elif action == "return":
+                parsed.append(("return", None, sr.number("speed_mm_min", low=0, low_open=True), None, sr))
+            else:
+                parsed.append(("dwell", None, None, sr.number("duration_s", low=0, low_open=True), sr))
+            sr.done()
+        for _ in range(repeat):
+            for action, strain, speed, duration, sr in parsed:
+                if action == "compress":
+                    cycle += 1
+                    position = "compressed"
+                elif action == "return":
+                    if position != "compressed":
+                        sr.fail("`return` without a `compress` before it")
+                    position = "zero"
+                steps.append(Step(action, max(cycle, 1), label, strain, speed, duration))
+    if cycle == 0:
+        raise FoamlabError(f"method {file}: no `compress` step")
+    if position != "zero":
+        raise FoamlabError(f"method {file}: the last cycle must end with a `return` step")
+    return tuple(steps)
+
+
+def _parse_value(raw: Any, index: int, file: str, steps: tuple[Step, ...]) -> ValueSpec:
+    r = _Reader(raw, f"[[results.values]] {index}", file)
+    name = r.text("name")
+    quantity = r.text("quantity", choices=VALUE_QUANTITIES)
+    cycle = r.integer("cycle")
+    unit = r.text("unit", "kPa", choices=("kPa",))
+    description = r.text("description", "")
+    cycle_steps = [s for s in steps if s.cycle == cycle]
+    if not cycle_steps:
+        r.fail(f"cycle {cycle} does not exist (the method has {max(s.cycle for s in steps)} cycles)")
+    peak = max(s.strain for s in cycle_steps if s.action == "compress")
+    strain = dwell = None
+    if quantity == "stress_at_strain":
+        strain = r.number("strain", low=0, low_open=True, high=MAX_STRAIN)
+        if strain > peak:
+            r.fail(f"strain {strain:g} is beyond cycle {cycle}'s peak strain {peak:g}")
+    else:
+        dwell = _dwell_at_peak(cycle_steps)
+        if dwell is None:
+            r.fail(f"`stress_at_dwell_end` needs a dwell right after the compress of cycle {cycle}")
+    r.done()
+    return ValueSpec(name, quantity, cycle, strain, "loading", unit, description, dwell)
+
+
+def _dwell_at_peak(cycle_steps: list[Step]) -> float | None:
+    for a, b in zip(cycle_steps, cycle_steps[1:]):
+        if a.action == "compress" and b.action == "dwell":
+            return b.duration_s
+    return None
+
+
+# --------------------------------------------------------------------------- results
+
+@dataclass(frozen=True)
+class CycleSpan:
+    """Sample index ranges of one cycle, aligned on the method's plan ([start, stop))."""
+
+    cycle: int
+    loading: tuple[int, int]
+    hold: tuple[int, int]          # dwell at peak (empty when there is none)
+    unloading: tuple[int, int]
+    peak_mm: float
+    complete: bool                 # the unloading reached displacement 0
+
+
+def cycle_spans(method: Method, run: RunData) -> list[CycleSpan]:
+    """Split a run made with `method` into its cycles, using the method's targets.
+
+    The run follows a known plan, so boundaries are where the displacement reaches
+    each programmed target (within a tolerance for the contact zero and noise),
+    not generic turning points. Cycles the run did not reach are left out; an
+    aborted cycle is returned with `complete=False`.
+    """
+    height = run.specimen.height_mm
+    x = run.displacement_mm
+    n = len(x)
+    spans: list[CycleSpan] = []
+    if n == 0 or not height:
+        return spans
+    i = 0
+    for cycle in range(1, method.n_cycles + 1):
+        steps = [s for s in method.steps if s.cycle == cycle]
+        peak = max(s.strain for s in steps if s.action == "compress") * height
+        tol = max(0.02, 0.002 * peak)
+        # loading: from the last sample near zero before the rise to the first at the peak
+        reached = np.flatnonzero(x[i:] >= peak - tol)
+        if len(reached) == 0:
+            break
+        top = i + int(reached[0])
+        start = i + _last_index_at_or_below(x[i:top + 1], tol)
+        # hold: samples staying at the peak; unloading: until back near zero
+        below = np.flatnonzero(x[top:] < peak - tol)
+        hold_end = top + int(below[0]) if len(below) else n
+        back = np.flatnonzero(x[hold_end:] <= tol)
+        end = hold_end + int(back[0]) + 1 if len(back) else n
+        spans.append(CycleSpan(cycle, (start, top + 1), (top + 1, hold_end),
+                               (max(hold_end - 1, top), end), float(x[top]), bool(len(back))))
+        i = end
+        if i >= n:
+            break
+    return spans
+
+
+def _last_index_at_or_below(x: np.ndarray, level: float) -> int:
+    idx = np.flatnonzero(x <= level)
+    return int(idx[-1]) if len(idx) else 0
+
+
+def _energy_J(x: np.ndarray, f: np.ndarray) -> float:
+    """Work of the force over the path, J (N.mm / 1000); positive for a loading path."""
+    if len(x) < 2:
+        return 0.0
+    return float(np.trapezoid(f, x) / 1000.0)
+
+
+def compute_results(method: Method, run: RunData) -> MethodResults:
+    """The method's results from a run (values that cannot be computed say why)."""
+    out = MethodResults()
+    height = run.specimen.height_mm
+    if not height:
+        note = "specimen height unknown"
+        out.values += [ResultValue(v.name, None, v.unit, v.cycle, v.description, note) for v in method.values]
+        return out
+    x, f = run.displacement_mm, run.force_N
+    spans = cycle_spans(method, run)
+    for span in spans:
+        lo, hi = span.loading
+        ulo, uhi = span.unloading
+        loading_J = _energy_J(x[lo:hi], f[lo:hi])
+        unloading_J = -_energy_J(x[ulo:uhi], f[ulo:uhi])
+        note = "" if span.complete else "cycle incomplete"
+        if "energy" in method.per_cycle:
+            out.values.append(ResultValue("loading_energy", loading_J, "J", span.cycle,
+                                          "work done on the specimen while loading"))
+            out.values.append(ResultValue("unloading_energy", unloading_J if span.complete else None, "J",
+                                          span.cycle, "work returned by the specimen while unloading", note))
+        if "hysteresis_loss" in method.per_cycle:
+            value = None
+            if span.complete and loading_J > 0:
+                value = 100.0 * (loading_J - unloading_J) / loading_J
+            out.values.append(ResultValue("hysteresis_loss", value, "%", span.cycle,
+                                          "(loading - unloading energy) / loading energy",
+                                          note or ("" if value is not None else "no loading energy")))
+        if "residual_strain" in method.per_cycle:
+            value = _residual_strain(x[ulo:uhi], f[ulo:uhi], method.contact.preload_N, height) \
+                if span.complete else None
+            out.values.append(ResultValue("residual_strain", value, "", span.cycle,
+                                          "displacement where the plate loses contact on unloading / height", note))
+    for spec in method.values:
+        out.values.append(_value(spec, spans, run))
+    return out
+
+
+def _residual_strain(x: np.ndarray, f: np.ndarray, contact_N: float, height_mm: float) -> float:
+    """Displacement where the unloading force falls to the contact threshold, / height.
+
+    0 when the foam keeps touching the plate down to displacement 0.
+    """
+    above = np.flatnonzero(f > contact_N)
+    if len(above) == 0:
+        return float(x[0] / height_mm) if len(x) else 0.0
+    k = int(above[-1])
+    if k + 1 >= len(x):
+        return 0.0
+    # linear interpolation between the last sample in contact and the next one
+    f0, f1, x0, x1 = f[k], f[k + 1], x[k], x[k + 1]
+    xc = x0 + (contact_N - f0) * (x1 - x0) / (f1 - f0) if f1 != f0 else x1
+    return float(max(xc, 0.0) / height_mm)
+
+
+def _value(spec: ValueSpec, spans: list[CycleSpan], run: RunData) -> ResultValue:
+    def missing(note: str) -> ResultValue:
+        return ResultValue(spec.name, None, spec.unit, spec.cycle, spec.description, note)
+
+    area = run.specimen.area_mm2
+    if not area:
+        return missing("specimen width and depth unknown")
+    span = next((s for s in spans if s.cycle == spec.cycle), None)
+    if span is None:
+        return missing(f"the run did not reach cycle {spec.cycle}")
+    x, f = run.displacement_mm, run.force_N
+    if spec.quantity == "stress_at_strain":
+        lo, hi = span.loading
+        xs, fs = x[lo:hi], f[lo:hi]
+        target = spec.strain * run.specimen.height_mm
+        if len(xs) < 2 or target > xs.max():
+            return missing(f"cycle {spec.cycle} loading did not reach {spec.strain:.0%}")
+        # loading is monotone up to noise; np.interp needs increasing x
+        order = np.argsort(xs, kind="stable")
+        force = float(np.interp(target, xs[order], fs[order]))
+    else:
+        lo, hi = span.hold
+        held_s = float(run.time_s[hi - 1] - run.time_s[lo - 1]) if hi > lo else 0.0
+        # the standard reads the force after the full dwell (ASTM D3574-C: 60 +- 3 s)
+        if held_s < 0.95 * spec.dwell_s:
+            return missing(f"cycle {spec.cycle} held its peak {held_s:.1f} s of the {spec.dwell_s:g} s dwell")
+        force = float(f[hi - 1])
+    return ResultValue(spec.name, force / area * 1000.0, spec.unit, spec.cycle, spec.description)
