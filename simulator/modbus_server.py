@@ -16,7 +16,12 @@ answer exception 0x02 (SimData ranges make pymodbus do that), writes to measured
 registers 0x02 too (read-only), bad values 0x03.
 
 Wire faults come from ``machine.faults`` (simulator.faults.FaultPlan), asked once
-per request: drop, timeout, crc, exception, garbage.
+per request: drop (connection closed; a pty is hung up and replaced behind the same
+path), timeout (request lost: no reply, not done), exception (0x04 slave device
+failure, not done), crc (done; RTU reply with a flipped bit so its CRC fails, TCP
+reply with a non-zero MBAP protocol id), garbage (done; the reply replaced by
+random bytes). Requests to a unit id that is not on the line get no reply on RTU
+and exception 0x0B (gateway target failed to respond) on TCP.
 """
 
 from __future__ import annotations
@@ -352,7 +357,7 @@ class _SimRequestHandler(ServerRequestHandler):
 
     def __init__(self, owner, *args):
         super().__init__(owner, *args)
-        self._corrupt_next = False
+        self._mangle_next: str | None = None
 
     async def handle_request(self):
         pdu = self.last_pdu
@@ -374,10 +379,7 @@ class _SimRequestHandler(ServerRequestHandler):
         if fault == "exception":  # the device heard it and could not do it
             self._reply_exception(pdu, ExcCodes.DEVICE_FAILURE)
             return
-        if fault == "garbage":
-            self.send(garbage_bytes(sim.rng), self.last_addr)
-            return
-        self._corrupt_next = fault == "crc"
+        self._mangle_next = fault  # crc / garbage: done, but the reply is hit on the way back
         await super().handle_request()
 
     def _reply_exception(self, pdu, code: ExcCodes) -> None:
@@ -386,9 +388,11 @@ class _SimRequestHandler(ServerRequestHandler):
 
     def pdu_send(self, pdu, addr=None) -> None:
         packet = self.framer.buildFrame(pdu)
-        if self._corrupt_next:
-            self._corrupt_next = False
+        mangle, self._mangle_next = self._mangle_next, None
+        if mangle == "crc":
             packet = corrupt_frame(packet, self.server.sim.framer, self.server.sim.rng)
+        elif mangle == "garbage":
+            packet = garbage_bytes(self.server.sim.rng, len(packet))
         self.send(packet, addr)
 
 
