@@ -107,6 +107,15 @@ class Crosshead(abc.ABC):
         """Soft limits in mm (upper = smallest position, lower = largest position)."""
 
 
+@dataclass(frozen=True)
+class MachineSample:
+    """Force and position taken together (one request where the device allows it)."""
+
+    force_N: float
+    position_mm: float
+    load_cell_status: LoadCellStatus | None = None   # None: the device reports none with the sample
+
+
 class Machine(abc.ABC):
     """A load cell and a crosshead behind one connection (or two)."""
 
@@ -114,7 +123,13 @@ class Machine(abc.ABC):
     crosshead: Crosshead
 
     @abc.abstractmethod
-    def connect(self) -> None: ...
+    def connect(self) -> None:
+        """Open the link(s) and configure the devices; calling it again is harmless."""
+
+    def read_sample(self) -> MachineSample:
+        """Force and position for one sample; drivers override it when one request gives both."""
+        reading = self.load_cell.read()
+        return MachineSample(reading.force_N, self.crosshead.read_position(), reading.status)
 
     @abc.abstractmethod
     def close(self) -> None:

@@ -1,0 +1,273 @@
+"""Machine profiles: load a profile TOML, merge its wire contract, validate, open the machine.
+
+A profile (configs/machines/<name>.toml) names the protocol, the connection, the
+devices' settings and the safety limits; it references the wire contract by file
+name (`register_map = "_modbus_map.toml"` or `command_set = "_mark10_commands.toml"`).
+
+`load_profile()` returns the profile as a plain dict, exactly as in the TOML, plus:
+  - "wire":   the referenced register map / command set, loaded (a dict);
+  - "source": the path of the profile file (str).
+The original `register_map` / `command_set` keys keep their file names.
+
+Errors in a profile raise ProfileError (a ValueError) with a one-line message naming
+the file and the key; `drivers` knows nothing of `foamlab`, the caller turns it into
+its own user error.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from .base import Machine
+
+#: The repository's machine profiles (used when no directory is given).
+MACHINES_DIR = Path(__file__).resolve().parent.parent / "configs" / "machines"
+
+PROTOCOLS = ("modbus", "ascii")
+TRANSPORTS = ("tcp", "rtu")
+WORD_ORDERS = ("big", "little")
+REGISTER_TYPES = ("uint16", "int16", "uint32", "int32", "float32")
+PARITIES = ("N", "E", "O", "M", "S")
+
+#: Connection keys `open_machine(**overrides)` accepts, with their expected type.
+CONNECTION_OVERRIDES = {
+    "host": str, "port": int, "port_url": str, "transport": str, "baudrate": int,
+    "parity": str, "stopbits": int, "timeout_s": float, "retries": int,
+}
+#: Top-level profile keys `open_machine(**overrides)` accepts.
+PROFILE_OVERRIDES = {"word_order": str}
+
+
+class ProfileError(ValueError):
+    """A machine profile (or its register map / command set) is missing or invalid."""
+
+
+# --------------------------------------------------------------------------- loading
+
+def _machines_dir(configs_dir: str | Path | None) -> Path:
+    if configs_dir is None:
+        return MACHINES_DIR
+    configs_dir = Path(configs_dir)
+    return configs_dir / "machines" if (configs_dir / "machines").is_dir() else configs_dir
+
+
+def available_profiles(configs_dir: str | Path | None = None) -> list[str]:
+    """Profile names in the machines directory (files starting with `_` are wire contracts)."""
+    folder = _machines_dir(configs_dir)
+    return sorted(p.stem for p in folder.glob("*.toml") if not p.name.startswith("_"))
+
+
+def _resolve(name_or_path: str | Path, configs_dir: str | Path | None) -> Path:
+    candidate = Path(name_or_path)
+    looks_like_path = isinstance(name_or_path, Path) or candidate.suffix == ".toml" or len(candidate.parts) > 1
+    if looks_like_path:
+        if candidate.is_file():
+            return candidate
+        folder_candidate = _machines_dir(configs_dir) / candidate.name
+        if len(candidate.parts) == 1 and folder_candidate.is_file():
+            return folder_candidate
+        raise ProfileError(f"machine profile file not found: {candidate}")
+    named = _machines_dir(configs_dir) / f"{name_or_path}.toml"
+    if named.is_file():
+        return named
+    names = ", ".join(available_profiles(configs_dir)) or "none"
+    raise ProfileError(f"unknown machine profile {name_or_path!r} (available: {names})")
+
+
+def _read_toml(path: Path) -> dict:
+    try:
+        with path.open("rb") as f:
+            return tomllib.load(f)
+    except OSError as exc:
+        raise ProfileError(f"cannot read {path}: {exc.strerror or exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ProfileError(f"{path.name}: not valid TOML: {exc}") from None
+
+
+def load_profile(name_or_path: str | Path, configs_dir: str | Path | None = None) -> dict:
+    """Load, merge and validate a machine profile.
+
+    `name_or_path` is a bare profile name ("sim-modbus-tcp", looked up in
+    `configs_dir` — a configs folder holding `machines/`, or the machines folder
+    itself — default the repository's configs/machines) or a path to a .toml file.
+    """
+    path = _resolve(name_or_path, configs_dir)
+    profile = _read_toml(path)
+    profile["source"] = str(path)
+    protocol = profile.get("protocol")
+    if protocol not in PROTOCOLS:
+        raise ProfileError(f"{path.name}: protocol must be one of {', '.join(PROTOCOLS)}, got {protocol!r}")
+    wire_key = "register_map" if protocol == "modbus" else "command_set"
+    wire_name = profile.get(wire_key)
+    if not isinstance(wire_name, str) or not wire_name:
+        raise ProfileError(f"{path.name}: protocol {protocol!r} needs `{wire_key} = \"FILE.toml\"`")
+    wire_path = Path(wire_name)
+    if not wire_path.is_absolute():
+        wire_path = path.parent / wire_path
+    if not wire_path.is_file():
+        raise ProfileError(f"{path.name}: {wire_key} file not found: {wire_path}")
+    profile["wire"] = _read_toml(wire_path)
+    validate_profile(profile)
+    return profile
+
+
+# --------------------------------------------------------------------------- validation
+
+class _Checker:
+    """Small helper so every message names the file and the key."""
+
+    def __init__(self, profile: dict):
+        self.file = Path(profile.get("source", "<profile>")).name
+
+    def fail(self, where: str, msg: str):
+        raise ProfileError(f"{self.file}: {where + ' ' if where else ''}{msg}")
+
+    def table(self, parent: dict, key: str, where: str) -> dict:
+        value = parent.get(key)
+        if not isinstance(value, dict):
+            self.fail(where, f"needs a [{key}] table")
+        return value
+
+    def number(self, table: dict, key: str, where: str, *, positive=False, optional=False, integer=False):
+        value = table.get(key)
+        if value is None and optional:
+            return None
+        ok_type = isinstance(value, int) if integer else isinstance(value, (int, float))
+        if isinstance(value, bool) or not ok_type or not math.isfinite(value):
+            kind = "an integer" if integer else "a number"
+            self.fail(where, f"`{key}` must be {kind}, got {value!r}")
+        if positive and value <= 0:
+            self.fail(where, f"`{key}` must be > 0, got {value!r}")
+        return value
+
+    def choice(self, table: dict, key: str, where: str, choices) -> str:
+        value = table.get(key)
+        if value not in choices:
+            self.fail(where, f"`{key}` must be one of {', '.join(map(str, choices))}, got {value!r}")
+        return value
+
+
+def validate_profile(profile: dict) -> None:
+    """Raise ProfileError on the first problem; return None when the profile is usable."""
+    c = _Checker(profile)
+    connection = c.table(profile, "connection", "")
+    c.number(connection, "timeout_s", "[connection]", positive=True)
+    retries = c.number(connection, "retries", "[connection]", integer=True)
+    if retries < 0:
+        c.fail("[connection]", f"`retries` must be >= 0, got {retries}")
+    load_cell = c.table(profile, "load_cell", "")
+    capacity = c.number(load_cell, "capacity_N", "[load_cell]", positive=True)
+    sign = load_cell.get("force_sign", 1)
+    if sign not in (1, -1):
+        c.fail("[load_cell]", f"`force_sign` must be 1 or -1, got {sign!r}")
+    crosshead = c.table(profile, "crosshead", "")
+    c.number(crosshead, "max_speed_mm_min", "[crosshead]", positive=True)
+    c.number(crosshead, "acceleration_mm_s2", "[crosshead]", positive=True, optional=True)
+    limits = c.table(profile, "limits", "")
+    force_limit = c.number(limits, "force_N", "[limits]", positive=True)
+    if force_limit > capacity:
+        c.fail("[limits]", f"`force_N` ({force_limit}) exceeds the load-cell capacity ({capacity})")
+    upper = c.number(limits, "travel_upper_mm", "[limits]")
+    lower = c.number(limits, "travel_lower_mm", "[limits]")
+    if not upper < lower:
+        c.fail("[limits]", f"`travel_upper_mm` ({upper}) must be smaller than `travel_lower_mm` ({lower}); positions grow downward")
+    c.number(limits, "max_speed_mm_min", "[limits]", positive=True)
+
+    if profile["protocol"] == "modbus":
+        _validate_modbus(profile, c)
+    else:
+        _validate_ascii(profile, c)
+
+
+def _validate_modbus(profile: dict, c: _Checker) -> None:
+    c.choice(profile, "word_order", "", WORD_ORDERS)
+    connection = profile["connection"]
+    transport = c.choice(connection, "transport", "[connection]", TRANSPORTS)
+    if transport == "tcp":
+        if not isinstance(connection.get("host"), str) or not connection["host"]:
+            c.fail("[connection]", "`host` must be a host name or address")
+        port = c.number(connection, "port", "[connection]", integer=True)
+        if not 0 < port < 65536:
+            c.fail("[connection]", f"`port` must be 1..65535, got {port}")
+    else:
+        if not isinstance(connection.get("port_url"), str) or not connection["port_url"]:
+            c.fail("[connection]", "`port_url` must be a pyserial URL or device path")
+        c.number(connection, "baudrate", "[connection]", integer=True, positive=True)
+        if connection.get("parity", "N") not in PARITIES:
+            c.fail("[connection]", f"`parity` must be one of {', '.join(PARITIES)}")
+        if connection.get("stopbits", 1) not in (1, 2):
+            c.fail("[connection]", "`stopbits` must be 1 or 2")
+    for device in ("load_cell", "crosshead"):
+        unit = c.number(profile[device], "unit_id", f"[{device}]", integer=True)
+        if not 1 <= unit <= 247:
+            c.fail(f"[{device}]", f"`unit_id` must be 1..247, got {unit}")
+    watchdog = c.number(profile["crosshead"], "watchdog_ms", "[crosshead]", integer=True, optional=True)
+    if watchdog is not None and not 0 <= watchdog <= 0xFFFF:
+        c.fail("[crosshead]", f"`watchdog_ms` must be 0..65535, got {watchdog}")
+    # The register map itself: building it checks every entry (drivers.modbus owns the format).
+    from .modbus import RegisterMap  # local import: modbus imports this module
+    for device in ("load_cell", "crosshead"):
+        try:
+            RegisterMap.from_toml(profile["wire"], device)
+        except ValueError as exc:
+            raise ProfileError(f"{profile['register_map']}: {exc}") from None
+
+
+def _validate_ascii(profile: dict, c: _Checker) -> None:
+    connection = profile["connection"]
+    if not isinstance(connection.get("port_url"), str) or not connection["port_url"]:
+        c.fail("[connection]", "`port_url` must be a pyserial URL or device path")
+    c.number(connection, "baudrate", "[connection]", integer=True, positive=True)
+    from .ascii import CommandSet  # local import: ascii imports this module
+    try:
+        CommandSet.from_toml(profile["wire"])
+    except ValueError as exc:
+        raise ProfileError(f"{profile['command_set']}: {exc}") from None
+
+
+# --------------------------------------------------------------------------- opening
+
+def apply_overrides(profile: dict, **overrides: Any) -> dict:
+    """A validated copy of `profile` with connection settings replaced (None values are ignored)."""
+    result = copy.deepcopy(profile)
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        if key in CONNECTION_OVERRIDES:
+            kind = CONNECTION_OVERRIDES[key]
+            try:
+                value = kind(value)
+            except (TypeError, ValueError):
+                raise ProfileError(f"override {key}={value!r}: expected {kind.__name__}") from None
+            result["connection"][key] = value
+        elif key in PROFILE_OVERRIDES:
+            result[key] = value
+        else:
+            known = ", ".join(sorted({*CONNECTION_OVERRIDES, *PROFILE_OVERRIDES}))
+            raise ProfileError(f"unknown machine override {key!r} (known: {known})")
+    validate_profile(result)
+    return result
+
+
+def open_machine(profile: dict, *, connect: bool = True, **overrides: Any) -> Machine:
+    """Build the machine a profile describes and (by default) connect it.
+
+    `overrides` replace connection settings: host, port, port_url, transport,
+    baudrate, parity, stopbits, timeout_s, retries, and word_order. Use it as a
+    context manager to be sure it is closed: `with open_machine(p) as m: ...`
+    (connect() is idempotent).
+    """
+    profile = apply_overrides(profile, **overrides)
+    if profile["protocol"] == "modbus":
+        from .modbus import ModbusMachine
+        machine: Machine = ModbusMachine(profile)
+    else:
+        from .ascii import AsciiMachine
+        machine = AsciiMachine(profile)
+    if connect:
+        machine.connect()
+    return machine
