@@ -239,11 +239,13 @@ class AsciiCrosshead(Crosshead):
 
     def status(self) -> CrossheadStatus:
         moving, upper, lower, fault, estop, _overload = (g == "1" for g in self.line.query("status").groups())
-        # A stop at a limit that move_to() set is "in position", not a travel-limit event.
-        at_move_upper = upper and self._move_direction < 0
-        at_move_lower = lower and self._move_direction > 0
-        return CrossheadStatus(moving=moving, in_position=not moving and (at_move_upper or at_move_lower),
-                               upper_limit=upper and not at_move_upper, lower_limit=lower and not at_move_lower,
+        # The stand flags U/L at whatever limit is set; a limit move_to() set is a target,
+        # so only a flag at the safety limit is a travel-limit event, and a flag in the
+        # direction of the last move_to() means "arrived".
+        arrived = (upper and self._move_direction < 0) or (lower and self._move_direction > 0)
+        return CrossheadStatus(moving=moving, in_position=not moving and arrived,
+                               upper_limit=upper and self._stand_upper_mm == self.safety_upper_mm,
+                               lower_limit=lower and self._stand_lower_mm == self.safety_lower_mm,
                                fault=fault or estop, emergency_stopped=estop)
 
     def move_to(self, target_mm: float, speed_mm_min: float) -> None:

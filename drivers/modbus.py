@@ -297,6 +297,19 @@ class ModbusLink:
     def read_block(self, unit: int, block: Block) -> dict[str, int | float]:
         return block.decode(self._read_words(unit, block.address, block.count, block.label()), self.word_order)
 
+    def write_together(self, unit: int, values: Sequence[tuple[Register, int | float]]) -> None:
+        """Write several registers; one request (atomic on the device) when they are contiguous."""
+        ordered = sorted(values, key=lambda rv: rv[0].address)
+        contiguous = all(a.address + a.count == b.address for (a, _), (b, _) in zip(ordered, ordered[1:]))
+        if not contiguous:
+            for register, value in values:
+                self.write(unit, register, value)
+            return
+        words = [w for register, value in ordered for w in register.encode(value, self.word_order)]
+        first = ordered[0][0]
+        action = "write of " + ", ".join(f"{r.label()} = {v}" for r, v in ordered)
+        self._execute(action, unit, lambda: self._client.write_registers(first.address, words, device_id=unit))
+
     def write(self, unit: int, register: Register, value: int | float) -> None:
         words = register.encode(value, self.word_order)
         action = f"write of {register.label()} = {value}"
@@ -429,9 +442,10 @@ class ModbusCrosshead(Crosshead):
     def set_travel_limits(self, upper_mm: float, lower_mm: float) -> None:
         if not upper_mm < lower_mm:
             raise ValueError(f"upper limit {upper_mm} mm must be above (smaller than) lower limit {lower_mm} mm")
-        with self.link.lock:
-            self._write("upper_limit", round(upper_mm * self.UM_PER_MM))
-            self._write("lower_limit", round(lower_mm * self.UM_PER_MM))
+        # Together: a drive that checks upper < lower on each write could refuse either half alone.
+        self.link.write_together(self.unit, [
+            (self.map.registers["upper_limit"], round(upper_mm * self.UM_PER_MM)),
+            (self.map.registers["lower_limit"], round(lower_mm * self.UM_PER_MM))])
 
 
 class ModbusMachine(Machine):

@@ -53,7 +53,7 @@ class RecordedPeer:
         self.unexpected = b""
         self._stop = threading.Event()
         self._listener = socket.create_server(("127.0.0.1", 0))
-        self._listener.settimeout(read_timeout_s)
+        self._listener.settimeout(0.05)   # poll, so a peer nobody connects to ends promptly
         self.port = self._listener.getsockname()[1]
         self.url = f"socket://127.0.0.1:{self.port}"
         self._thread = threading.Thread(target=self._run, name="recorded-peer", daemon=True)
@@ -82,12 +82,16 @@ class RecordedPeer:
         return data
 
     def _run(self) -> None:
-        try:
-            conn, _ = self._listener.accept()
-        except OSError:
-            if self.exchanges:
-                self.failures.append("no client connected")
-            return
+        deadline = time.monotonic() + self.read_timeout_s
+        while True:
+            try:
+                conn, _ = self._listener.accept()
+                break
+            except socket.timeout:
+                if self._stop.is_set() or time.monotonic() > deadline:
+                    if self.exchanges:
+                        self.failures.append("no client connected")
+                    return
         with conn:
             for index, (request, reply) in enumerate(self.exchanges):
                 got = self._read_exactly(conn, len(request))

@@ -213,8 +213,7 @@ def test_connect_configures_acceleration_watchdog_and_travel_limits():
     frame = Frames("tcp")
     exchanges = [frame(CROSSHEAD, *write_multiple(0x6205, [0, 50000])),          # 50 mm/s^2 in um/s^2
                  frame(CROSSHEAD, write_single(0x6020, 2000), write_single(0x6020, 2000)),
-                 frame(CROSSHEAD, *write_multiple(0x6010, words_of("i", -20000, "big"))),
-                 frame(CROSSHEAD, *write_multiple(0x6012, words_of("i", 70000, "big")))]
+                 frame(CROSSHEAD, *write_multiple(0x6010, words_of("i", -20000, "big") + words_of("i", 70000, "big")))]
     with RecordedPeer(exchanges) as peer:
         machine = open_machine(load_profile("sim-modbus-tcp"), port=peer.port, timeout_s=0.5)
         machine.connect()            # idempotent: nothing more is sent
