@@ -1,0 +1,611 @@
+"""What the base model leaves out: the diagnosis catalogue's effects, defined once.
+
+Each effect is a small class with a parameter vector (names, units, bounds), a
+docstring on its physics, and two forms that agree (tests/test_effects.py):
+
+- batch:  ``EffectChain([...]).measured_force(model, t, x)`` (or ``effect.measured_force``)
+  maps a displacement history to the force a load cell would read, vectorised and
+  smooth in the effect's parameters, so diagnosis can fit an extended model with
+  scipy.optimize.least_squares;
+- online: ``EffectChain([...]).online()`` gives the stepper the simulator uses inside
+  SimulatedMachine, one physics step at a time.
+
+Where an effect acts (the order of the chain):
+  1. input     machine_compliance      the specimen sees the crosshead minus the frame's deflection
+  2. specimen  cycle_softening, damping_cycle_change, rate_dependence (scale model components),
+               direction_friction (adds a force while in contact)
+  3. contact   the plate cannot pull: max(total, 0), and 0 where the specimen is not compressed
+  4. sensor    channel_lag (force channel late), force_zero_drift (load-cell zero drifts)
+
+Conventions: x is the crosshead compression in mm (positive into the specimen), t in
+s, velocity in mm/s (positive while compressing), forces in N (compression positive).
+``EFFECTS`` maps each catalogue name to its class; ``make_effects({"name": magnitude})``
+builds a chain from the simulator's ``--effect NAME=MAG`` options.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any, Callable, ClassVar, Iterable, Mapping
+
+import numpy as np
+from scipy.optimize import brentq
+from scipy.signal import savgol_filter
+
+from foamlab.model.history import HistoryLabels
+from foamlab.model.params import ModelParameters
+from foamlab.model.response import ModelResponse, evaluate
+
+ModelFn = Callable[[np.ndarray, np.ndarray, "HistoryLabels | None"], ModelResponse]
+
+
+@dataclass(frozen=True)
+class EffectParameter:
+    name: str
+    unit: str
+    typical: float        # a clearly visible value on the paper's protocol (default magnitude)
+    lower: float          # bounds for fitting
+    upper: float
+    fitted: bool = True   # False: a fixed setting (reference speed, smoothing width)
+    doc: str = ""
+
+
+@dataclass
+class Components:
+    """Model components plus what the effects need; arrays (batch) or floats (online)."""
+
+    elastic: Any
+    damping: Any
+    residual: Any
+    extra: Any            # forces added by effects (friction, ...)
+    cycle: Any            # 1-based cycle of the model's labels (0 before the first loading)
+    velocity: Any         # crosshead velocity, mm/s, positive compressing
+
+    @property
+    def total(self):
+        return self.elastic + self.damping + self.residual + self.extra
+
+
+# ----------------------------------------------------------------------------- base class
+
+class Effect:
+    """One hidden effect. Construct with the magnitude (first parameter) and/or named values."""
+
+    name: ClassVar[str]
+    stage: ClassVar[str]                    # "input" | "specimen" | "sensor"
+    parameters: ClassVar[tuple[EffectParameter, ...]]
+
+    def __init__(self, magnitude: float | None = None, **values: float) -> None:
+        known = {p.name for p in self.parameters}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f"{self.name}: unknown parameter(s) {', '.join(sorted(unknown))} "
+                             f"(known: {', '.join(sorted(known))})")
+        v = {p.name: float(p.typical) for p in self.parameters}
+        if magnitude is not None:
+            v[self.parameters[0].name] = float(magnitude)
+        for k, val in values.items():
+            v[k] = float(val)
+        for k, val in v.items():
+            if not math.isfinite(val):
+                raise ValueError(f"{self.name}: parameter {k} must be a finite number, got {val}")
+        self.values: dict[str, float] = v
+
+    def __repr__(self) -> str:
+        inner = ", ".join(f"{k}={v:g}" for k, v in self.values.items())
+        return f"{type(self).__name__}({inner})"
+
+    @property
+    def magnitude(self) -> float:
+        return self.values[self.parameters[0].name]
+
+    # fitting interface: only the fitted parameters form the vector
+    @classmethod
+    def fitted_parameters(cls) -> tuple[EffectParameter, ...]:
+        return tuple(p for p in cls.parameters if p.fitted)
+
+    def vector(self) -> np.ndarray:
+        return np.array([self.values[p.name] for p in self.fitted_parameters()])
+
+    def with_vector(self, v) -> "Effect":
+        new = type(self)(**self.values)
+        for p, val in zip(self.fitted_parameters(), np.atleast_1d(v)):
+            new.values[p.name] = float(val)
+        return new
+
+    @classmethod
+    def bounds(cls) -> tuple[np.ndarray, np.ndarray]:
+        ps = cls.fitted_parameters()
+        return np.array([p.lower for p in ps]), np.array([p.upper for p in ps])
+
+    # stage hooks (identity by default); the same code serves arrays and floats
+    def modify(self, c: Components) -> Components:
+        return c
+
+    def sensor_batch(self, t: np.ndarray, force: np.ndarray) -> np.ndarray:
+        return force
+
+    def sensor_online(self) -> "SensorStepper | None":
+        return None
+
+    # convenience
+    def measured_force(self, model, t, x, **kw) -> np.ndarray:
+        return EffectChain([self]).measured_force(model, t, x, **kw)
+
+
+class SensorStepper:
+    """Online form of a sensor-stage effect."""
+
+    def step(self, t: float, force: float) -> float:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+# ----------------------------------------------------------------------------- the catalogue
+
+class CycleSoftening(Effect):
+    """Elastic skeleton softens from cycle to cycle (Mullins-like damage of cell struts).
+
+    E_c(x) = E(x) (1 - s)^(c - 1) for cycle c: cycle 1 is the base model, each later
+    cycle loses the fraction s of the previous cycle's elastic force. The base model's
+    elastic part is cycle-independent (paper, assumption c), so this shows up as
+    later cycles lying below the model on loading and unloading alike, growing with x.
+    """
+
+    name = "cycle_softening"
+    stage = "specimen"
+    parameters = (EffectParameter("s", "1/cycle", 0.05, -0.5, 0.9,
+                                  doc="fraction of the elastic force lost per cycle"),)
+
+    def modify(self, c: Components) -> Components:
+        n = np.maximum(c.cycle, 1) - 1
+        return replace(c, elastic=c.elastic * (1.0 - self.values["s"]) ** n)
+
+
+class DampingCycleChange(Effect):
+    """Damping force changes with the cycle (air paths open or clog as cells break).
+
+    V_D,c = V_D (1 + d (c - 1)): the paper assumes one damping force for every
+    loading half-cycle (assumption b); d != 0 makes later loadings differ from the
+    first by a rate-dependent (loading-only) amount.
+    """
+
+    name = "damping_cycle_change"
+    stage = "specimen"
+    parameters = (EffectParameter("d", "1/cycle", 0.2, -0.45, 2.0,
+                                  doc="relative change of the damping force per cycle"),)
+
+    def modify(self, c: Components) -> Components:
+        n = np.maximum(c.cycle, 1) - 1
+        return replace(c, damping=c.damping * (1.0 + self.values["d"] * n))
+
+
+class RateDependence(Effect):
+    """Damping depends on the crosshead rate beyond what the model's kernel gives.
+
+    V_D -> V_D (|v| / v_ref)^m. At the reference speed v_ref (the speed the base model
+    was identified at) the factor is 1, so one run at v_ref cannot show it, and one
+    run at any single speed cannot tell m from the damping amplitude a_i: m needs runs
+    at two or more speeds (the ratio of their damping forces is (v1/v2)^m times the
+    base model's own ratio). v is the crosshead rate, not a property of the data's
+    noise: pass the commanded velocity if you have it.
+    """
+
+    name = "rate_dependence"
+    stage = "specimen"
+    parameters = (
+        EffectParameter("m", "-", 0.5, -1.0, 2.0, doc="exponent of the extra rate dependence"),
+        EffectParameter("v_ref_mm_min", "mm/min", 23.6, 1e-3, 1e4, fitted=False,
+                        doc="speed at which the base model holds (its identification run)"),
+    )
+
+    def modify(self, c: Components) -> Components:
+        v_ref = self.values["v_ref_mm_min"] / 60.0
+        # floor |v| smoothly so a pause does not send the factor to 0 or infinity
+        speed = np.sqrt(np.square(c.velocity) + (1e-3 * v_ref) ** 2)
+        return replace(c, damping=c.damping * (speed / v_ref) ** self.values["m"])
+
+
+class DirectionFriction(Effect):
+    """A force that opposes the motion, the same size both ways (platen/guide friction).
+
+    F += f tanh(v / v_s) while the plate is in contact: it raises the loading branch
+    and lowers the unloading branch by f each, i.e. extra hysteresis of constant width
+    2f, independent of x and of the rate (unlike damping). tanh with a small v_s keeps
+    it smooth through the turning points.
+    """
+
+    name = "direction_friction"
+    stage = "specimen"
+    parameters = (
+        EffectParameter("f_N", "N", 2.0, -50.0, 50.0, doc="friction force"),
+        EffectParameter("v_smooth_mm_s", "mm/s", 0.01, 1e-6, 10.0, fitted=False,
+                        doc="speed over which the friction reverses (tanh width)"),
+    )
+
+    def modify(self, c: Components) -> Components:
+        f = self.values["f_N"] * np.tanh(c.velocity / self.values["v_smooth_mm_s"])
+        return replace(c, extra=c.extra + f)
+
+
+class MachineCompliance(Effect):
+    """The frame and load cell deflect under load: the specimen sees less than the crosshead.
+
+    x_specimen = x_crosshead - C F, with F the measured force. Stiff foam regions
+    (densification) then look softer than the model and the loading peak is rounded.
+    The loop is closed with the force of the previous sample (the frame follows the
+    load one sample late), which keeps it causal and well posed at the model's
+    damping switch; within each crosshead half-cycle the specimen displacement is kept
+    monotone (the frame springing back when damping vanishes at a turning point does
+    not re-load the foam). Batch: a fixed-point iteration on the same recursion, or a
+    single pass when the measured force is given.
+    """
+
+    name = "machine_compliance"
+    stage = "input"
+    parameters = (EffectParameter("c_mm_per_N", "mm/N", 0.005, 0.0, 0.1,
+                                  doc="frame + load-cell compliance"),)
+
+
+class ChannelLag(Effect):
+    """The force channel is late relative to displacement (filters, sample skew).
+
+    F_measured(t) = F(t - tau). On a hysteresis loop it looks like extra hysteresis
+    that grows with the slope dF/dt, so it is largest where the foam is stiff, and
+    it is the same on loading and unloading (unlike damping, loading only).
+    Batch: linear interpolation (any tau, also negative = force early); online: a
+    delay line (tau >= 0).
+    """
+
+    name = "channel_lag"
+    stage = "sensor"
+    parameters = (EffectParameter("tau_s", "s", 0.5, -5.0, 5.0, doc="delay of the force channel"),)
+
+    def sensor_batch(self, t, force):
+        return np.interp(np.asarray(t) - self.values["tau_s"], t, force)
+
+    def sensor_online(self) -> SensorStepper:
+        return _DelayLine(self.values["tau_s"])
+
+
+class ForceZeroDrift(Effect):
+    """The load cell's zero drifts linearly in time (temperature, creep of the bridge).
+
+    F_measured = F + r (t - t_0), t_0 = the first sample (the cell is zeroed just
+    before the run starts). Seen where the true force is zero: the no-contact
+    regions read -r t or +r t instead of 0, and the curves of later cycles shift.
+    """
+
+    name = "force_zero_drift"
+    stage = "sensor"
+    parameters = (EffectParameter("rate_N_per_s", "N/s", 0.005, -1.0, 1.0, doc="zero drift rate"),)
+
+    def sensor_batch(self, t, force):
+        t = np.asarray(t, float)
+        return force + self.values["rate_N_per_s"] * (t - t[0])
+
+    def sensor_online(self) -> SensorStepper:
+        return _Drift(self.values["rate_N_per_s"])
+
+
+class _DelayLine(SensorStepper):
+    """F(t - tau) by linear interpolation in the recorded history (same rule as np.interp)."""
+
+    def __init__(self, tau: float):
+        if tau < 0:
+            raise ValueError("channel_lag: the simulator can only delay the force (tau_s >= 0)")
+        self.tau = tau
+        self._t: list[float] = []
+        self._f: list[float] = []
+        self._start = 0
+
+    def step(self, t: float, force: float) -> float:
+        self._t.append(t)
+        self._f.append(force)
+        target = t - self.tau
+        ts, fs = self._t, self._f
+        # drop history older than needed (keep one sample before the target)
+        while self._start + 1 < len(ts) and ts[self._start + 1] <= target:
+            self._start += 1
+        if self._start > 4096:
+            del ts[:self._start], fs[:self._start]
+            self._start = 0
+        i = self._start
+        if target <= ts[i]:          # before the first sample: hold it (as np.interp)
+            return fs[i]
+        if i + 1 >= len(ts):
+            return fs[-1]
+        w = (target - ts[i]) / (ts[i + 1] - ts[i])
+        return fs[i] + w * (fs[i + 1] - fs[i])
+
+
+class _Drift(SensorStepper):
+    def __init__(self, rate: float):
+        self.rate = rate
+        self._t0: float | None = None
+
+    def step(self, t: float, force: float) -> float:
+        if self._t0 is None:
+            self._t0 = t
+        return force + self.rate * (t - self._t0)
+
+
+EFFECTS: dict[str, type[Effect]] = {
+    cls.name: cls for cls in (CycleSoftening, DampingCycleChange, ChannelLag, ForceZeroDrift,
+                              MachineCompliance, DirectionFriction, RateDependence)
+}
+
+
+# ----------------------------------------------------------------------------- helpers
+
+def motion_direction(x: np.ndarray) -> np.ndarray:
+    """+1 / -1 from the last change of x (a pause keeps the previous direction; 0 before any)."""
+    x = np.asarray(x, float)
+    d = np.zeros(len(x), dtype=int)
+    if len(x) > 1:
+        d[1:] = np.sign(np.diff(x)).astype(int)
+    idx = np.where(d != 0, np.arange(len(d)), 0)
+    np.maximum.accumulate(idx, out=idx)
+    return d[idx]
+
+
+def estimate_velocity(t, x, window_s: float = 0.25) -> np.ndarray:
+    """Crosshead velocity (mm/s) from sampled displacement.
+
+    Near-uniform sampling: a Savitzky-Golay derivative (quadratic over ~window_s),
+    exact on straight segments and robust to the 1 um resolution of a crosshead
+    encoder; otherwise central differences.
+    """
+    t = np.asarray(t, float)
+    x = np.asarray(x, float)
+    if len(t) < 3:
+        return np.zeros(len(t)) if len(t) < 2 else np.full(len(t), (x[1] - x[0]) / (t[1] - t[0]))
+    dt = np.diff(t)
+    h = float(np.median(dt))
+    window = int(round(window_s / h)) | 1 if h > 0 else 1
+    if window >= 5 and np.all(np.abs(dt - h) <= 0.05 * h) and window <= len(t):
+        return savgol_filter(x, window, 2, deriv=1, delta=h, mode="interp")
+    return np.gradient(x, t)
+
+
+def _monotone_in_runs(x_s: np.ndarray, direction: np.ndarray, x0: float = 0.0) -> np.ndarray:
+    """Keep x_s non-decreasing while the crosshead loads and non-increasing while it unloads,
+    continuous across the runs (the same rule as the online stepper)."""
+    out = np.empty_like(x_s)
+    prev = x0
+    n = len(x_s)
+    if n == 0:
+        return out
+    change = np.flatnonzero(np.diff(direction)) + 1
+    bounds = np.concatenate([[0], change, [n]])
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        seg = x_s[a:b]
+        d = direction[a]
+        if d > 0:
+            seg = np.maximum.accumulate(np.concatenate([[prev], seg]))[1:]
+        elif d < 0:
+            seg = np.minimum.accumulate(np.concatenate([[prev], seg]))[1:]
+        out[a:b] = seg
+        prev = seg[-1]
+    return out
+
+
+def _as_model_fn(model) -> ModelFn:
+    if isinstance(model, ModelParameters):
+        return lambda t, x, labels=None: evaluate(model, t, x, labels)
+    if callable(model):
+        return model
+    raise TypeError("model must be ModelParameters or a callable (t, x, labels) -> ModelResponse")
+
+
+# ----------------------------------------------------------------------------- the chain
+
+@dataclass
+class EffectResponse:
+    force: np.ndarray           # what the load cell reads (before noise/quantisation)
+    contact_force: np.ndarray   # force between plate and specimen (after specimen effects)
+    x_specimen: np.ndarray      # compression the specimen actually sees
+    base: ModelResponse         # the model evaluated on x_specimen
+
+
+class EffectChain:
+    """Several effects applied in the physical order (input, specimen, contact, sensor)."""
+
+    def __init__(self, effects: Iterable[Effect] = ()) -> None:
+        self.effects = list(effects)
+        names = [e.name for e in self.effects]
+        if len(set(names)) != len(names):
+            raise ValueError("each effect can be applied once")
+        self.compliance = sum(e.values["c_mm_per_N"] for e in self.effects if e.stage == "input")
+        self._specimen = [e for e in self.effects if e.stage == "specimen"]
+        self._sensor = sorted((e for e in self.effects if e.stage == "sensor"),
+                              key=lambda e: e.name != ChannelLag.name)   # lag, then drift
+
+    def __bool__(self) -> bool:
+        return bool(self.effects)
+
+    def __repr__(self) -> str:
+        return f"EffectChain({self.effects!r})"
+
+    # ---- shared per-sample formulas (arrays or floats)
+    def _contact_force(self, elastic, damping, residual, cycle, velocity, x_s):
+        c = Components(elastic, damping, residual, 0.0 * elastic, cycle, velocity)
+        for e in self._specimen:
+            c = e.modify(c)
+        return np.where(x_s > 0, np.maximum(c.total, 0.0), 0.0)
+
+    # ---- batch
+    def measured_force(self, model, t, x, *, velocity=None, labels: HistoryLabels | None = None,
+                       measured_force=None, max_iter: int = 200, tol_mm: float = 1e-9) -> np.ndarray:
+        return self.response(model, t, x, velocity=velocity, labels=labels,
+                             measured_force=measured_force, max_iter=max_iter, tol_mm=tol_mm).force
+
+    def response(self, model, t, x, *, velocity=None, labels: HistoryLabels | None = None,
+                 measured_force=None, max_iter: int = 200, tol_mm: float = 1e-9) -> EffectResponse:
+        """The force a load cell reads for the crosshead history x(t), with these effects.
+
+        model: ModelParameters or a callable (t, x, labels) -> ModelResponse.
+        velocity: crosshead velocity in mm/s (default: estimate_velocity(t, x)).
+        labels: half-cycle labels of the measured data (default: from the specimen's history).
+        measured_force: with machine_compliance, close the loop with this measured force
+        (one pass) instead of iterating to the fixed point.
+        """
+        fn = _as_model_fn(model)
+        t = np.asarray(t, float)
+        x = np.asarray(x, float)
+        v = estimate_velocity(t, x) if velocity is None else np.broadcast_to(np.asarray(velocity, float), t.shape)
+
+        def forward(x_s):
+            base = fn(t, x_s, labels)
+            contact = self._contact_force(base.elastic, base.damping, base.residual, base.cycle, v, x_s)
+            return base, contact
+
+        if self.compliance == 0.0:
+            x_s = x
+            base, contact = forward(x_s)
+        else:
+            direction = motion_direction(x)
+
+            def specimen_x(force):
+                lagged = np.concatenate([[0.0], force[:-1]])
+                return _monotone_in_runs(x - self.compliance * lagged, direction, x0=min(x[0], 0.0) if len(x) else 0.0)
+
+            if measured_force is not None:
+                x_s = specimen_x(np.asarray(measured_force, float))
+                base, contact = forward(x_s)
+            else:
+                x_s = x.copy()
+                base, contact = forward(x_s)
+                for _ in range(max_iter):
+                    x_new = specimen_x(contact)
+                    if np.max(np.abs(x_new - x_s), initial=0.0) <= tol_mm:
+                        x_s = x_new
+                        break
+                    x_s = x_new
+                    base, contact = forward(x_s)
+                else:
+                    raise RuntimeError("machine_compliance: the force loop did not converge "
+                                       f"in {max_iter} iterations (compliance too large?)")
+                base, contact = forward(x_s)
+        force = contact
+        for e in self._sensor:
+            force = e.sensor_batch(t, force)
+        return EffectResponse(force=force, contact_force=contact, x_specimen=x_s, base=base)
+
+    # ---- online
+    def online(self) -> "OnlineEffects":
+        return OnlineEffects(self)
+
+
+class OnlineEffects:
+    """The chain stepped one sample at a time (SimulatedMachine's physics step).
+
+    Per step the machine calls, in this order:
+      x_s = specimen_x(x_crosshead)          (compliance, with the previous step's force)
+      comps = SpecimenState.step(t, x_s)
+      F_contact = contact_force(comps, velocity, x_s)
+      F_sensor = sensor(t, F_contact)
+    """
+
+    def __init__(self, chain: EffectChain):
+        self.chain = chain
+        self._sensors = [s for s in (e.sensor_online() for e in chain._sensor) if s is not None]
+        self._prev_force = 0.0
+        self._prev_x: float | None = None
+        self._prev_x_s: float | None = None
+        self._direction = 0
+
+    def specimen_x(self, x: float) -> float:
+        c = self.chain.compliance
+        if self._prev_x is not None and x != self._prev_x:
+            self._direction = 1 if x > self._prev_x else -1
+        self._prev_x = x
+        if c == 0.0:
+            return x
+        raw = x - c * self._prev_force
+        prev = self._prev_x_s if self._prev_x_s is not None else min(x, 0.0)
+        if self._direction > 0:
+            raw = max(prev, raw)
+        elif self._direction < 0:
+            raw = min(prev, raw)
+        self._prev_x_s = raw
+        return raw
+
+    def contact_force(self, elastic: float, damping: float, residual: float, cycle: int,
+                      velocity: float, x_s: float) -> float:
+        f = float(self.chain._contact_force(elastic, damping, residual, cycle, velocity, x_s))
+        self._prev_force = f
+        return f
+
+    def sensor(self, t: float, force: float) -> float:
+        for s in self._sensors:
+            force = s.step(t, force)
+        return force
+
+
+def make_effects(spec: Mapping[str, float] | Iterable[Effect] | EffectChain | None) -> EffectChain:
+    """An EffectChain from {"name": magnitude} (the simulator's --effect NAME=MAG) or effects."""
+    if spec is None:
+        return EffectChain()
+    if isinstance(spec, EffectChain):
+        return spec
+    if isinstance(spec, Mapping):
+        effects = []
+        for name, magnitude in spec.items():
+            if name not in EFFECTS:
+                raise ValueError(f"unknown effect {name!r} (known: {', '.join(EFFECTS)})")
+            effects.append(EFFECTS[name](magnitude))
+        return EffectChain(effects)
+    return EffectChain(spec)
+
+
+def parse_effect_option(text: str) -> tuple[str, float]:
+    """'NAME=MAG' -> (name, magnitude); ValueError with one line otherwise."""
+    name, sep, mag = text.partition("=")
+    name = name.strip()
+    if not sep or name not in EFFECTS:
+        raise ValueError(f"effect {text!r}: expected NAME=MAGNITUDE with NAME one of {', '.join(EFFECTS)}")
+    try:
+        value = float(mag)
+    except ValueError:
+        raise ValueError(f"effect {text!r}: magnitude {mag.strip()!r} is not a number") from None
+    if not math.isfinite(value):
+        raise ValueError(f"effect {text!r}: magnitude must be finite")
+    return name, value
+
+
+# ----------------------------------------------------------------------------- size vs noise
+
+def signature_rms(effect: Effect, model, t, x, **kw) -> float:
+    """RMS change of the measured force that the effect causes on this history (N)."""
+    plain = EffectChain().measured_force(model, t, x, **kw)
+    with_effect = EffectChain([effect]).measured_force(model, t, x, **kw)
+    return float(np.sqrt(np.mean(np.square(with_effect - plain))))
+
+
+def relative_magnitude(effect: Effect, model, t, x, noise_sigma_N: float, **kw) -> float:
+    """The effect's RMS signature in units of the load cell's noise (1 = as big as the noise)."""
+    return signature_rms(effect, model, t, x, **kw) / noise_sigma_N
+
+
+def magnitude_for_ratio(name: str, ratio: float, model, t, x, noise_sigma_N: float,
+                        sign: float = 1.0, **kw) -> float:
+    """The magnitude of effect `name` whose signature is `ratio` times the noise on this history.
+
+    Searches between 0 and the parameter's bound on the side of `sign` (brentq).
+    """
+    cls = EFFECTS[name]
+    p = cls.parameters[0]
+    limit = p.upper if sign > 0 else p.lower
+    if limit == 0:
+        raise ValueError(f"{name}: magnitude cannot take that sign")
+
+    def gap(m):
+        return relative_magnitude(cls(m), model, t, x, noise_sigma_N, **kw) - ratio
+
+    hi = float(np.clip(abs(p.typical) * np.sign(sign), p.lower, p.upper))
+    while gap(hi) < 0:
+        if hi == limit:
+            raise ValueError(f"{name}: even the bound {limit} gives less than {ratio} x noise")
+        hi = float(np.clip(2 * hi, p.lower, p.upper))
+    return float(brentq(gap, 0.0, hi, xtol=1e-12 + 1e-9 * abs(hi)))

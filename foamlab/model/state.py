@@ -1,0 +1,88 @@
+"""The model stepped online, one sample at a time (the simulator's specimen)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from foamlab.model.components import elastic_force
+from foamlab.model.operators import FractionalOperator, HereditaryOperator
+from foamlab.model.params import ModelParameters
+
+
+@dataclass(frozen=True)
+class ComponentForces:
+    elastic: float
+    damping: float
+    residual: float
+    direction: int
+    cycle: int
+
+    @property
+    def total(self) -> float:
+        return self.elastic + self.damping + self.residual
+
+
+class SpecimenState:
+    """Causal, O(1) per step: the same operators and switching as model.evaluate.
+
+    Turning points are detected when x leaves its running extreme by more than
+    deadband_mm (exact histories: the default); the extreme sample belongs to the
+    half-cycle it ends, exactly as label_history does in batch.
+    """
+
+    def __init__(self, params: ModelParameters, h_min: float = 1e-3, t_max: float = 2e4,
+                 deadband_mm: float = 1e-9):
+        self.params = params
+        self.h_min, self.t_max, self.deadband = h_min, t_max, deadband_mm
+        self.reset()
+
+    def reset(self) -> None:
+        self._t = None
+        self._x = 0.0
+        self._state = 0           # 0 not started, +1 loading, -1 unloading
+        self._ext_x = None
+        self._cycle = 0
+        self._x_ref = 0.0
+        self._hered: HereditaryOperator | None = None
+        self._damping = 0.0
+        # one entry per residual term of every cycle started: (cycle, r_i, x_ref, operator)
+        self._fractional: list[tuple[int, float, float, FractionalOperator]] = []
+        self._active_cycles: set[int] = set()
+
+    def _start_cycle(self) -> None:
+        self._cycle += 1
+        self._x_ref = self._x
+        self._hered = HereditaryOperator(self.params.damping_a, self.params.damping_alpha)
+        r, beta = self.params.residual_terms(self._cycle)
+        for r_i, b_i in zip(r, beta):
+            self._fractional.append(
+                (self._cycle, float(r_i), self._x_ref, FractionalOperator(b_i, self.h_min, self.t_max)))
+
+    def step(self, t: float, x: float) -> ComponentForces:
+        if self._t is None:
+            self._t, self._x, self._ext_x = t, x, x
+            return ComponentForces(float(elastic_force(self.params, x)), 0.0, 0.0, 0, 0)
+        h = t - self._t
+        # turning-point detection (same rule as history.label_history)
+        if self._state in (0, -1) and x > self._ext_x + self.deadband:
+            self._start_cycle()            # cycle starts at the previous sample (the minimum)
+            self._state = 1
+        elif self._state == 1 and x < self._ext_x - self.deadband:
+            self._state = -1
+            self._active_cycles.add(self._cycle)
+            self._damping = 0.0
+        if (self._state == 1 and x >= self._ext_x) or (self._state != 1 and x <= self._ext_x):
+            self._ext_x = x
+        elif self._state == 0 and x < self._ext_x:
+            self._ext_x = x
+        if self._state == 1 and self._hered is not None:
+            self._damping = self._hered.step(h, x - self._x_ref)
+        residual = 0.0
+        for cyc, r_i, x_ref, op in self._fractional:
+            value = op.step(h, x - x_ref)
+            if cyc in self._active_cycles:
+                residual += r_i * value
+        self._t, self._x = t, x
+        damping = self._damping if self._state == 1 else 0.0
+        return ComponentForces(float(elastic_force(self.params, x)), damping, residual,
+                               self._state, self._cycle)
