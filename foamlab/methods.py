@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.ndimage import median_filter
 
 from foamlab import CONFIG_DIR, FoamlabError
 from foamlab.rundata import RunData
@@ -401,7 +402,12 @@ def _dwell_at_peak(cycle_steps: list[Step]) -> float | None:
 
 @dataclass(frozen=True)
 class CycleSpan:
-    """Sample index ranges of one cycle, aligned on the method's plan ([start, stop))."""
+    """Sample index ranges of one cycle, aligned on the method's plan ([start, stop)).
+
+    loading ends on the first sample of the peak plateau; unloading starts there too
+    (a dwell at the peak adds nothing to the work, x being constant), so the two
+    share that sample; hold is the plateau after it (the dwell, for CFD).
+    """
 
     cycle: int
     loading: tuple[int, int]
@@ -411,13 +417,18 @@ class CycleSpan:
     complete: bool                 # the unloading reached displacement 0
 
 
+#: A sample within this of the peak displacement is on the peak plateau (drives report um).
+PLATEAU_MM = 0.005
+
+
 def cycle_spans(method: Method, run: RunData) -> list[CycleSpan]:
     """Split a run made with `method` into its cycles, using the method's targets.
 
-    The run follows a known plan, so boundaries are where the displacement reaches
-    each programmed target (within a tolerance for the contact zero and noise),
-    not generic turning points. Cycles the run did not reach are left out; an
-    aborted cycle is returned with `complete=False`.
+    The run follows a known plan, so a cycle is found where the displacement
+    reaches the programmed peak (within max(0.02 mm, 0.2 %) for the contact zero
+    and noise) and comes back to zero; these are not generic turning points (see
+    foamlab.segmentation for runs of unknown origin). Cycles the run did not reach
+    are left out; an aborted cycle is returned with `complete=False`.
     """
     height = run.specimen.height_mm
     x = run.displacement_mm
@@ -430,28 +441,26 @@ def cycle_spans(method: Method, run: RunData) -> list[CycleSpan]:
         steps = [s for s in method.steps if s.cycle == cycle]
         peak = max(s.strain for s in steps if s.action == "compress") * height
         tol = max(0.02, 0.002 * peak)
-        # loading: from the last sample near zero before the rise to the first at the peak
         reached = np.flatnonzero(x[i:] >= peak - tol)
         if len(reached) == 0:
             break
-        top = i + int(reached[0])
-        start = i + _last_index_at_or_below(x[i:top + 1], tol)
-        # hold: samples staying at the peak; unloading: until back near zero
-        below = np.flatnonzero(x[top:] < peak - tol)
-        hold_end = top + int(below[0]) if len(below) else n
-        back = np.flatnonzero(x[hold_end:] <= tol)
-        end = hold_end + int(back[0]) + 1 if len(back) else n
-        spans.append(CycleSpan(cycle, (start, top + 1), (top + 1, hold_end),
-                               (max(hold_end - 1, top), end), float(x[top]), bool(len(back))))
+        first = i + int(reached[0])
+        leaves = np.flatnonzero(x[first:] < peak - tol)
+        region_end = first + int(leaves[0]) if len(leaves) else n
+        region = x[first:region_end]
+        top = first + int(np.flatnonzero(region >= region.max() - PLATEAU_MM)[0])
+        below = np.flatnonzero(x[top + 1:] < x[top] - PLATEAU_MM)
+        hold_end = top + 1 + int(below[0]) if len(below) else n
+        before = x[i:top + 1]
+        start = i + int(np.flatnonzero(before <= before.min())[-1])
+        back = np.flatnonzero(x[top:] <= tol)
+        end = top + int(back[0]) + 1 if len(back) else n
+        spans.append(CycleSpan(cycle, (start, top + 1), (top + 1, hold_end), (top, end),
+                               float(x[top]), bool(len(back))))
         i = end
         if i >= n:
             break
     return spans
-
-
-def _last_index_at_or_below(x: np.ndarray, level: float) -> int:
-    idx = np.flatnonzero(x <= level)
-    return int(idx[-1]) if len(idx) else 0
 
 
 def _energy_J(x: np.ndarray, f: np.ndarray) -> float:
@@ -500,18 +509,23 @@ def compute_results(method: Method, run: RunData) -> MethodResults:
 
 
 def _residual_strain(x: np.ndarray, f: np.ndarray, contact_N: float, height_mm: float) -> float:
-    """Displacement where the unloading force falls to the contact threshold, / height.
+    """Displacement where the unloading force first falls to the contact threshold, / height.
 
-    0 when the foam keeps touching the plate down to displacement 0.
+    The force is median-filtered over 5 samples first so that load-cell noise near
+    the threshold neither ends contact early nor prolongs it. 0 when the foam keeps
+    touching the plate down to displacement 0.
     """
-    above = np.flatnonzero(f > contact_N)
-    if len(above) == 0:
-        return float(x[0] / height_mm) if len(x) else 0.0
-    k = int(above[-1])
-    if k + 1 >= len(x):
+    if len(x) < 2:
         return 0.0
-    # linear interpolation between the last sample in contact and the next one
-    f0, f1, x0, x1 = f[k], f[k + 1], x[k], x[k + 1]
+    smooth = median_filter(f, size=min(5, len(f)), mode="nearest")
+    below = np.flatnonzero(smooth <= contact_N)
+    if len(below) == 0:
+        return 0.0
+    k = int(below[0])
+    if k == 0:
+        return float(max(x[0], 0.0) / height_mm)
+    # linear interpolation between the last sample in contact and the first one out
+    f0, f1, x0, x1 = smooth[k - 1], smooth[k], x[k - 1], x[k]
     xc = x0 + (contact_N - f0) * (x1 - x0) / (f1 - f0) if f1 != f0 else x1
     return float(max(xc, 0.0) / height_mm)
 
