@@ -329,9 +329,17 @@ class ModbusLoadCell(LoadCell):
     CONSTANTS = {"status_bits": ("under_range", "over_range", "no_motion", "tare_set"),
                  "commands": ("zero", "tare")}
 
+    @classmethod
+    def checked_map(cls, registers: RegisterMap) -> RegisterMap:
+        registers.require(cls.REGISTERS, cls.BLOCKS, cls.CONSTANTS)
+        layout = {r.name for r in registers.blocks["block"].layout}
+        if not {"net_force", "status"} <= layout:
+            raise ValueError(f"[{registers.device}] block must contain net_force and status")
+        return registers
+
     def __init__(self, link: ModbusLink, registers: RegisterMap, settings: dict):
         self.link = link
-        self.map = registers.require(self.REGISTERS, self.BLOCKS, self.CONSTANTS)
+        self.map = self.checked_map(registers)
         self.unit = int(settings["unit_id"])
         self.capacity_N = float(settings["capacity_N"])
         self.force_sign = int(settings.get("force_sign", 1))
@@ -364,12 +372,17 @@ class ModbusCrosshead(Crosshead):
                  "trigger", "upper_limit", "lower_limit", "watchdog_ms", "fault_code")
     CONSTANTS = {"status_bits": ("fault", "moving", "in_position", "upper_limit", "lower_limit", "emergency_stop"),
                  "triggers": ("move_absolute", "jog_down", "jog_up", "set_zero", "stop", "emergency", "reset_fault")}
+    BLOCKS = ()
     UM_PER_MM = 1000
     SPEED_UNITS_PER_MM_MIN = 100
 
+    @classmethod
+    def checked_map(cls, registers: RegisterMap) -> RegisterMap:
+        return registers.require(cls.REGISTERS, cls.BLOCKS, cls.CONSTANTS)
+
     def __init__(self, link: ModbusLink, registers: RegisterMap, settings: dict):
         self.link = link
-        self.map = registers.require(self.REGISTERS, (), self.CONSTANTS)
+        self.map = self.checked_map(registers)
         self.unit = int(settings["unit_id"])
         self.max_speed_mm_min = float(settings["max_speed_mm_min"])
         self.acceleration_mm_s2 = settings.get("acceleration_mm_s2")

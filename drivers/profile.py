@@ -209,10 +209,10 @@ def _validate_modbus(profile: dict, c: _Checker) -> None:
     if watchdog is not None and not 0 <= watchdog <= 0xFFFF:
         c.fail("[crosshead]", f"`watchdog_ms` must be 0..65535, got {watchdog}")
     # The register map itself: building it checks every entry (drivers.modbus owns the format).
-    from .modbus import RegisterMap  # local import: modbus imports this module
-    for device in ("load_cell", "crosshead"):
+    from .modbus import ModbusCrosshead, ModbusLoadCell, RegisterMap  # local import: modbus imports this module
+    for device, driver in (("load_cell", ModbusLoadCell), ("crosshead", ModbusCrosshead)):
         try:
-            RegisterMap.from_toml(profile["wire"], device)
+            driver.checked_map(RegisterMap.from_toml(profile["wire"], device))
         except ValueError as exc:
             raise ProfileError(f"{profile['register_map']}: {exc}") from None
 
