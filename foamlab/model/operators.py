@@ -80,11 +80,14 @@ class HereditaryOperator:
     def reset(self) -> None:
         self._z = np.zeros(len(self.a), dtype=complex)
         self._x_prev = 0.0
+        self._coef_h, self._coef = None, None
 
     def step(self, h: float, x: float) -> float:
         """Advance by h seconds to displacement x (relative to the operator's start)."""
         if h > 0:
-            E, wp, wn = _phi(self.alpha, h)
+            if h != self._coef_h:  # a simulator steps with a fixed h: compute once
+                self._coef_h, self._coef = h, _phi(self.alpha, h)
+            E, wp, wn = self._coef
             self._z = E * self._z + wp * self._x_prev + wn * x
         self._x_prev = x
         return float(np.real(np.dot(self.a, self._z)))
@@ -150,6 +153,7 @@ class FractionalOperator:
         self._ints = np.zeros(self.m)       # running trapezoid integrals I^1..I^m
         self._ints_prev_in = np.zeros(self.m)
         self._last = 0.0
+        self._coef_h, self._coef = None, None
 
     def _integrate_step(self, h: float, g: float) -> float:
         # I^m of g by repeated trapezoid (second order; the same rule in batch mode)
@@ -171,8 +175,11 @@ class FractionalOperator:
             g = g_hist + u * h
             self._s[0] = g
         else:
-            E, b = _phi_const(self.soe.lam, h)
-            g = u * self.local * h**self.f + float(np.dot(self.soe.c * E, self._s))
+            if h != self._coef_h:  # fixed simulator step: coefficients computed once
+                E, b = _phi_const(self.soe.lam, h)
+                self._coef_h, self._coef = h, (E, b, self.soe.c * E, self.local * h**self.f)
+            E, b, cE, local = self._coef
+            g = u * local + float(cE @ self._s)
             self._s = E * self._s + b * u
         self._last = self._integrate_step(h, g)
         return self._last

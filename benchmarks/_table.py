@@ -1,0 +1,23 @@
+"""Shared helper for benchmarks: print a table and keep the latest copy in docs/benchmarks.md."""
+
+from __future__ import annotations
+
+import platform
+import re
+from datetime import date
+from pathlib import Path
+
+DOC = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"
+
+
+def publish(section: str, lines: list[str]) -> None:
+    """Print the lines and replace (or append) `## section` in docs/benchmarks.md."""
+    text = "\n".join(lines)
+    print(text)
+    body = (f"## {section}\n\n_{date.today().isoformat()}, {platform.machine()}, "
+            f"{platform.python_implementation()} {platform.python_version()}; "
+            f"regenerate with the script named below._\n\n{text}\n")
+    old = DOC.read_text(encoding="utf-8") if DOC.exists() else "# Benchmarks\n\nLatest results of the scripts in benchmarks/ (medians over repeats).\n"
+    pattern = re.compile(rf"^## {re.escape(section)}\n.*?(?=^## |\Z)", re.S | re.M)
+    new = pattern.sub(body + "\n", old) if pattern.search(old) else old.rstrip() + "\n\n" + body
+    DOC.write_text(new, encoding="utf-8")
