@@ -1,0 +1,88 @@
+"""Reading a data file as text: existence checks, encoding detection, lines."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from foamlab import FoamlabError
+
+#: Files larger than this are not data exports; refuse before reading them whole.
+MAX_BYTES = 2 * 1024 ** 3
+
+# Encoding detection is a short ordered trial, not a statistical guess
+# (chardet-style detectors are unreliable on files that are 99 % ASCII digits):
+# 1. UTF-8 (with or without BOM): strict, so legacy bytes fail it almost surely;
+# 2. GB18030 (superset of GBK/GB2312): Chinese Bluehill installs write it; it
+#    decodes many Latin-1 byte pairs too, so it is kept only if the result has no
+#    CJK character glued to a Latin letter ("Prüfzeit" in cp1252 would become
+#    "Pr" + a CJK character + "zeit");
+# 3. cp1252 (Western Windows: German/French testXpert and Bluehill installs);
+# 4. Latin-1, which decodes anything, as the last resort.
+# UTF-16 is recognised by its BOM only (Windows "Unicode text" exports have one).
+_CJK = "\u3400-\u4dbf\u4e00-\u9fff\uf900-\ufaff"
+_MOJIBAKE = re.compile(rf"[A-Za-z\u00c0-\u00ff][{_CJK}]|[{_CJK}][A-Za-z\u00c0-\u00ff]")
+
+
+@dataclass
+class TextFile:
+    path: Path
+    text: str
+    encoding: str
+
+    @property
+    def lines(self) -> list[str]:
+        return split_lines(self.text)
+
+    @property
+    def ends_with_newline(self) -> bool:
+        return self.text.endswith(("\n", "\r"))
+
+
+def split_lines(text: str) -> list[str]:
+    """Lines as an editor numbers them (CRLF, LF or CR), without a trailing empty line."""
+    lines = re.split(r"\r\n|\r|\n", text)
+    if lines and lines[-1] == "":
+        lines.pop()
+    return lines
+
+
+def read_text(path: str | Path) -> TextFile:
+    p = Path(path)
+    if not p.exists():
+        raise FoamlabError(f"{p}: file not found")
+    if p.is_dir():
+        raise FoamlabError(f"{p}: is a folder, not a data file")
+    try:
+        size = p.stat().st_size
+        if size > MAX_BYTES:
+            raise FoamlabError(f"{p}: {size / 1e9:.1f} GB is too large for a data export")
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise FoamlabError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    if not raw.strip():
+        raise FoamlabError(f"{p}: file is empty")
+    text, encoding = decode(raw)
+    if "\x00" in text:
+        raise FoamlabError(f"{p}: binary file, not a text data export")
+    return TextFile(p, text, encoding)
+
+
+def decode(raw: bytes) -> tuple[str, str]:
+    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+        try:
+            return raw.decode("utf-16"), "utf-16"
+        except UnicodeDecodeError:
+            pass
+    for encoding in ("utf-8-sig", "gb18030", "cp1252"):
+        try:
+            text = raw.decode(encoding)
+        except UnicodeDecodeError:
+            continue
+        if encoding == "gb18030" and _MOJIBAKE.search(text):
+            continue
+        if encoding == "utf-8-sig":
+            encoding = "utf-8-bom" if raw.startswith(b"\xef\xbb\xbf") else "utf-8"
+        return text, encoding
+    return raw.decode("latin-1"), "latin-1"

@@ -1,0 +1,96 @@
+"""Plain CSV: header row ``time_s,displacement_mm,force_N`` after any ``#`` lines.
+
+Already in foamlab's conventions (compression positive, s / mm / N), so nothing
+is converted. ``# key: value`` comment lines fill the RunData fields: the
+project's own run files (foamlab.storage.runfile) are a superset of this format.
+"""
+
+from __future__ import annotations
+
+import re
+
+from foamlab import FoamlabError
+from foamlab.importers._table import Row, check_samples, parse_rows
+from foamlab.importers._text import TextFile
+from foamlab.rundata import RunData
+from foamlab.storage.runfile import BASE_COLUMNS, NO_TRAILER_REASON, runfile_fields
+
+FORMAT = "plain CSV"
+HEADER = ",".join(BASE_COLUMNS)
+_KEY_VALUE = re.compile(r"^#\s*([A-Za-z_][\w.\-]*)\s*:\s?(.*)$")
+
+
+def header_fields(line: str) -> list[str]:
+    return [f.strip().strip('"').strip() for f in line.split(",")]
+
+
+def looks_like(lines: list[str]) -> bool:
+    for line in lines:
+        if line.startswith("#") or not line.strip():
+            continue
+        return header_fields(line.lstrip("\ufeff"))[:3] == list(BASE_COLUMNS)
+    return False
+
+
+def parse(text_file: TextFile, run_file: bool = False) -> RunData:
+    source = str(text_file.path)
+    header: dict[str, str] = {}
+    trailer: dict[str, str] = {}
+    comments: list[str] = []
+    names: list[str] | None = None
+    rows: list[Row] = []
+    for line_no, line in enumerate(text_file.lines, start=1):
+        if line.startswith("#"):
+            m = _KEY_VALUE.match(line)
+            if m:
+                (trailer if names is not None else header)[m.group(1)] = m.group(2).strip()
+            elif names is None and line.strip("# ") and not line.startswith("# foamlab run file"):
+                comments.append(line.lstrip("# ").rstrip())
+            continue
+        if not line.strip():
+            continue
+        if names is None:
+            names = header_fields(line.lstrip("\ufeff"))
+            if names[:3] != list(BASE_COLUMNS):
+                shown = line if len(line) <= 60 else line[:57] + "..."
+                raise FoamlabError(f"{source}: line {line_no}: header row is {shown!r}; "
+                                   f"expected '{HEADER}'")
+            continue
+        rows.append(Row(line_no, line))
+    if names is None:
+        raise FoamlabError(f"{source}: no header row '{HEADER}' (only comments)")
+    header.update(trailer)
+    finished = "status" in header
+    metadata_extra: dict = {}
+    if run_file and not finished and rows and not text_file.ends_with_newline:
+        last = rows[-1]
+        if len(last.text.split(",")) < len(names):
+            # the writer was killed while writing this line: the sample in flight
+            rows.pop()
+            metadata_extra["dropped_partial_line"] = last.line_no
+    if not rows:
+        raise FoamlabError(f"{source}: no data rows after the header row")
+    data = parse_rows(rows, source=source, sep=",", decimal=".", ncols=len(names),
+                      wanted={c: i for i, c in enumerate(BASE_COLUMNS)}, required=BASE_COLUMNS,
+                      ends_with_newline=text_file.ends_with_newline)
+    check_samples(source, data["time_s"], rows)
+    fields = runfile_fields(header)
+    metadata = fields.pop("metadata")
+    if run_file and not finished:
+        fields["status"] = "aborted"
+        fields["abort_reason"] = NO_TRAILER_REASON
+    elif not run_file:
+        fields.setdefault("status", "imported")
+    metadata.update(metadata_extra)
+    metadata["format"] = "foamlab run file" if run_file else FORMAT
+    metadata["encoding"] = text_file.encoding
+    if len(names) > 3:
+        metadata["extra_columns"] = names[3:]
+    if comments:
+        metadata["comments"] = comments
+    return RunData(data["time_s"], data["displacement_mm"], data["force_N"],
+                   source=source, metadata=metadata, **fields)
+
+
+def read(text_file: TextFile) -> RunData:
+    return parse(text_file, run_file=False)
