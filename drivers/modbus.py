@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import select
+import struct
 import threading
 from dataclasses import dataclass
 from typing import Callable, Sequence
@@ -21,6 +22,12 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.client.mixin import ModbusClientMixin
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.framer import FramerType
+
+try:  # POSIX only; elsewhere socket:// RTU falls back to pymodbus' byte-wise polling
+    import fcntl
+    import termios
+except ImportError:  # pragma: no cover
+    fcntl = termios = None
 
 from .base import (
     Crosshead,
@@ -182,6 +189,22 @@ class RegisterMap:
 
 # --------------------------------------------------------------------------- the link
 
+class _SerialClient(ModbusSerialClient):
+    """ModbusSerialClient that knows how many bytes a socket:// port really holds.
+
+    pyserial's socket:// `in_waiting` is 1 when anything is readable, and pymodbus polls
+    `in_waiting` every millisecond until it stops growing - so it would read an RTU reply
+    one byte per poll (~12 ms for a 9-byte reply, and timeouts mid-frame under load).
+    FIONREAD gives the real count; other ports (ttys, ptys) keep pyserial's answer.
+    """
+
+    def _in_waiting(self) -> int:
+        sock = getattr(self.socket, "_socket", None)
+        if sock is not None and fcntl is not None:
+            return struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0\0\0\0"))[0]
+        return super()._in_waiting()
+
+
 class ModbusLink:
     """One Modbus connection (TCP socket or RTU serial line) shared by several unit ids."""
 
@@ -201,7 +224,7 @@ class ModbusLink:
         else:
             self.where = f"Modbus RTU {connection['port_url']}"
             # pymodbus opens the port with serial.serial_for_url, so any pyserial URL works.
-            self._client = ModbusSerialClient(
+            self._client = _SerialClient(
                 connection["port_url"], framer=FramerType.RTU, baudrate=int(connection["baudrate"]),
                 parity=connection.get("parity", "N"), stopbits=int(connection.get("stopbits", 1)),
                 bytesize=8, timeout=self.timeout_s, retries=self.retries, trace_packet=self._trace_packet)
