@@ -257,3 +257,21 @@ class LivePlots(QtWidgets.QWidget):
         exporter = ImageExporter(self.view.scene())
         exporter.parameters()["width"] = width
         exporter.export(str(path))
+
+
+def labels_from_segmentation(segmentation, n_samples: int) -> tuple[np.ndarray, list[str]]:
+    """Per-sample (cycle, phase) of a whole run from foamlab.segmentation's half-cycles.
+    Samples outside half-cycles (holds, the lead-in) keep the label before them, so
+    each half-cycle stays one curve."""
+    cycles = np.zeros(n_samples, dtype=int)
+    phases = np.full(n_samples, "", dtype=object)
+    for half in segmentation.half_cycles:
+        cycles[half.start:half.stop] = half.cycle
+        phases[half.start:half.stop] = half.direction
+    last_cycle, last_phase = 0, LOADING
+    for i in range(n_samples):
+        if phases[i]:
+            last_cycle, last_phase = cycles[i], phases[i]
+        else:
+            cycles[i], phases[i] = last_cycle, last_phase
+    return cycles, list(phases)

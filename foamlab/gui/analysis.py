@@ -1,0 +1,118 @@
+"""Analysis the window asks for, run on its analysis thread: load a file for display,
+fit it, diagnose it. Thin calls into foamlab's importers, identification and
+diagnosis; nothing is computed here that those modules own.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from foamlab import FoamlabError
+from foamlab.rundata import RunData
+
+log = logging.getLogger(__name__)
+
+
+def _module(name: str, what: str):
+    try:
+        if importlib.util.find_spec(name) is None:
+            raise ModuleNotFoundError(name)
+    except ModuleNotFoundError:
+        raise FoamlabError(f"{what} is not available in this installation") from None
+    return importlib.import_module(name)
+
+
+@dataclass
+class Loaded:
+    run: RunData
+    cycles: Any          # per-sample cycle numbers (None: let the plot track them)
+    phases: Any          # per-sample loading/unloading
+    n_cycles: int
+    method_results: Any = None
+    segmentation_note: str = ""
+
+    def describe(self) -> str:
+        run = self.run
+        spec = run.specimen
+        size = ""
+        if spec.height_mm:
+            size = f", {spec.height_mm:g} mm high"
+            if spec.area_mm2:
+                size += f", {spec.width_mm:g} x {spec.depth_mm:g} mm"
+        what = f"{Path(run.source).name if run.source else 'run'}: {len(run)} samples, {self.n_cycles} cycles"
+        return what + (f" — {spec.label}" if spec.label else "") + size + (
+            f" ({self.segmentation_note})" if self.segmentation_note else "")
+
+    def rows(self) -> list[tuple[str, str]]:
+        run = self.run
+        rows = [("file", run.source or "–"), ("status", run.status + (f" ({run.abort_reason})" if run.abort_reason else "")),
+                ("samples", f"{len(run)} at {run.sampling_hz:.3g} Hz"), ("cycles", str(self.n_cycles))]
+        if run.method:
+            rows.append(("method", run.method))
+        if run.machine:
+            rows.append(("machine", run.machine))
+        if run.specimen.label:
+            rows.append(("specimen", run.specimen.label))
+        if run.started_at:
+            rows.append(("started", run.started_at))
+        return rows
+
+
+def load_for_display(path: str | Path) -> Loaded:
+    importers = _module("foamlab.importers", "reading measured files")
+    run = importers.load_run(path)
+    if not run.source:
+        run.source = str(path)
+    cycles = phases = None
+    n_cycles, note = 0, ""
+    try:
+        from foamlab.gui.plots import labels_from_segmentation
+
+        segmentation = run.segments()
+        cycles, phases = labels_from_segmentation(segmentation, len(run))
+        n_cycles = segmentation.n_cycles
+    except FoamlabError as exc:
+        note = f"no cycles found: {exc}"
+    method_results = None
+    if run.method:
+        try:
+            from foamlab.methods import load_method
+
+            method_results = load_method(run.method).compute_results(run)
+        except FoamlabError as exc:
+            log.info("method results of %s not computed: %s", path, exc)
+    return Loaded(run, cycles, phases, n_cycles, method_results, note)
+
+
+def fit_for_display(loaded: Loaded) -> Any:
+    identification = _module("foamlab.identification", "model fitting")
+    return identification.fit_run(loaded.run)
+
+
+def diagnose_run(run: RunData) -> Any:
+    diagnosis = _module("foamlab.diagnosis", "diagnosis")
+    return diagnosis.diagnose([run])
+
+
+def predicted_force(fit: Any, run: RunData) -> np.ndarray | None:
+    """The fitted model's force at the run's samples (what the plot overlays)."""
+    for name in ("predicted_force_N", "predicted", "force_fit_N"):
+        value = getattr(fit, name, None)
+        if value is not None and not callable(value):
+            value = np.asarray(value, dtype=float)
+            if value.shape == run.force_N.shape:
+                return value
+    for name in ("predict", "simulate"):
+        fn = getattr(fit, name, None)
+        if callable(fn):
+            value = fn(run)
+            value = getattr(value, "force_N", value)
+            return np.asarray(value, dtype=float)
+    return None
