@@ -390,6 +390,19 @@ def _monotone_in_runs(x_s: np.ndarray, direction: np.ndarray, x0: float = 0.0) -
     return out
 
 
+def specimen_displacement(x, force, compliance_mm_per_N: float) -> np.ndarray:
+    """machine_compliance's input stage: the compression the specimen sees for crosshead x.
+
+    x - C F(previous sample), kept monotone within each crosshead half-cycle (see
+    MachineCompliance); force is the measured (or contact) force on the same samples.
+    """
+    x = np.asarray(x, float)
+    if len(x) == 0:
+        return x.copy()
+    lagged = np.concatenate([[0.0], np.asarray(force, float)[:-1]])
+    return _monotone_in_runs(x - compliance_mm_per_N * lagged, motion_direction(x), x0=min(x[0], 0.0))
+
+
 def _as_model_fn(model) -> ModelFn:
     if isinstance(model, ModelParameters):
         return lambda t, x, labels=None: evaluate(model, t, x, labels)
@@ -423,6 +436,16 @@ class EffectChain:
 
     def __bool__(self) -> bool:
         return bool(self.effects)
+
+    @property
+    def specimen_effects(self) -> list[Effect]:
+        """Specimen-stage effects in the order they act (diagnosis pushes model components through them)."""
+        return list(self._specimen)
+
+    @property
+    def sensor_effects(self) -> list[Effect]:
+        """Sensor-stage effects in the order they act (lag before drift)."""
+        return list(self._sensor)
 
     def __repr__(self) -> str:
         return f"EffectChain({self.effects!r})"
@@ -464,11 +487,8 @@ class EffectChain:
             x_s = x
             base, contact = forward(x_s)
         else:
-            direction = motion_direction(x)
-
             def specimen_x(force):
-                lagged = np.concatenate([[0.0], force[:-1]])
-                return _monotone_in_runs(x - self.compliance * lagged, direction, x0=min(x[0], 0.0) if len(x) else 0.0)
+                return specimen_displacement(x, force, self.compliance)
 
             if measured_force is not None:
                 x_s = specimen_x(np.asarray(measured_force, float))
