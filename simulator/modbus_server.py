@@ -195,7 +195,7 @@ class _LiveDevice:
             for reg in self.map.registers.values():
                 if reg.name not in self.READ_ONLY and set(reg.span) & set(requested):
                     self.on_write(reg.name, stored(reg.name), stored)
-        except _BadValue as exc:
+        except (_BadValue, ValueError) as exc:  # ValueError: the machine refused the value
             registers[offset:offset + len(set_values)] = previous
             log.info("refused write at 0x%04X: %s", address, exc)
             return ExcCodes.ILLEGAL_VALUE
@@ -266,14 +266,14 @@ class CrossheadDevice(_LiveDevice):
 
     def __init__(self, machine: Any, dmap: DeviceMap, word_order: str, *,
                  max_speed_mm_min: float, acceleration_mm_s2: float,
-                 travel_upper_mm: float, travel_lower_mm: float):
+                 travel_upper_mm: float, travel_lower_mm: float, watchdog_ms: int = 0):
         super().__init__(machine, dmap, word_order)
         self.max_speed_mm_min = max_speed_mm_min
         self._initial = {
             "acceleration": acceleration_mm_s2 * 1000.0,
             "upper_limit": travel_upper_mm * 1000.0,
             "lower_limit": travel_lower_mm * 1000.0,
-            "watchdog_ms": 0,
+            "watchdog_ms": watchdog_ms,
         }
 
     def initial_value(self, name: str) -> float:
@@ -439,15 +439,16 @@ class ModbusSimServer:
         self.requests = 0  #: requests addressed to our units (faulted ones included)
         self.drops = 0
         wire, word_order = profile["wire"], profile["word_order"]
-        lc, ch, limits = profile["load_cell"], profile["crosshead"], profile["limits"]
+        lc, ch = profile["load_cell"], profile["crosshead"]
+        # The registers start as the machine was built (its settings come from the profile).
+        st = machine.settings
         self.load_cell = LoadCellDevice(machine, DeviceMap.from_wire(wire, "load_cell"), word_order,
-                                        capacity_N=float(lc["capacity_N"]))
+                                        capacity_N=st.capacity_N)
         self.crosshead = CrossheadDevice(
             machine, DeviceMap.from_wire(wire, "crosshead"), word_order,
-            max_speed_mm_min=float(ch["max_speed_mm_min"]),
-            acceleration_mm_s2=float(ch.get("acceleration_mm_s2", 50.0)),
-            travel_upper_mm=float(limits["travel_upper_mm"]),
-            travel_lower_mm=float(limits["travel_lower_mm"]),
+            max_speed_mm_min=st.max_speed_mm_min, acceleration_mm_s2=st.acceleration_mm_s2,
+            travel_upper_mm=st.travel_upper_mm, travel_lower_mm=st.travel_lower_mm,
+            watchdog_ms=st.watchdog_ms,
         )
         self.unit_ids = (int(lc["unit_id"]), int(ch["unit_id"]))
         self.pty: PtyPort | None = None

@@ -9,7 +9,8 @@ in CR, replies in CR LF, an acknowledged command answers an empty line, errors a
     *11 parameter out of range (or not a number)
     *21 limit reached: a move toward a travel limit the crosshead is already at
     *22 overload: the gauge is over range (force reads, moving down)
-    *30 emergency stop latched: motion refused until `r`
+    *30 emergency stop latched: motion refused until `r` (also for any other latched
+        drive fault - stall, watchdog, overtravel - whose remedy is the same `r`)
 
 Wire faults from ``machine.faults``, asked once per command: drop (the pty is hung
 up and replaced behind the same path), timeout (no reply, command not done),
@@ -86,10 +87,11 @@ class Stand:
 
     def __init__(self, machine: Any, profile: dict):
         self.machine = machine
-        self.max_speed_mm_min = float(profile["crosshead"]["max_speed_mm_min"])
+        st = machine.settings  # the stand starts as the machine was built (from the profile)
+        self.max_speed_mm_min = st.max_speed_mm_min
         self.speed_mm_min = min(DEFAULT_SPEED_MM_MIN, self.max_speed_mm_min)
-        self.upper_mm = float(profile["limits"]["travel_upper_mm"])
-        self.lower_mm = float(profile["limits"]["travel_lower_mm"])
+        self.upper_mm = st.travel_upper_mm
+        self.lower_mm = st.travel_lower_mm
 
     def execute(self, name: str, arg: str | None) -> str:
         m = self.machine
@@ -116,13 +118,19 @@ class Stand:
         if direction > 0 and self.machine.read_load_cell().over_range:
             raise _Refused("overload")
 
+    def _jog(self, direction: int) -> None:
+        self._motion_allowed(direction)
+        if not self.machine.jog(direction, self.speed_mm_min):
+            # Refused by the drive: a latched fault (stall, watchdog, overtravel) needs `r`
+            # like an e-stop does; otherwise the crosshead is at the limit.
+            fault = self.machine.crosshead_status().fault
+            raise _Refused("emergency_stop" if fault else "limit_reached")
+
     def _do_move_down(self, m, _):
-        self._motion_allowed(+1)
-        m.jog(+1, self.speed_mm_min)
+        self._jog(+1)
 
     def _do_move_up(self, m, _):
-        self._motion_allowed(-1)
-        m.jog(-1, self.speed_mm_min)
+        self._jog(-1)
 
     def _do_stop(self, m, _):
         m.stop()
