@@ -200,9 +200,12 @@ class _SerialClient(ModbusSerialClient):
 
     def _in_waiting(self) -> int:
         sock = getattr(self.socket, "_socket", None)
-        if sock is not None and fcntl is not None:
-            return struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0\0\0\0"))[0]
-        return super()._in_waiting()
+        if sock is None or fcntl is None:
+            return super()._in_waiting()
+        count = struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0\0\0\0"))[0]
+        if count == 0 and select.select([sock], [], [], 0)[0]:
+            return 1   # readable yet empty: the peer closed; pyserial's read will report it
+        return count
 
 
 class ModbusLink:
