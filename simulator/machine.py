@@ -37,6 +37,7 @@ from __future__ import annotations
 import collections
 import math
 import threading
+import time
 import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -61,6 +62,7 @@ FAULT_LIMIT = FAULT_CODES["limit"]
 
 _POS_TOL_MM = 1e-6              # "at the limit" / "at the target"
 TICK_REAL_S = 0.005             # background ticker period (wall clock)
+TICK_CHUNK_STEPS = 8            # physics steps per lock hold in the ticker
 MAX_STEPS_PER_ADVANCE = 200     # beyond this backlog, steps grow (bounded lock time, no runaway)
 RANDOM_OVERLOAD_S = 1.0         # duration of one random overload event (virtual s)
 
@@ -319,9 +321,10 @@ class SimulatedMachine:
         self._history: collections.deque[tuple[float, float]] = collections.deque()
         self._physics_step(self._t, first=True)
 
+        self._realtime = isinstance(self.clock, VirtualClock)
         self._stop_event = threading.Event()
         self._ticker: threading.Thread | None = None
-        if isinstance(self.clock, VirtualClock):
+        if self._realtime:
             self._ticker = threading.Thread(target=self._tick_loop, name="foamlab-sim-physics", daemon=True)
             self._ticker.start()
 
@@ -339,10 +342,14 @@ class SimulatedMachine:
         self.close()
 
     def _tick_loop(self) -> None:
+        # Small chunks under the lock, so host requests interleave with the background work.
         while not self._stop_event.wait(TICK_REAL_S):
             try:
-                with self._lock:
-                    self._advance(self.clock.now(), exact=False)
+                done = False
+                while not done and not self._stop_event.is_set():
+                    with self._lock:
+                        done = self._advance(self.clock.now(), exact=False, max_steps=TICK_CHUNK_STEPS)
+                    time.sleep(0)   # let a waiting request thread take the lock
             except BaseException as exc:   # surfaced to the next caller, never silent
                 self._error = exc
                 return
@@ -379,21 +386,27 @@ class SimulatedMachine:
             out.append(self._last_activity + self._watchdog_s)
         return out
 
-    def _advance(self, t_end: float, exact: bool) -> None:
+    def _advance(self, t_end: float, exact: bool, max_steps: int | None = None) -> bool:
+        """Step the physics towards t_end; True when there (or less than one step behind)."""
         if t_end <= self._t:
-            return
+            return True
         step = self.max_step_s
         backlog = t_end - self._t
         if not exact and backlog < step:
-            return
-        if backlog > step * MAX_STEPS_PER_ADVANCE:
-            step = backlog / MAX_STEPS_PER_ADVANCE
+            return True
+        if self._realtime and backlog > step * MAX_STEPS_PER_ADVANCE:
+            step = backlog / MAX_STEPS_PER_ADVANCE     # behind the wall clock: coarser, never runaway
+        n = 0
         while self._t < t_end:
+            if max_steps is not None and n >= max_steps:
+                return False
             nxt = min(self._t + step, t_end)
             for b in self._breakpoints(self._t):
                 if self._t + 1e-12 < b < nxt:
                     nxt = b
             self._physics_step(nxt)
+            n += 1
+        return True
 
     def _jammed_now(self) -> bool:
         return self._jam_latched or self.faults.in_window("stall", self._t)
@@ -693,6 +706,12 @@ class SimulatedMachine:
         with self._lock:
             self._sync()
             return self._snapshot()
+
+    def motion_eta(self) -> float | None:
+        """Virtual time at which the running motion will end (None when idle)."""
+        with self._lock:
+            self._sync()
+            return None if self._motion is None else self._motion.end
 
     def start_trace(self) -> None:
         """Record every physics step from now on (tests, benchmarks)."""
