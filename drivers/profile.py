@@ -97,6 +97,7 @@ def load_profile(name_or_path: str | Path, configs_dir: str | Path | None = None
     """
     path = _resolve(name_or_path, configs_dir)
     profile = _read_toml(path)
+    profile.setdefault("name", path.stem)
     profile["source"] = str(path)
     protocol = profile.get("protocol")
     if protocol not in PROTOCOLS:
@@ -253,14 +254,17 @@ def apply_overrides(profile: dict, **overrides: Any) -> dict:
     return result
 
 
-def open_machine(profile: dict, *, connect: bool = True, **overrides: Any) -> Machine:
+def open_machine(profile: dict | str | Path, *, connect: bool = True, **overrides: Any) -> Machine:
     """Build the machine a profile describes and (by default) connect it.
 
+    `profile` is a loaded profile, or a name / path for load_profile().
     `overrides` replace connection settings: host, port, port_url, transport,
     baudrate, parity, stopbits, timeout_s, retries, and word_order. Use it as a
     context manager to be sure it is closed: `with open_machine(p) as m: ...`
     (connect() is idempotent).
     """
+    if not isinstance(profile, dict):
+        profile = load_profile(profile)
     profile = apply_overrides(profile, **overrides)
     if profile["protocol"] == "modbus":
         from .modbus import ModbusMachine

@@ -16,8 +16,7 @@ import pytest
 from drivers.ascii import DeviceErrorReply
 from drivers.base import DeviceConnectionLost, DeviceProtocolError, DeviceTimeout, Machine
 from drivers.profile import load_profile, open_machine
-
-launch = pytest.importorskip("simulator.launch")
+from simulator import launch
 
 pytestmark = [pytest.mark.hil, pytest.mark.timeout(60)]
 

@@ -92,6 +92,7 @@ def test_invalid_profiles_fail_with_one_line_naming_file_and_key(machines, file,
 def test_open_machine_builds_the_protocols_machine_without_connecting():
     assert isinstance(open_machine(load_profile("sim-modbus-tcp"), connect=False), ModbusMachine)
     assert isinstance(open_machine(load_profile("sim-serial"), connect=False), AsciiMachine)
+    assert isinstance(open_machine("sim-modbus-rtu", connect=False), ModbusMachine)   # by name
 
 
 def test_overrides_replace_connection_settings_and_are_validated():
