@@ -123,7 +123,7 @@ class SerialLine:
                 self._port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=self.timeout_s,
                                                    write_timeout=max(self.timeout_s, 0.5))
             except (serial.SerialException, OSError, ValueError) as exc:
-                raise DeviceConnectionLost(f"{self.where}: cannot open: {exc}") from None
+                raise DeviceConnectionLost(f"{self.where}: cannot open: {getattr(exc, 'strerror', None) or exc}") from None
 
     def close(self) -> None:
         with self.lock:

@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import logging
 import select
+import socket
 import struct
 import threading
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
+import serial
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.client.mixin import ModbusClientMixin
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
@@ -242,7 +244,20 @@ class ModbusLink:
     def connect(self) -> None:
         with self.lock:
             if not self._client.connect():
-                raise DeviceConnectionLost(f"{self.where}: cannot connect")
+                raise DeviceConnectionLost(f"{self.where}: cannot connect{self._why_not_connected()}")
+
+    def _why_not_connected(self) -> str:
+        """pymodbus only logs why connect() failed; try once more ourselves for the reason
+        (refused, no such device, permission denied - the user can act on those)."""
+        params = self._client.comm_params
+        try:
+            if isinstance(self._client, ModbusTcpClient):
+                socket.create_connection((params.host, params.port), timeout=params.timeout_connect).close()
+            else:
+                serial.serial_for_url(params.host, baudrate=params.baudrate).close()
+        except Exception as exc:  # any reason is better than none; this is the failure path
+            return f": {getattr(exc, 'strerror', None) or exc}"
+        return ""
 
     def close(self) -> None:
         with self.lock:
