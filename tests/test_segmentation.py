@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -156,3 +158,71 @@ def test_too_few_samples_and_nan_are_clear_errors():
 def test_rundata_segments_shortcut():
     run, _ = triangle_run(cycles=1)
     assert run.segments().n_cycles == 1
+
+
+# --------------------------------------------------------------------------- the real file
+# tests/data/real/Specimen_RawData_6.csv (Instron Bluehill, CC0; see PROVENANCE.md).
+# Reference values read from the file itself: the crosshead reverses at samples
+# 3004 / 6005 / 9006 / 12008 / 15009 (extremes of -Extension: 60.04 s, 120.04 s,
+# 180.04 s, 240.04 s, 300.06 s); the controller's Segment ID column switches
+# 0.3 s later (60.40, 120.38, 180.40, 240.42, 300.30 s). After each unloading
+# the load sits at -0.24 +- 0.03 N (load-cell zero) from ~113 s to ~124.7 s,
+# ~229.5 s to ~247.4 s and ~347.4 s to the end.
+
+REAL = Path(__file__).parent / "data" / "real" / "Specimen_RawData_6.csv"
+
+
+@pytest.fixture(scope="module")
+def real():
+    from foamlab.importers import load_run
+
+    run = load_run(REAL)
+    return run, segment(run)
+
+
+def test_real_file_turning_points(real):
+    run, seg = real
+    assert seg.n_cycles == 3
+    assert len(seg.turning_points) == 5
+    expected_t = [60.04, 120.04, 180.04, 240.04, 300.06]
+    assert np.allclose(run.time_s[seg.turning_points], expected_t, atol=0.1)
+    # reversals at the file's displacement extremes: 10.0 mm (top) and 0.0 mm (bottom)
+    assert np.allclose(run.displacement_mm[seg.turning_points], [10.0, 0.0, 10.0, 0.0, 10.0],
+                       atol=0.01)
+    assert [h.label for h in seg.half_cycles] == [
+        f"cycle {c} {d}" for c in (1, 2, 3) for d in (LOADING, UNLOADING)]
+    assert seg.holds == []
+
+
+def test_real_file_first_loading_and_linear_region(real):
+    run, seg = real
+    first = seg.cycles[0].loading
+    assert first.start == 0 and run.time_s[first.stop - 1] == pytest.approx(60.04, abs=0.1)
+    a, b = seg.first_cycle_linear_region
+    # starts once the plate moves (preload start: the force settles for 3 samples)
+    assert run.time_s[a] == pytest.approx(0.1, abs=0.05)
+    # ends where the first loading bends away from its initial line: 1.1-1.6 mm
+    # (the paper: where later cycles regain contact, here 0.77 and 1.23 mm)
+    assert 1.1 <= run.displacement_mm[b - 1] <= 1.6
+    slope = np.polyfit(run.displacement_mm[a:b], run.force_N[a:b], 1)[0]
+    assert slope == pytest.approx(5.0, abs=0.3)
+
+
+def test_real_file_contact_loss_at_start_of_cycles_2_and_3(real):
+    run, seg = real
+    assert seg.contact_zero_N == pytest.approx(-0.235, abs=0.03)
+    assert -0.2 < seg.contact_threshold_N < 0.1
+    spans = seg.contact_lost_spans
+    assert len(spans) == 3
+    times = [(run.time_s[a], run.time_s[b - 1]) for a, b in spans]
+    assert times[0] == pytest.approx((113.0, 124.7), abs=0.6)
+    assert times[1] == pytest.approx((229.5, 247.4), abs=0.6)
+    assert times[2][0] == pytest.approx(347.4, abs=0.6) and spans[2][1] == len(run)
+    # spans 1 and 2 run from the end of an unloading into the start of the next loading
+    for (a, b), cycle in zip(spans[:2], seg.cycles[1:]):
+        assert a < cycle.loading.start < b
+        assert seg.cycle_of(b - 1) == cycle.number
+    # the plate regains contact at 0.77 mm (cycle 2) and 1.23 mm (cycle 3)
+    assert run.displacement_mm[spans[0][1] - 1] == pytest.approx(0.77, abs=0.1)
+    assert run.displacement_mm[spans[1][1] - 1] == pytest.approx(1.23, abs=0.1)
+    assert not seg.contact_lost[: spans[0][0]].any()

@@ -60,8 +60,11 @@ def load_run(path: str | Path) -> RunData:
                            f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
                            ) from exc
     first = next((ln.strip() for ln in lines if ln.strip()), "")
+    table = [ln for ln in lines if ln.strip() and not ln.startswith("#")]
+    if not table:
+        raise FoamlabError(f"{path}: no header row '{plain_csv.HEADER}' (only # comment lines)")
     if first.startswith("#") or first.count(",") >= 2:
-        shown = next((ln for ln in lines if ln.strip() and not ln.startswith("#")), first)
+        shown = table[0]
         shown = shown if len(shown) <= 60 else shown[:57] + "..."
         raise FoamlabError(f"{path}: unknown format: header row is {shown!r}; expected "
                            f"'{plain_csv.HEADER}', a Bluehill or a testXpert export")

@@ -35,10 +35,10 @@ def parse_rows(rows: list[Row], *, source: str, sep: str, decimal: str, ncols: i
     """
     if not rows:
         raise FoamlabError(f"{source}: no data rows after the header")
-    _check_field_counts(rows, source, sep, ncols)
+    width = _check_field_counts(rows, source, sep, ncols)
     joined = "\n".join(r.text for r in rows)
     indices = sorted(set(wanted.values()))
-    read = dict(sep=sep, decimal=decimal, header=None, names=list(range(ncols)),
+    read = dict(sep=sep, decimal=decimal, header=None, names=list(range(width)),
                 skip_blank_lines=False, quotechar='"', engine="c")
     try:
         table = pd.read_csv(io.StringIO(joined), usecols=indices, dtype=float, **read)
@@ -59,14 +59,16 @@ def parse_rows(rows: list[Row], *, source: str, sep: str, decimal: str, ncols: i
     return out
 
 
-def _check_field_counts(rows: list[Row], source: str, sep: str, ncols: int) -> None:
-    """Rows with more fields than the header (trailing empty fields allowed).
+def _check_field_counts(rows: list[Row], source: str, sep: str, ncols: int) -> int:
+    """Refuse rows with more fields than the header (trailing empty fields allowed);
+    return how many columns pandas must expect.
 
     pandas silently drops surplus fields of columns it is not asked for, so this
-    is checked here; rows with quotes are left to pandas (a quoted field may hold
-    the separator).
+    is checked here; rows with quotes are not judged (a quoted field may hold the
+    separator), only made room for.
     """
     texts = pd.Series([r.text for r in rows], dtype=object)
+    width = max(ncols, int(texts.str.count(re.escape(sep)).max()) + 1)
     trimmed = texts.str.replace(rf"[{re.escape(sep)}\s]+$", "", regex=True)
     counts = trimmed.str.count(re.escape(sep)) + 1
     too_many = (counts > ncols) & ~texts.str.contains('"', regex=False)
@@ -74,6 +76,7 @@ def _check_field_counts(rows: list[Row], source: str, sep: str, ncols: int) -> N
         i = int(np.argmax(too_many.to_numpy()))
         raise FoamlabError(f"{source}: line {rows[i].line_no}: {int(counts.iloc[i])} fields, "
                            f"expected {ncols}")
+    return width
 
 
 def _first_line(exc: BaseException) -> str:

@@ -1,1 +1,12 @@
-"""Where runs live: run files written as they are acquired, and the run catalog."""
+"""Where runs live: run files written as they are acquired, and the run catalog.
+
+- foamlab.storage.runfile: RunWriter (one flushed line per sample, self-describing
+  ``#`` header, status trailer), read_run_file, write_run_file;
+- foamlab.storage.catalog: Catalog (SQLite/WAL index of runs, fits, diagnoses,
+  rebuildable from the files), data_dir(), sidecar_path().
+"""
+
+from foamlab.storage.catalog import Catalog, data_dir, sidecar_path
+from foamlab.storage.runfile import RunWriter, read_run_file, write_run_file
+
+__all__ = ["Catalog", "RunWriter", "data_dir", "read_run_file", "sidecar_path", "write_run_file"]
