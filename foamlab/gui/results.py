@@ -177,10 +177,10 @@ class ResultsPanel(QtWidgets.QWidget):
 
     def show_report(self, report: Report) -> None:
         self.report = report
-        lines = [f"<b>{k}</b>: {v}" for k, v in report.run]
+        parts = [f"<b>{k}</b>: {v}" for k, v in report.run]
         if report.fit_note:
-            lines.append(f"<b>fit</b>: {report.fit_note}")
-        self.summary.setText("<br>".join(lines) or "No run yet.")
+            parts.append(f"<b>fit</b>: {report.fit_note}")
+        self.summary.setText(" &nbsp;·&nbsp; ".join(parts) or "No run yet.")
         params = []
         for name, value, stderr in report.parameters:
             rel = None

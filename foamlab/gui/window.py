@@ -170,24 +170,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.specimen_form = SpecimenForm()
         left.addWidget(self.specimen_form)
 
-        run_box = QtWidgets.QWidget()
-        run = QtWidgets.QHBoxLayout(run_box)
-        run.setContentsMargins(0, 0, 0, 0)
-        self.start_button = QtWidgets.QPushButton("Start")
-        self.start_button.setObjectName("start_button")
-        self.stop_button = QtWidgets.QPushButton("Stop")
-        self.stop_button.setObjectName("stop_button")
-        run.addWidget(self.start_button)
-        run.addWidget(self.stop_button)
-        left.addWidget(run_box)
-        self.estop_button = QtWidgets.QPushButton("EMERGENCY STOP")
-        self.estop_button.setObjectName("estop_button")
-        self.estop_button.setMinimumHeight(48)
-        self.estop_button.setStyleSheet(
-            "QPushButton { background: #C62828; color: white; font-weight: bold; font-size: 15px; }"
-            "QPushButton:disabled { background: #E8A5A5; }")
-        self.estop_button.setShortcut(QtGui.QKeySequence("Esc"))
-        left.addWidget(self.estop_button)
         left.addStretch(1)
 
         scroll = QtWidgets.QScrollArea()
@@ -195,6 +177,31 @@ class MainWindow(QtWidgets.QMainWindow):
         scroll.setWidgetResizable(True)
         scroll.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         scroll.setMinimumWidth(360)
+
+        # Start / Stop / EMERGENCY STOP stay visible below the scrolling controls.
+        self.start_button = QtWidgets.QPushButton("Start")
+        self.start_button.setObjectName("start_button")
+        self.stop_button = QtWidgets.QPushButton("Stop")
+        self.stop_button.setObjectName("stop_button")
+        for b in (self.start_button, self.stop_button):
+            b.setMinimumHeight(32)
+        self.estop_button = QtWidgets.QPushButton("EMERGENCY STOP")
+        self.estop_button.setObjectName("estop_button")
+        self.estop_button.setMinimumHeight(52)
+        self.estop_button.setStyleSheet(
+            "QPushButton { background: #C62828; color: white; font-weight: bold; font-size: 16px; }"
+            "QPushButton:disabled { background: #E8A5A5; }")
+        self.estop_button.setShortcut(QtGui.QKeySequence("Esc"))
+        self.estop_button.setToolTip("Stops the crosshead at once (Esc). The data acquired are kept.")
+        left_panel = QtWidgets.QWidget()
+        left_outer = QtWidgets.QVBoxLayout(left_panel)
+        left_outer.setContentsMargins(0, 0, 0, 0)
+        left_outer.addWidget(scroll, 1)
+        run_row = QtWidgets.QHBoxLayout()
+        run_row.addWidget(self.start_button)
+        run_row.addWidget(self.stop_button)
+        left_outer.addLayout(run_row)
+        left_outer.addWidget(self.estop_button)
 
         # Right: live test (plots, progress, results) and the run browser.
         test_tab = QtWidgets.QWidget()
@@ -231,7 +238,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.tabs.addTab(self.browser, "Runs")
 
         main = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)
-        main.addWidget(scroll)
+        main.addWidget(left_panel)
         main.addWidget(self.tabs)
         main.setStretchFactor(1, 1)
         self.setCentralWidget(main)
@@ -409,8 +416,9 @@ class MainWindow(QtWidgets.QMainWindow):
             from foamlab.methods import load_method
 
             method = load_method(name)
-            steps = "; ".join(s.describe() for s in method.steps[:4]) + ("; …" if len(method.steps) > 4 else "")
-            self.method_info.setText(f"{method.describe()}<br>{steps}")
+            first = method.steps[0].describe() if method.steps else ""
+            self.method_info.setText(f"{method.describe()}; first step: {first}")
+            self.method_info.setToolTip("\n".join(s.describe() for s in method.steps))
         except (FoamlabError, ImportError) as exc:
             self.method_info.setText(f"<span style='color:#B00020'>{exc}</span>")
 

@@ -1,0 +1,80 @@
+"""Regenerate docs/img/gui.png: the window after a simulated run, grabbed offscreen.
+
+Connects the window to the built-in simulated machine, runs the paper's protocol on
+a 100 x 100 x 72.5 mm block (the simulator's clock sped up), waits for the fit and
+the diagnosis, and saves a grab of the whole window.
+
+    .venv/bin/python scripts/screenshot_gui.py [--speedup 25] [--out docs/img/gui.png]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from PySide6 import QtCore, QtWidgets  # noqa: E402
+
+from foamlab.gui.window import MainWindow  # noqa: E402
+
+
+def wait_for(app: QtWidgets.QApplication, condition, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise SystemExit(f"screenshot_gui: timed out after {timeout_s:.0f} s waiting for {what}")
+        app.processEvents(QtCore.QEventLoop.ProcessEventsFlag.AllEvents, 50)
+        time.sleep(0.01)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--speedup", type=float, default=25.0, help="simulated machine clock rate (default 25)")
+    parser.add_argument("--height", type=float, default=72.5, help="specimen height in mm (default 72.5)")
+    parser.add_argument("--out", default=str(ROOT / "docs" / "img" / "gui.png"))
+    parser.add_argument("--size", default="1400x900", help="window size WxH")
+    args = parser.parse_args()
+
+    app = QtWidgets.QApplication.instance() or QtWidgets.QApplication([])
+    with tempfile.TemporaryDirectory(prefix="foamlab-screenshot-") as data:
+        window = MainWindow(speedup=args.speedup, out_dir=data)
+        width, height = (int(v) for v in args.size.split("x"))
+        window.resize(width, height)
+        window.show()
+        try:
+            window.connect_button.click()
+            wait_for(app, lambda: window.connected, 30, "the simulated machine")
+            window.specimen_form.set_values("PU-foam-01", args.height, 100.0, 100.0)
+            if not window.start_run():
+                raise SystemExit(f"screenshot_gui: start refused: {window.specimen_form.message.text()}")
+            wait_for(app, lambda: window.last_result is not None, 600, "the end of the run")
+            result = window.last_result
+            print(f"run {result.status} {result.reason}: {result.n_samples} samples, {result.missed} missed")
+            # Fit and diagnosis results arrive after the run; give the diagnosis its time.
+            wait_for(app, lambda: "running" not in window.results.verdict.text(), 300, "the diagnosis")
+            app.processEvents()
+            out = Path(args.out)
+            out.parent.mkdir(parents=True, exist_ok=True)
+            if not window.grab().save(str(out)):
+                raise SystemExit(f"screenshot_gui: could not write {out}")
+            print(f"written {out}")
+        finally:
+            if window.engine is not None:
+                window.engine.emergency_stop()
+                window.engine.wait(10)
+                window.engine = None
+            window.close()
+            window.deleteLater()
+            app.processEvents()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
