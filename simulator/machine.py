@@ -284,7 +284,7 @@ class SimulatedMachine:
         if st.max_step_s is not None:
             self.max_step_s = float(st.max_step_s)
         else:   # ~<= 1000 physics steps per wall-clock second, never coarser than 0.5 s
-            self.max_step_s = 0.002 if math.isinf(sp) else min(0.5, max(0.002, sp / 1000.0))
+            self.max_step_s = 0.01 if math.isinf(sp) else min(0.5, max(0.002, sp / 1000.0))
         self._faults_breaks = self.faults.scheduled_times(("stall", "overload"))
         self.events: collections.deque[tuple[float, str]] = collections.deque(maxlen=1000)
         self._trace: list[tuple] | None = None
@@ -345,7 +345,9 @@ class SimulatedMachine:
         # Small chunks under the lock, so host requests interleave with the background work.
         while not self._stop_event.wait(TICK_REAL_S):
             try:
-                done = False
+                # Requests advance the physics themselves; the ticker only steps in when nobody
+                # has asked for a whole tick (a polling host then never waits behind it).
+                done = self.clock.now() - self._t < self.clock.to_virtual(TICK_REAL_S)
                 while not done and not self._stop_event.is_set():
                     with self._lock:
                         done = self._advance(self.clock.now(), exact=False, max_steps=TICK_CHUNK_STEPS)
@@ -377,11 +379,12 @@ class SimulatedMachine:
         out = list(self._faults_breaks)
         m = self._motion
         if m is not None and not self._jammed_now():
-            top = self.settings.specimen_top_mm
+            levels = (self.settings.specimen_top_mm, self._upper + self._zero, self._lower + self._zero)
             for seg in m.segments:
                 out.append(seg.t0)
                 out.append(seg.t1)
-                out.extend(seg.crossing(top))
+                for level in levels:    # contact instant, travel limits
+                    out.extend(seg.crossing(level))
         if m is not None and self._watchdog_s > 0:
             out.append(self._last_activity + self._watchdog_s)
         return out
@@ -469,9 +472,11 @@ class SimulatedMachine:
                 self._target = m.target
             self.events.append((t1, f"{m.kind} done at {self._p - self._zero:.4f} mm"))
             return
-        # overtravel past a soft limit while moving: immediate stop
+        # reaching a soft limit while still heading past it (limits moved in front of the
+        # crosshead, or a reversal overshooting): immediate stop (the limit crossing is a step)
+        # (a move that ends at the limit arrives there at rest, in the branch above)
         pos = self._p - self._zero
-        if (self._v > 0 and pos > self._lower + _POS_TOL_MM) or (self._v < 0 and pos < self._upper - _POS_TOL_MM):
+        if (self._v > 0 and pos >= self._lower - _POS_TOL_MM) or (self._v < 0 and pos <= self._upper + _POS_TOL_MM):
             self._v = 0.0
             self._motion = None
             self._latch_fault(FAULT_LIMIT, t1, f"overtravel at {pos:.4f} mm")
@@ -584,16 +589,17 @@ class SimulatedMachine:
             raise ValueError(f"speed must be a positive number of mm/min, got {speed_mm_min!r}")
         return min(float(speed_mm_min), self.settings.max_speed_mm_min) / 60.0
 
-    def _start_move(self, target_user: float, speed: float, what: str) -> bool:
+    def _start_move(self, target_user: float, speed: float, what: str, jog: int = 0) -> bool:
         """Plan a move (target clipped to the travel limits). Caller holds the lock, synced."""
         if self._fault != FAULT_NONE:
             self.events.append((self._t, f"{what} refused: fault {self._fault} latched"))
             return False
         pos = self._p - self._zero
         clipped = min(max(target_user, self._upper), self._lower)
-        if clipped != target_user:
-            beyond_lower = target_user > self._lower and pos >= self._lower - _POS_TOL_MM
-            beyond_upper = target_user < self._upper and pos <= self._upper + _POS_TOL_MM
+        if clipped != target_user or jog:
+            at_lower, at_upper = pos >= self._lower - _POS_TOL_MM, pos <= self._upper + _POS_TOL_MM
+            beyond_lower = at_lower and (target_user > self._lower or jog > 0)
+            beyond_upper = at_upper and (target_user < self._upper or jog < 0)
             if beyond_lower or beyond_upper:
                 self.events.append((self._t, f"{what} refused: at the travel limit"))
                 return False
@@ -624,7 +630,7 @@ class SimulatedMachine:
             speed = self._speed_mm_s(speed_mm_min)
             self._sync(exact=True)
             return self._start_move(self._lower if direction > 0 else self._upper, speed,
-                                    "jog down" if direction > 0 else "jog up")
+                                    "jog down" if direction > 0 else "jog up", jog=direction)
 
     def stop(self) -> None:
         with self._lock:
