@@ -30,6 +30,11 @@ def line(text: str) -> bytes:
     return text.encode("ascii") + b"\r\n"
 
 
+def stand(exchanges, transport="pty") -> RecordedPeer:
+    """The stand on a pty (like a USB serial adapter), or behind pyserial's socket:// URL."""
+    return RecordedPeer(exchanges, transport=transport)
+
+
 @contextmanager
 def machine_on(peer: RecordedPeer, *, timeout_s=0.5, retries=1, configure=False):
     machine = open_machine(load_profile("sim-serial"), connect=False, port_url=peer.url,
@@ -46,13 +51,14 @@ def machine_on(peer: RecordedPeer, *, timeout_s=0.5, retries=1, configure=False)
 
 
 def test_connect_sets_the_safety_travel_limits():
-    with RecordedPeer([(cmd("g-20.000"), ACK), (cmd("h70.000"), ACK)]) as peer:
+    with stand([(cmd("g-20.000"), ACK), (cmd("h70.000"), ACK)]) as peer:
         with machine_on(peer, configure=True) as machine:
             machine.connect()            # idempotent: nothing more is sent
 
 
-def test_read_sample_is_one_n_request():
-    with RecordedPeer([(cmd("n"), line("12.345,4.285")), (cmd("n"), line("-0.500,-0.012"))]) as peer:
+@pytest.mark.parametrize("transport", ["pty", "socket"])
+def test_read_sample_is_one_n_request(transport):
+    with stand([(cmd("n"), line("12.345,4.285")), (cmd("n"), line("-0.500,-0.012"))], transport) as peer:
         with machine_on(peer) as machine:
             first = machine.read_sample()
             second = machine.read_sample()
@@ -64,7 +70,7 @@ def test_read_sample_is_one_n_request():
 def test_gauge_read_travel_read_and_zeroes():
     exchanges = [(cmd("?"), line("4.285 N")), (cmd("x"), line("12.345")),
                  (cmd("Z"), ACK), (cmd("Z"), ACK), (cmd("z"), ACK)]
-    with RecordedPeer(exchanges) as peer:
+    with stand(exchanges) as peer:
         with machine_on(peer) as machine:
             reading = machine.load_cell.read()
             assert reading.force_N == 4.285 and not reading.status.over_range
@@ -75,7 +81,7 @@ def test_gauge_read_travel_read_and_zeroes():
 
 
 def test_gauge_reading_at_capacity_is_flagged_over_range():
-    with RecordedPeer([(cmd("?"), line("500.000 N"))]) as peer:
+    with stand([(cmd("?"), line("500.000 N"))]) as peer:
         with machine_on(peer) as machine:
             assert machine.load_cell.read().status.over_range
 
@@ -84,7 +90,7 @@ def test_move_to_down_sets_the_lower_limit_to_the_target_then_moves_down():
     exchanges = [(cmd("x"), line("10.000")), (cmd("e23.6"), ACK), (cmd("h12.345"), ACK), (cmd("d"), ACK),
                  (cmd("w"), line("M1 U0 L0 F0 E0 O0")),
                  (cmd("w"), line("M0 U0 L1 F0 E0 O0"))]
-    with RecordedPeer(exchanges) as peer:
+    with stand(exchanges) as peer:
         with machine_on(peer, configure=False) as machine:
             machine.crosshead.safety_upper_mm, machine.crosshead.safety_lower_mm = -20.0, 70.0
             machine.crosshead.move_to(12.345, 23.6)
@@ -95,19 +101,19 @@ def test_move_to_down_sets_the_lower_limit_to_the_target_then_moves_down():
 
 def test_move_to_up_sets_the_upper_limit_then_moves_up():
     exchanges = [(cmd("x"), line("20.000")), (cmd("e100.0"), ACK), (cmd("g5.000"), ACK), (cmd("u"), ACK)]
-    with RecordedPeer(exchanges) as peer:
+    with stand(exchanges) as peer:
         with machine_on(peer) as machine:
             machine.crosshead.move_to(5.0, 100.0)
 
 
 def test_move_to_where_it_already_is_sends_no_motion():
-    with RecordedPeer([(cmd("x"), line("5.000"))]) as peer:
+    with stand([(cmd("x"), line("5.000"))]) as peer:
         with machine_on(peer) as machine:
             machine.crosshead.move_to(5.0, 100.0)
 
 
 def test_move_to_outside_the_travel_limits_sends_nothing():
-    with RecordedPeer([]) as peer:
+    with stand([]) as peer:
         with machine_on(peer) as machine:
             with pytest.raises(ValueError, match="travel limits"):
                 machine.crosshead.move_to(80.0, 10.0)
@@ -120,7 +126,7 @@ def test_jog_restores_the_safety_limit_and_stopping_there_is_a_limit_event():
                  (cmd("x"), line("0.000")), (cmd("e50.0"), ACK), (cmd("h30.000"), ACK), (cmd("d"), ACK),
                  (cmd("e50.0"), ACK), (cmd("h70.000"), ACK), (cmd("d"), ACK),  # jog down
                  (cmd("w"), line("M0 U0 L1 F0 E0 O0"))]
-    with RecordedPeer(exchanges) as peer:
+    with stand(exchanges) as peer:
         with machine_on(peer, configure=True) as machine:
             machine.crosshead.move_to(30.0, 50.0)
             machine.crosshead.jog(+1, 50.0)
@@ -130,7 +136,7 @@ def test_jog_restores_the_safety_limit_and_stopping_there_is_a_limit_event():
 def test_stop_emergency_stop_reset_and_status_flags():
     exchanges = [(cmd("s"), ACK), (cmd("!"), ACK), (cmd("w"), line("M0 U0 L0 F1 E1 O1")),
                  (cmd("r"), ACK), (cmd("u"), ACK)]
-    with RecordedPeer(exchanges) as peer:
+    with stand(exchanges) as peer:
         with machine_on(peer) as machine:
             machine.crosshead.stop()
             machine.crosshead.emergency_stop()
@@ -140,7 +146,7 @@ def test_stop_emergency_stop_reset_and_status_flags():
 
 
 def test_error_reply_is_named_and_not_retried():
-    with RecordedPeer([(cmd("d"), line("*10"))]) as peer:
+    with stand([(cmd("d"), line("*10"))]) as peer:
         with machine_on(peer) as machine:
             with pytest.raises(DeviceErrorReply, match=r"'d': \*10 unknown command") as info:
                 machine.line.query("move_down")
@@ -149,7 +155,7 @@ def test_error_reply_is_named_and_not_retried():
 
 
 def test_overload_error_on_a_sample():
-    with RecordedPeer([(cmd("n"), line("*22"))]) as peer:
+    with stand([(cmd("n"), line("*22"))]) as peer:
         with machine_on(peer) as machine:
             with pytest.raises(DeviceErrorReply, match="overload"):
                 machine.read_sample()
@@ -158,7 +164,7 @@ def test_overload_error_on_a_sample():
 @pytest.mark.parametrize("garbage", [b"12.3\xff5,4.2\r\n", b"12.345;4.285\r\n", b"12.345,4.285 N\r\n",
                                      b"\r\n", b"12.34"])
 def test_garbage_or_partial_reply_is_a_protocol_error_after_the_retry(garbage):
-    with RecordedPeer([(cmd("n"), garbage), (cmd("n"), garbage)]) as peer:
+    with stand([(cmd("n"), garbage), (cmd("n"), garbage)]) as peer:
         with machine_on(peer, timeout_s=0.1) as machine:
             with pytest.raises(DeviceProtocolError, match="'n'") as info:
                 machine.read_sample()
@@ -166,20 +172,20 @@ def test_garbage_or_partial_reply_is_a_protocol_error_after_the_retry(garbage):
 
 
 def test_garbage_then_good_reply_recovers_on_the_retry():
-    with RecordedPeer([(cmd("x"), b"#~\r\n"), (cmd("x"), line("1.250"))]) as peer:
+    with stand([(cmd("x"), b"#~\r\n"), (cmd("x"), line("1.250"))]) as peer:
         with machine_on(peer) as machine:
             assert machine.crosshead.read_position() == 1.25
 
 
 def test_unexpected_text_for_an_acknowledge_is_a_protocol_error():
-    with RecordedPeer([(cmd("s"), line("12.000")), (cmd("s"), line("12.000"))]) as peer:
+    with stand([(cmd("s"), line("12.000")), (cmd("s"), line("12.000"))]) as peer:
         with machine_on(peer) as machine:
             with pytest.raises(DeviceProtocolError, match="expected an empty acknowledge"):
                 machine.crosshead.stop()
 
 
 def test_silence_is_a_timeout_after_one_retry():
-    with RecordedPeer([(cmd("n"), b""), (cmd("n"), b"")]) as peer:
+    with stand([(cmd("n"), b""), (cmd("n"), b"")]) as peer:
         with machine_on(peer, timeout_s=0.05) as machine:
             with pytest.raises(DeviceTimeout, match=r"no reply to 'n' \(2 x 50 ms\)"):
                 machine.read_sample()
@@ -187,16 +193,17 @@ def test_silence_is_a_timeout_after_one_retry():
 
 def test_a_stale_extra_line_is_flushed_before_the_next_command():
     # The device sends one line too many (e.g. a late reply); it must not shift later replies.
-    with RecordedPeer([(cmd("x"), line("1.000") + line("99.000")), (cmd("n"), line("2.000,3.000"))]) as peer:
+    with stand([(cmd("x"), line("1.000") + line("99.000")), (cmd("n"), line("2.000,3.000"))]) as peer:
         with machine_on(peer) as machine:
             assert machine.crosshead.read_position() == 1.0
             assert machine.read_sample() == MachineSample(3.0, 2.0, machine.load_cell.status_for(3.0))
 
 
-def test_dropped_line_is_connection_lost():
-    with RecordedPeer([(cmd("w"), CLOSE)]) as peer:
+@pytest.mark.parametrize("transport", ["pty", "socket"])
+def test_dropped_line_is_connection_lost(transport):
+    with stand([(cmd("w"), CLOSE)], transport) as peer:
         with machine_on(peer) as machine:
-            with pytest.raises(DeviceConnectionLost, match="disconnected"):
+            with pytest.raises(DeviceConnectionLost):
                 machine.crosshead.status()
 
 

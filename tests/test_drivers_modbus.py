@@ -68,10 +68,15 @@ class Frames:
     def __call__(self, unit: int, request_pdu: bytes, reply_pdu: bytes | None = None, *, retry: bool = False):
         if not retry:
             self.tid += 1
-        if self.transport == "rtu":
+        if self.transport.startswith("rtu"):
             request = rtu(unit, request_pdu)
             return request, (rtu(unit, reply_pdu) if reply_pdu is not None else b"")
         return mbap(self.tid, unit, request_pdu), (mbap(self.tid, unit, reply_pdu) if reply_pdu is not None else b"")
+
+
+def peer_for(transport: str, exchanges, **options) -> RecordedPeer:
+    """RTU runs over a pty (like a USB adapter); `rtu-socket` over pyserial's socket:// URL."""
+    return RecordedPeer(exchanges, transport="pty" if transport == "rtu" else "socket", **options)
 
 
 @contextmanager
@@ -89,7 +94,7 @@ def machine_on(peer: RecordedPeer, transport: str, word_order: str = "big", *, t
     peer.verify()   # not reached when the body failed: its own error is the one to see
 
 
-TRANSPORT_ORDERS = [("tcp", "big"), ("tcp", "little"), ("rtu", "big"), ("rtu", "little")]
+TRANSPORT_ORDERS = [("tcp", "big"), ("tcp", "little"), ("rtu", "big"), ("rtu", "little"), ("rtu-socket", "big")]
 
 
 def test_reference_crc_matches_the_modbus_specification_example():
@@ -105,7 +110,7 @@ def test_load_cell_read_is_one_block_read_giving_net_force_and_status(transport,
     frame = Frames(transport)
     status_word = 0b1100       # no_motion (bit 2) + tare_set (bit 3)
     block = [*words_of("f", 4.5, word_order), *words_of("f", 4.285, word_order), status_word]
-    with RecordedPeer([frame(LOAD_CELL, read_request(0x3500, 5), read_reply(*block))]) as peer:
+    with peer_for(transport, [frame(LOAD_CELL, read_request(0x3500, 5), read_reply(*block))]) as peer:
         with machine_on(peer, transport, word_order) as machine:
             reading = machine.load_cell.read()
     assert reading.force_N == pytest.approx(4.285, rel=1e-6)
@@ -115,7 +120,7 @@ def test_load_cell_read_is_one_block_read_giving_net_force_and_status(transport,
 def test_load_cell_overload_bit_and_negative_force():
     frame = Frames("tcp")
     block = [*words_of("f", -1.0, "big"), *words_of("f", -512.25, "big"), 0b0010]
-    with RecordedPeer([frame(LOAD_CELL, read_request(0x3500, 5), read_reply(*block))]) as peer:
+    with peer_for("tcp", [frame(LOAD_CELL, read_request(0x3500, 5), read_reply(*block))]) as peer:
         with machine_on(peer, "tcp") as machine:
             reading = machine.load_cell.read()
     assert reading.force_N == -512.25
@@ -127,7 +132,7 @@ def test_zero_and_tare_write_the_command_register(transport):
     frame = Frames(transport)
     exchanges = [frame(LOAD_CELL, write_single(0x2061, 1), write_single(0x2061, 1)),
                  frame(LOAD_CELL, write_single(0x2061, 2), write_single(0x2061, 2))]
-    with RecordedPeer(exchanges) as peer:
+    with peer_for(transport, exchanges) as peer:
         with machine_on(peer, transport) as machine:
             machine.load_cell.zero()
             machine.load_cell.tare()
@@ -142,7 +147,7 @@ def test_move_to_writes_target_speed_then_trigger(transport, word_order):
     speed = write_multiple(0x6203, words_of("i", 2360, word_order))       # 23.6 mm/min in 0.01 mm/min
     exchanges = [frame(CROSSHEAD, *target), frame(CROSSHEAD, *speed),
                  frame(CROSSHEAD, write_single(0x6002, 0x0010), write_single(0x6002, 0x0010))]
-    with RecordedPeer(exchanges) as peer:
+    with peer_for(transport, exchanges) as peer:
         with machine_on(peer, transport, word_order) as machine:
             machine.crosshead.move_to(12.345, 23.6)
 
@@ -152,7 +157,7 @@ def test_move_to_negative_target_is_twos_complement():
     exchanges = [frame(CROSSHEAD, *write_multiple(0x6201, [0xFFFF, 0xEC78])),      # -5000 um, big
                  frame(CROSSHEAD, *write_multiple(0x6203, [0x0000, 0xC350])),      # 500 mm/min
                  frame(CROSSHEAD, write_single(0x6002, 0x0010), write_single(0x6002, 0x0010))]
-    with RecordedPeer(exchanges) as peer:
+    with peer_for("rtu", exchanges) as peer:
         with machine_on(peer, "rtu", "big") as machine:
             machine.crosshead.move_to(-5.0, 500.0)
 
@@ -163,7 +168,7 @@ def test_jog_stop_estop_reset_zero_write_their_triggers():
     exchanges = [frame(CROSSHEAD, *write_multiple(0x6203, [0, 10000])), trigger(0x0022),   # jog up 100 mm/min
                  frame(CROSSHEAD, *write_multiple(0x6203, [0, 2360])), trigger(0x0021),    # jog down
                  trigger(0x0040), trigger(0x0050), trigger(0x0060), trigger(0x0030)]
-    with RecordedPeer(exchanges) as peer:
+    with peer_for("tcp", exchanges) as peer:
         with machine_on(peer, "tcp") as machine:
             machine.crosshead.jog(-1, 100.0)
             machine.crosshead.jog(+1, 23.6)
@@ -174,7 +179,7 @@ def test_jog_stop_estop_reset_zero_write_their_triggers():
 
 
 def test_speed_beyond_the_drive_maximum_is_refused_before_anything_is_sent():
-    with RecordedPeer([]) as peer:
+    with peer_for("tcp", []) as peer:
         with machine_on(peer, "tcp") as machine:
             with pytest.raises(ValueError, match="500"):
                 machine.crosshead.move_to(10.0, 600.0)
@@ -190,7 +195,7 @@ def test_position_and_status_decode(transport, word_order):
                  frame(CROSSHEAD, read_request(0x1003, 1), read_reply(status_word)),
                  frame(CROSSHEAD, read_request(0x1003, 1), read_reply((1 << 0) | (1 << 6) | (1 << 3))),
                  frame(CROSSHEAD, read_request(0x2203, 1), read_reply(2))]
-    with RecordedPeer(exchanges) as peer:
+    with peer_for(transport, exchanges) as peer:
         with machine_on(peer, transport, word_order) as machine:
             assert machine.crosshead.read_position() == pytest.approx(-20.123)
             assert machine.crosshead.status() == CrossheadStatus(moving=True, lower_limit=True)
@@ -203,7 +208,7 @@ def test_read_sample_reads_force_then_position():
     exchanges = [frame(LOAD_CELL, read_request(0x3500, 5),
                        read_reply(*words_of("f", 1.0, "big"), *words_of("f", 2.5, "big"), 0)),
                  frame(CROSSHEAD, read_request(0x602A, 2), read_reply(*words_of("i", 7250, "big")))]
-    with RecordedPeer(exchanges) as peer:
+    with peer_for("tcp", exchanges) as peer:
         with machine_on(peer, "tcp") as machine:
             sample = machine.read_sample()
     assert (sample.force_N, sample.position_mm) == (2.5, 7.25)
@@ -227,7 +232,7 @@ def test_bad_crc_on_every_attempt_is_a_protocol_error_naming_register_and_unit()
     good = rtu(LOAD_CELL, read_reply(0, 0, 0, 0, 0))
     corrupted = good[:-1] + bytes([good[-1] ^ 0xFF])
     request = rtu(LOAD_CELL, read_request(0x3500, 5))
-    with RecordedPeer([(request, corrupted), (request, corrupted)]) as peer:
+    with peer_for("rtu", [(request, corrupted), (request, corrupted)]) as peer:
         with machine_on(peer, "rtu", timeout_s=0.1, retries=1) as machine:
             with pytest.raises(DeviceProtocolError, match=r"0x3500.*unit 1") as info:
                 machine.load_cell.read()
@@ -238,7 +243,7 @@ def test_bad_crc_then_good_reply_recovers_on_the_retry():
     reply = rtu(LOAD_CELL, read_reply(*words_of("f", 0.0, "little"), *words_of("f", 3.25, "little"), 0))
     corrupted = reply[:9] + bytes([reply[9] ^ 0x01]) + reply[10:]    # one bit of the net force flipped
     request = rtu(LOAD_CELL, read_request(0x3500, 5))
-    with RecordedPeer([(request, corrupted), (request, reply)]) as peer:
+    with peer_for("rtu", [(request, corrupted), (request, reply)]) as peer:
         with machine_on(peer, "rtu", "little", timeout_s=0.1) as machine:
             assert machine.load_cell.read().force_N == 3.25
 
@@ -246,7 +251,7 @@ def test_bad_crc_then_good_reply_recovers_on_the_retry():
 @pytest.mark.parametrize("transport", ["tcp", "rtu"])
 def test_modbus_exception_reply_is_a_protocol_error(transport):
     frame = Frames(transport)
-    with RecordedPeer([frame(CROSSHEAD, read_request(0x602A, 2), bytes([0x83, 0x02]))]) as peer:
+    with peer_for(transport, [frame(CROSSHEAD, read_request(0x602A, 2), bytes([0x83, 0x02]))]) as peer:
         with machine_on(peer, transport) as machine:
             with pytest.raises(DeviceProtocolError,
                                match=r"unit 2 refused read of actual_position \(0x602A\).*0x02 \(illegal data address\)"):
@@ -255,27 +260,28 @@ def test_modbus_exception_reply_is_a_protocol_error(transport):
 
 def test_write_exception_reply_is_a_protocol_error():
     frame = Frames("rtu")
-    with RecordedPeer([frame(CROSSHEAD, write_single(0x6002, 0x0010), bytes([0x86, 0x04]))]) as peer:
+    with peer_for("rtu", [frame(CROSSHEAD, write_single(0x6002, 0x0010), bytes([0x86, 0x04]))]) as peer:
         with machine_on(peer, "rtu") as machine:
             with pytest.raises(DeviceProtocolError, match=r"trigger \(0x6002\).*server device failure"):
                 machine.crosshead._trigger("move_absolute")
 
 
-@pytest.mark.parametrize("transport", ["tcp", "rtu"])
+@pytest.mark.parametrize("transport", ["tcp", "rtu", "rtu-socket"])
 def test_silence_is_a_timeout_after_one_retry(transport):
     frame = Frames(transport)
     first = frame(LOAD_CELL, read_request(0x3500, 5))
     again = frame(LOAD_CELL, read_request(0x3500, 5), retry=True)
-    with RecordedPeer([first, again]) as peer:
+    with peer_for(transport, [first, again]) as peer:
         with machine_on(peer, transport, timeout_s=0.05, retries=1) as machine:
             with pytest.raises(DeviceTimeout, match=r"no reply to read of block \(0x3500.*unit 1 \(2 attempts of 50 ms\)"):
                 machine.load_cell.read()
 
 
-def test_dropped_tcp_connection_is_connection_lost():
-    frame = Frames("tcp")
-    with RecordedPeer([(frame(CROSSHEAD, read_request(0x1003, 1))[0], CLOSE)]) as peer:
-        with machine_on(peer, "tcp") as machine:
+@pytest.mark.parametrize("transport", ["tcp", "rtu", "rtu-socket"])
+def test_dropped_link_is_connection_lost(transport):
+    frame = Frames(transport)
+    with peer_for(transport, [(frame(CROSSHEAD, read_request(0x1003, 1))[0], CLOSE)]) as peer:
+        with machine_on(peer, transport) as machine:
             with pytest.raises(DeviceConnectionLost, match="unit 2"):
                 machine.crosshead.status()
 
@@ -301,7 +307,7 @@ def test_requests_from_two_threads_never_interleave():
     block = read_reply(*words_of("f", 0.0, "big"), *words_of("f", 1.5, "big"), 0)
     exchanges = [frame(LOAD_CELL, read_request(0x3500, 5), block) for _ in range(2 * n)]
     results: list[float] = []
-    with RecordedPeer(exchanges) as peer:
+    with peer_for("tcp", exchanges) as peer:
         with machine_on(peer, "tcp") as machine:
             def worker():
                 for _ in range(n):
