@@ -237,8 +237,12 @@ class AsciiCrosshead(Crosshead):
     def read_position(self) -> float:
         return float(self.line.query("read_travel").group(1))
 
+    def _flags(self) -> tuple[bool, ...]:
+        """`w`: moving, at upper limit, at lower limit, fault, e-stop latched, overload."""
+        return tuple(g == "1" for g in self.line.query("status").groups())
+
     def status(self) -> CrossheadStatus:
-        moving, upper, lower, fault, estop, _overload = (g == "1" for g in self.line.query("status").groups())
+        moving, upper, lower, fault, estop, _overload = self._flags()
         # The stand flags U/L at whatever limit is set; a limit move_to() set is a target,
         # so only a flag at the safety limit is a travel-limit event, and a flag in the
         # direction of the last move_to() means "arrived".
@@ -247,6 +251,11 @@ class AsciiCrosshead(Crosshead):
                                upper_limit=upper and self._stand_upper_mm == self.safety_upper_mm,
                                lower_limit=lower and self._stand_lower_mm == self.safety_lower_mm,
                                fault=fault or estop, emergency_stopped=estop)
+
+    def fault_reason(self) -> str:
+        """What the stand's flags say (it reports no fault codes): emergency, fault, overload or none."""
+        _moving, _upper, _lower, fault, estop, overload = self._flags()
+        return "emergency" if estop else "fault" if fault else "overload" if overload else "none"
 
     def move_to(self, target_mm: float, speed_mm_min: float) -> None:
         if not self.safety_upper_mm <= target_mm <= self.safety_lower_mm:

@@ -135,13 +135,16 @@ def test_jog_restores_the_safety_limit_and_stopping_there_is_a_limit_event():
 
 def test_stop_emergency_stop_reset_and_status_flags():
     exchanges = [(cmd("s"), ACK), (cmd("!"), ACK), (cmd("w"), line("M0 U0 L0 F1 E1 O1")),
-                 (cmd("r"), ACK), (cmd("u"), ACK)]
+                 (cmd("w"), line("M0 U0 L0 F1 E1 O1")), (cmd("r"), ACK), (cmd("w"), line("M0 U0 L0 F0 E0 O1")),
+                 (cmd("u"), ACK)]
     with stand(exchanges) as peer:
         with machine_on(peer) as machine:
             machine.crosshead.stop()
             machine.crosshead.emergency_stop()
             assert machine.crosshead.status() == CrossheadStatus(fault=True, emergency_stopped=True)
+            assert machine.crosshead.fault_reason() == "emergency"
             machine.crosshead.reset_fault()
+            assert machine.crosshead.fault_reason() == "overload"
             machine.line.query("move_up")
 
 
