@@ -8,9 +8,11 @@ from pathlib import Path
 
 from PySide6 import QtCore, QtWidgets
 
+from foamlab.gui.background import BackgroundQueue
+
 log = logging.getLogger(__name__)
 
-COLUMNS = ["started", "specimen", "method", "status", "samples", "verdict", "file"]
+COLUMNS = ["started", "specimen", "method", "status", "samples", "fit RMSE [N]", "verdict", "file"]
 
 
 def catalog_rows(out_dir: Path) -> list[dict]:
@@ -34,6 +36,7 @@ def catalog_row(entry) -> dict:
         "method": get("method", "") or "",
         "status": get("status", "") or "",
         "samples": get("n_samples", "") or "",
+        "fit RMSE [N]": f"{get('rmse'):.3g}" if isinstance(get("rmse"), (int, float)) else "",
         "verdict": get("verdict", "") or "",
         "file": str(get("path", "") or ""),
     }
@@ -45,6 +48,8 @@ class RunBrowser(QtWidgets.QWidget):
     def __init__(self, out_dir: Path, parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__(parent)
         self.out_dir = Path(out_dir)
+        # Syncing the catalog reads new run files: off the GUI thread.
+        self.queue = BackgroundQueue("foamlab-catalog", self)
         layout = QtWidgets.QVBoxLayout(self)
         bar = QtWidgets.QHBoxLayout()
         self.where = QtWidgets.QLabel("")
@@ -75,14 +80,15 @@ class RunBrowser(QtWidgets.QWidget):
 
     def refresh(self) -> None:
         self.where.setText(f"Runs in {self.out_dir.resolve()}")
-        try:
-            self.rows = catalog_rows(self.out_dir)
-        except Exception as exc:  # a missing or damaged catalog is shown, never raised
-            self.rows = []
-            self.message.setText(f"Catalog unavailable: {exc}")
-        else:
-            self.message.setText(f"{len(self.rows)} runs. Double-click one to open it."
-                                 if self.rows else "No runs yet.")
+        self.message.setText("Reading the catalog…")
+        self.queue.submit(lambda: catalog_rows(self.out_dir), self._show_rows, self._show_error)
+
+    def _show_error(self, message: str) -> None:
+        self.message.setText(f"Catalog unavailable: {message}")
+
+    def _show_rows(self, rows: list[dict]) -> None:
+        self.rows = rows
+        self.message.setText(f"{len(rows)} runs. Double-click one to open it." if rows else "No runs yet.")
         self.table.setSortingEnabled(False)
         self.table.setRowCount(len(self.rows))
         for r, row in enumerate(self.rows):

@@ -42,7 +42,7 @@ class Connection:
     profile: dict                 # the loaded machine profile
     name: str                     # what the window shows
     speedup: float                # the machine clock's rate (1 for a real machine)
-    simulator: Any = None         # simulator.launch.RunningSimulator when built in
+    simulator: Any = None         # simulator.process.SimulatorProcess when built in
 
 
 class MachineLink(QtCore.QObject):
@@ -70,16 +70,17 @@ class MachineLink(QtCore.QObject):
             from drivers.profile import load_profile, open_machine
 
             if profile_name == BUILTIN_SIMULATOR:
-                from simulator.launch import start_simulator
+                # In its own process: the window's drawing must not hold the interpreter lock
+                # the simulated machine needs to answer on time (see simulator/process.py).
+                from simulator.process import start_simulator_process
 
-                sim = start_simulator(BUILTIN_TRANSPORT, speedup=speedup)
+                sim = start_simulator_process(BUILTIN_TRANSPORT, speedup=speedup)
                 try:
-                    profile = load_profile(sim.profile_name)
-                    machine = open_machine(profile, **sim.profile_overrides)
+                    machine = open_machine(sim.profile, **sim.profile_overrides)
                 except Exception:
                     sim.stop()
                     raise
-                return Connection(machine, profile, f"{BUILTIN_SIMULATOR} ({sim.address})", speedup, sim)
+                return Connection(machine, sim.profile, f"{BUILTIN_SIMULATOR} ({sim.address})", speedup, sim)
             profile = load_profile(profile_name)
             machine = open_machine(profile)
             # A real machine runs in real time whatever --speedup says.

@@ -750,6 +750,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.poll_timer.stop()
         self.analysis.shutdown(wait=False)
         self.estop_queue.shutdown(wait=False)
+        self.browser.queue.shutdown(wait=False)
         self.link.shutdown()
         event.accept()
 
