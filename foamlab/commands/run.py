@@ -1,0 +1,300 @@
+"""`foamlab run`: run a test method on a machine (by default the built-in simulated one)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import math
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+from foamlab import CONFIG_DIR, FoamlabError
+
+SIM_TRANSPORTS = ("modbus-tcp", "modbus-rtu", "modbus-rtu-pty", "serial")
+#: The built-in machine's specimen when none is given: its dimensions come from here too.
+SIM_SPECIMEN = CONFIG_DIR / "specimens" / "default.toml"
+
+EXAMPLES = """\
+examples:
+  foamlab run --speedup 50                    # the paper's protocol on the built-in simulated machine
+  foamlab run --transport serial --speedup 50 # same, through the ASCII serial driver on a pty
+  foamlab run --method iso3386-1 --speedup 50 --width 100 --depth 100
+  foamlab run --machine my-instron.toml --method paper-3cycle --specimen-height 72.5 --specimen-label B7
+
+Without --machine the built-in simulated machine is started on 127.0.0.1 (free port) and
+driven through the real drivers; --speedup S runs its clock S times faster. The run file
+(one line per sample, written as it is acquired), the fit and the results go to --out
+(default $FOAMLAB_DATA or ~/foamlab-data). Ctrl-C stops the machine and keeps the data.
+Exit status: 0 finished, 1 aborted (reason on one line), 2 bad input, 130 interrupted.
+"""
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "run",
+        help="run a test (default: the paper's protocol on the built-in simulated machine)",
+        description=("Run a compression test method on a testing machine: contact search, tare, the "
+                     "method's cycles sampled on a fixed schedule and streamed to disk, safety limits, "
+                     "then the method's results and the model fit."),
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--machine", metavar="PROFILE",
+                   help="machine profile (name in configs/machines or a .toml path); default: start the "
+                        "built-in simulated machine")
+    p.add_argument("--method", default="paper-3cycle", metavar="METHOD",
+                   help="test method (name in configs/methods or a .toml path; default paper-3cycle)")
+    p.add_argument("--specimen-height", type=float, metavar="MM",
+                   help="measured specimen height in mm (required with --machine; default for the "
+                        "built-in machine: its specimen's height)")
+    p.add_argument("--specimen-label", default="", metavar="L", help="specimen label (in the file name)")
+    p.add_argument("--width", type=float, metavar="MM", help="specimen width in mm (for stresses, kPa)")
+    p.add_argument("--depth", type=float, metavar="MM", help="specimen depth in mm (for stresses, kPa)")
+    p.add_argument("--out", metavar="DIR", help="data folder (default $FOAMLAB_DATA or ~/foamlab-data)")
+    p.add_argument("--speedup", type=float, default=1.0, metavar="S",
+                   help="the machine's clock runs S times faster than real time (simulated machines "
+                        "only; default 1)")
+    p.add_argument("--transport", choices=SIM_TRANSPORTS, default="modbus-tcp",
+                   help="wire protocol of the built-in simulated machine (default modbus-tcp)")
+    p.add_argument("--host", help="override the profile's host (Modbus TCP)")
+    p.add_argument("--port", type=int, help="override the profile's TCP port")
+    p.add_argument("--port-url", metavar="URL", help="override the profile's serial port (device path or pyserial URL)")
+    sim = p.add_argument_group("built-in simulated machine")
+    sim.add_argument("--sim-specimen", metavar="FILE",
+                     help="its specimen: a fit result (JSON) or parameter TOML (default configs/specimens/default.toml)")
+    sim.add_argument("--effect", action="append", default=[], metavar="NAME=MAG",
+                     help="hide an effect in its specimen/machine (repeatable), e.g. cycle_softening=0.1")
+    sim.add_argument("--fault", action="append", default=[], metavar="SPEC",
+                     help="inject a fault (repeatable): NAME@T, NAME@T+D, NAME:p=P (see foamlab sim --help)")
+    sim.add_argument("--seed", type=int, default=0, help="seed of its noise and random faults (default 0)")
+    p.add_argument("--no-fit", action="store_true", help="do not fit the model after the run")
+    p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.error = _one_line_error(p)
+    p.set_defaults(func=run)
+
+
+def _one_line_error(parser: argparse.ArgumentParser):
+    def error(message: str):
+        print(f"{parser.prog}: error: {message}", file=sys.stderr)
+        raise SystemExit(2)
+    return error
+
+
+def _positive(name: str, value: float | None) -> None:
+    if value is not None and not (value > 0 and math.isfinite(value)):
+        raise FoamlabError(f"{name} must be a positive number, got {value:g}")
+
+
+def data_dir(out: str | None) -> Path:
+    """--out, else the data folder the catalog and the GUI use ($FOAMLAB_DATA or ~/foamlab-data)."""
+    if out:
+        return Path(out)
+    from foamlab.storage.catalog import data_dir as default_data_dir
+
+    return default_data_dir()
+
+
+def _sim_specimen_dimensions(path: str | None) -> dict:
+    """Height/width/depth of the simulated specimen (its TOML), when it states them."""
+    source = Path(path) if path else SIM_SPECIMEN
+    if source.suffix.lower() != ".toml" or not source.is_file():
+        return {}
+    try:
+        data = tomllib.loads(source.read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):
+        return {}
+    return {k: float(data[k]) for k in ("height_mm", "width_mm", "depth_mm") if isinstance(data.get(k), (int, float))}
+
+
+class ProgressLine:
+    """One progress line on a terminal (rewritten with \\r); one line per cycle otherwise."""
+
+    def __init__(self, stream=sys.stdout, enabled: bool = True):
+        self.stream = stream
+        self.enabled = enabled
+        self.tty = enabled and stream.isatty()
+        self._cycle = -1
+        self._width = 0
+
+    def on_progress(self, p) -> None:
+        if not self.enabled:
+            return
+        left = f"{int(p.time_left_s // 60)}:{int(p.time_left_s % 60):02d}"
+        cycle = f"cycle {p.cycle}/{p.n_cycles}" if p.cycle else "contact search"
+        text = (f"{cycle}  x {p.displacement_mm:7.2f} mm  F {p.force_N:7.1f} N  "
+                f"{p.fraction * 100:5.1f} %  {left} left")
+        if self.tty:
+            pad = max(self._width - len(text), 0)
+            self.stream.write("\r" + text + " " * pad)
+            self.stream.flush()
+            self._width = len(text)
+        elif p.cycle != self._cycle:
+            self.stream.write(text + "\n")
+            self.stream.flush()
+        self._cycle = p.cycle
+
+    def close(self) -> None:
+        if self.tty and self._width:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def run(args) -> int:
+    from drivers.profile import ProfileError, load_profile, open_machine
+    from foamlab.engine import RunEngine
+    from foamlab.methods import load_method
+    from foamlab.rundata import Specimen
+
+    for name in ("speedup", "specimen_height", "width", "depth"):
+        _positive("--" + name.replace("_", "-"), getattr(args, name))
+    if (args.width is None) != (args.depth is None):
+        raise FoamlabError("give both --width and --depth (or neither)")
+    method = load_method(args.method)
+    builtin = args.machine is None
+    if not builtin and (args.fault or args.effect or args.sim_specimen):
+        raise FoamlabError("--fault, --effect and --sim-specimen apply to the built-in simulated machine only")
+    overrides = {k: v for k, v in (("host", args.host), ("port", args.port), ("port_url", args.port_url))
+                 if v is not None}
+    if builtin and overrides:
+        raise FoamlabError("--host/--port/--port-url apply with --machine only")
+
+    profile = None
+    if not builtin:
+        try:
+            profile = load_profile(args.machine)
+        except ProfileError as exc:
+            raise FoamlabError(str(exc)) from None
+
+    height, width, depth = args.specimen_height, args.width, args.depth
+    if builtin:
+        dims = _sim_specimen_dimensions(args.sim_specimen)
+        height = height or dims.get("height_mm")
+        if width is None:
+            width, depth = dims.get("width_mm"), dims.get("depth_mm")
+    if not height:
+        raise FoamlabError("--specimen-height is required (the measured specimen height, mm)")
+    specimen = Specimen(args.specimen_label, height, width, depth)
+    out_dir = data_dir(args.out)
+
+    sim = None
+    try:
+        if builtin:
+            sim = _start_builtin(args)
+            profile = sim.profile
+            overrides = sim.profile_overrides
+        try:
+            machine = open_machine(profile, connect=False, **overrides)
+        except ProfileError as exc:
+            raise FoamlabError(str(exc)) from None
+        engine = RunEngine(machine, method, specimen, out_dir, speedup=args.speedup, fit=not args.no_fit)
+        where = f"built-in simulated machine ({sim.transport} at {sim.address})" if sim else profile["name"]
+        if not args.quiet:
+            print(f"foamlab run: {method.describe()} on {where}; specimen {height:g} mm"
+                  f"{f', {width:g} x {depth:g} mm' if width else ''}; speedup {args.speedup:g}x", flush=True)
+        progress = ProgressLine(enabled=not args.quiet)
+        engine.add_listener(progress)
+        result = _wait(engine)
+        progress.close()
+    finally:
+        if sim is not None:
+            sim.stop()
+    return _report(result, method, out_dir)
+
+
+def _start_builtin(args):
+    """simulator.launch.start_simulator on 127.0.0.1 (free port), in its own process.
+
+    Its own process, like a real machine: in this one it would compete with the
+    acquisition for the interpreter lock (see simulator/process.py).
+    """
+    from simulator.process import start_simulator_process
+
+    from foamlab.commands.sim import parse_effects
+
+    effects = parse_effects(args.effect) or None
+    try:
+        return start_simulator_process(args.transport, host="127.0.0.1", port=0, speedup=args.speedup,
+                                       specimen=args.sim_specimen, effects=effects,
+                                       faults=args.fault or None, seed=args.seed)
+    except (ValueError, TimeoutError) as exc:    # bad specimen file, effect or fault spec; no start
+        raise FoamlabError(f"cannot start the simulated machine: {exc}") from None
+
+
+def _wait(engine):
+    """Run the engine; Ctrl-C asks it to stop (data kept), a second Ctrl-C e-stops."""
+    engine.start()
+    interrupts = 0
+    while True:
+        try:
+            result = engine.wait(0.2)
+            if result is not None:
+                return result
+        except KeyboardInterrupt:
+            interrupts += 1
+            if interrupts == 1:
+                engine.request_stop("interrupted by the operator (Ctrl-C)")
+            else:
+                engine.emergency_stop()
+
+
+def _report(result, method, out_dir: Path) -> int:
+    if result.status != "finished":
+        kept = f"; {result.n_samples} samples kept in {result.path}" if result.path else ""
+        print(f"foamlab run: aborted: {result.reason}{kept}", file=sys.stderr)
+        _register(result, out_dir)
+        return 130 if "Ctrl-C" in result.reason else 1
+    timing = result.timing
+    print(f"foamlab run: finished: {result.n_samples} samples, {result.missed} missed "
+          f"({method.sampling_hz:g} Hz; deadline lateness p99 {timing.lateness_p99_ms:.2f} ms, "
+          f"request p99 {timing.rtt_p99_ms:.2f} ms)")
+    print(f"  run file: {result.path}")
+    if result.fit_path:
+        print(f"  fit file: {result.fit_path}")
+    if result.results is not None and len(result.results):
+        print("results:")
+        for value in result.results:
+            print(f"  {value.format()}")
+    if result.fit is not None:
+        summary = getattr(result.fit, "summary", None)
+        print("fit:")
+        print("  " + (summary() if callable(summary) else str(result.fit)).replace("\n", "\n  "))
+    elif result.fit_error:
+        print(f"fit: not available: {result.fit_error}")
+    verdict = _diagnose(result)
+    if verdict:
+        print(f"diagnosis: {verdict}")
+    _register(result, out_dir)
+    return 0
+
+
+def _diagnose(result) -> str:
+    """The diagnosis verdict when foamlab.diagnosis exists (else nothing)."""
+    if result.run is None or importlib.util.find_spec("foamlab.diagnosis") is None:
+        return ""
+    try:
+        diagnosis = importlib.import_module("foamlab.diagnosis")
+        report = diagnosis.diagnose([result.run])
+    except FoamlabError as exc:
+        return f"not available: {exc}"
+    except Exception as exc:   # the run is done and saved; a diagnosis bug must not hide that
+        return f"failed: {type(exc).__name__}: {exc}"
+    verdict = getattr(report, "verdict", None) or (report.get("verdict") if isinstance(report, dict) else None)
+    return str(verdict or report)
+
+
+def _register(result, out_dir: Path) -> None:
+    """Index the run (and its fit) in the data folder's catalog."""
+    if result.path is None:
+        return
+    try:
+        from foamlab.storage.catalog import Catalog
+
+        with Catalog.for_folder(out_dir, sync=False) as catalog:
+            catalog.add_run(result.path, result.run)
+            if result.fit_path is not None:
+                catalog.add_fit(result.path, result.fit_path)
+    except Exception as exc:   # the run file is the record; `foamlab catalog rebuild` recovers
+        print(f"foamlab run: warning: run not added to the catalog: {exc}", file=sys.stderr)

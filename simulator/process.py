@@ -1,0 +1,168 @@
+"""The simulated machine in its own process, like a real device on the wire.
+
+    with start_simulator_process("modbus-tcp", speedup=50) as sim:
+        machine = open_machine(sim.profile, connect=False, **sim.profile_overrides)
+        ...
+        sim.crosshead_status()      # the simulator's own view, for tests
+
+Why a process and not simulator.launch's background thread: a Python client and a
+Python server in one process share one interpreter lock. When the acquisition thread
+wakes at its deadline it may wait for the simulator's threads to release the lock,
+which on a busy computer means milliseconds of lateness that a real machine (its own
+CPU) would never cause. In its own process the simulator costs the acquisition
+nothing but the wire. The child runs simulator.launch.start_simulator unchanged.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import threading
+from dataclasses import asdict
+from typing import Any
+
+#: Seconds allowed for the child to import, start serving and answer.
+START_TIMEOUT_S = 30.0
+REPLY_TIMEOUT_S = 10.0
+
+
+#: SCHED_FIFO priority asked for the child (below the run engine's 10: the engine preempts
+#: it at a deadline, and it runs whenever the engine waits for a reply).
+REALTIME_PRIORITY = 5
+
+
+def _child(conn, transport: str, kwargs: dict, realtime: bool) -> None:
+    """Child process: serve the machine; answer requests on `conn` until told to stop."""
+    if realtime:
+        # A real machine answers from its own CPU; on a busy computer the simulator gets a
+        # real-time slot when the OS allows it (threads started below inherit the policy).
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
+        except (AttributeError, OSError):
+            pass
+    try:
+        from simulator.launch import start_simulator
+
+        sim = start_simulator(transport, **kwargs)
+    except BaseException as exc:   # report any start failure to the parent, then exit
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        return
+    try:
+        conn.send(("ready", {"profile": sim.profile, "overrides": sim.profile_overrides,
+                             "address": sim.address}))
+        while True:
+            try:
+                request = conn.recv()
+            except EOFError:       # parent gone: stop serving
+                return
+            if request == "stop":
+                return
+            try:
+                if request == "crosshead_status":
+                    conn.send(("ok", asdict(sim.machine.crosshead_status())))
+                elif request == "snapshot":
+                    conn.send(("ok", asdict(sim.machine.snapshot())))
+                elif request == "faults_fired":
+                    conn.send(("ok", list(sim.machine.faults.fired)))
+                else:
+                    conn.send(("error", f"unknown request {request!r}"))
+            except Exception as exc:
+                conn.send(("error", f"{type(exc).__name__}: {exc}"))
+    finally:
+        sim.stop()
+        conn.close()
+
+
+class SimulatorProcess:
+    """A simulated machine served by a child process; the same attributes as RunningSimulator."""
+
+    def __init__(self, transport: str, process: mp.Process, conn, info: dict):
+        self.transport = transport
+        self.process = process
+        self._conn = conn
+        self.profile: dict = info["profile"]
+        self.profile_name: str = self.profile["name"]
+        self.profile_overrides: dict = info["overrides"]
+        self.address: str = info["address"]
+        self._stopped = False
+
+    @property
+    def running(self) -> bool:
+        return not self._stopped and self.process.is_alive()
+
+    def _ask(self, request: str) -> Any:
+        if not self.running:
+            raise RuntimeError("the simulator process is not running")
+        self._conn.send(request)
+        if not self._conn.poll(REPLY_TIMEOUT_S):
+            raise TimeoutError(f"the simulator process did not answer {request!r}")
+        kind, value = self._conn.recv()
+        if kind != "ok":
+            raise RuntimeError(f"simulator process: {value}")
+        return value
+
+    def crosshead_status(self) -> dict:
+        """The simulated crosshead's state (fields of simulator.machine.CrossheadState)."""
+        return self._ask("crosshead_status")
+
+    def snapshot(self) -> dict:
+        """Noise-free machine state (fields of simulator.machine.MachineSnapshot)."""
+        return self._ask("snapshot")
+
+    def faults_fired(self) -> list[tuple[float, str]]:
+        return [tuple(f) for f in self._ask("faults_fired")]
+
+    def stop(self) -> None:
+        """Stop serving and end the child (idempotent; kills it if it does not end)."""
+        if self._stopped:
+            return
+        self._stopped = True
+        try:
+            if self.process.is_alive():
+                self._conn.send("stop")
+        except (OSError, EOFError, BrokenPipeError):
+            pass
+        self.process.join(REPLY_TIMEOUT_S)
+        if self.process.is_alive():
+            self.process.kill()
+            self.process.join(REPLY_TIMEOUT_S)
+        self._conn.close()
+
+    def __enter__(self) -> "SimulatorProcess":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def __repr__(self) -> str:
+        return f"<SimulatorProcess {self.transport} at {self.address} (pid {self.process.pid})>"
+
+
+def start_simulator_process(transport: str, *, realtime: bool = True, **kwargs) -> SimulatorProcess:
+    """Start simulator.launch.start_simulator(transport, **kwargs) in a child process.
+
+    `realtime`: ask for SCHED_FIFO priority in the child (ignored when not permitted).
+    Raises ValueError with the child's message when it cannot start (bad specimen,
+    effect or fault spec, address in use) and TimeoutError when it does not answer.
+    """
+    # fork is fast (the child inherits the imports) but only safe in a single-threaded parent
+    ctx = mp.get_context("fork" if threading.active_count() == 1 and hasattr(os, "fork") else "spawn")
+    parent, child = ctx.Pipe()
+    process = ctx.Process(target=_child, args=(child, transport, kwargs, realtime), name=f"foamlab-sim-{transport}",
+                          daemon=True)
+    process.start()
+    child.close()
+    try:
+        if not parent.poll(START_TIMEOUT_S):
+            raise TimeoutError(f"the simulated machine did not start within {START_TIMEOUT_S:g} s")
+        kind, value = parent.recv()
+    except BaseException:
+        process.kill()
+        process.join(REPLY_TIMEOUT_S)
+        parent.close()
+        raise
+    if kind != "ready":
+        process.join(REPLY_TIMEOUT_S)
+        parent.close()
+        raise ValueError(value)
+    return SimulatorProcess(transport, process, parent, value)
