@@ -17,9 +17,10 @@ What is found, and how (every threshold comes from the data, none from the file)
   top) is cycle 0 and is not in ``cycles``.
 - Contact loss (the paper's recovery region, section 3.1): after the first
   contact, the force sits on the load cell's unloaded reading. That reading is
-  estimated from the lowest forces of the run (it is often a little off zero:
-  -0.24 N on the bundled Bluehill file), with a threshold of a few times the
-  noise of those samples above it.
+  the level of the lowest forces of the run when they are near zero and flat
+  (independent of the displacement); it is often a little off zero: -0.23 N on
+  the bundled Bluehill file. The threshold is 5 x the noise of those samples
+  above it. A run that keeps its preload has no flat floor and no contact loss.
 - First-cycle linear elastic region: the longest stretch from the first contact
   in the first loading whose force is a straight line in displacement, i.e. whose
   least-squares line leaves residuals within max(1.5 x force noise, 0.5 % of
@@ -255,7 +256,7 @@ def segment(run: RunData) -> Segmentation:
 
     in_stroke = np.zeros(n, dtype=bool)
     in_stroke[bounds[0][0]:bounds[-1][1]] = True
-    contact = _contact(f, window, in_stroke)
+    contact = _contact(x, f, window, in_stroke)
 
     linear = None
     if cycles:
@@ -361,20 +362,32 @@ class _Contact(NamedTuple):
     first: int | None
 
 
-def _contact(f: np.ndarray, window: int, in_stroke: np.ndarray) -> _Contact:
-    n = len(f)
+def _contact(x: np.ndarray, f: np.ndarray, window: int, in_stroke: np.ndarray) -> _Contact:
     fs = _smooth(f, window)
     lowest = np.percentile(fs, 2.0)
     top = np.percentile(fs, 99.5)
     span = max(top - lowest, 1e-12)
-    floor_samples = f[fs <= lowest + 0.01 * span]
+    band = 0.01 * span
+    at_floor = fs <= lowest + band
+    floor_samples = f[at_floor]
     floor = float(np.median(floor_samples))
     floor_noise = float(1.4826 * np.median(np.abs(floor_samples - floor)))
     noise = max(floor_noise, _noise_sigma(f), 1e-3 * span)
-    # The lowest forces are the unloaded reading only if they are near zero; a run
-    # that never leaves its preload has no contact loss at all.
+    # The lowest forces are the unloaded load-cell reading only if they are near
+    # zero AND flat: off the specimen the force does not follow the plate. At the
+    # bottom of a run that keeps its preload the force still follows the
+    # specimen's stiffness, and there is no contact loss at all.
+    x_floor = x[at_floor]
+    change = 0.0
+    if np.ptp(x_floor) > 0:
+        change = abs(np.polyfit(x_floor, floor_samples, 1)[0]) * float(np.ptp(x_floor))
+    flat = change <= 0.5 * band
     near_zero = abs(floor) <= max(CONTACT_NOISE_MULTIPLE * noise, 0.02 * span)
-    zero = floor if near_zero else 0.0
+    if near_zero and flat:
+        zero = floor
+    else:
+        # no unloaded reading in this run: the floor's spread is the specimen, not noise
+        zero, noise = 0.0, max(_noise_sigma(f), 1e-3 * span)
     threshold = zero + CONTACT_NOISE_MULTIPLE * noise
     in_contact = fs > threshold
     first = int(np.argmax(in_contact)) if in_contact.any() else None
