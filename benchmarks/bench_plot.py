@@ -3,7 +3,7 @@
 A frame = append the samples that arrived since the last frame, push the changed
 curves (LivePlots.refresh) and paint the view synchronously. Compared with the
 naive way (re-plot every point each frame). Prints a table of medians over
-repeats and writes it into docs/benchmarks.md (its own section, replaced on rerun).
+repeats and keeps it in docs/benchmarks.md (its own section, replaced on rerun).
 
     .venv/bin/python benchmarks/bench_plot.py [--points 20000] [--repeats 5] [--no-write]
 """
@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
-import re
 import statistics
 import sys
 import time
@@ -27,9 +25,10 @@ from PySide6 import QtCore, QtWidgets  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from _table import publish  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 from foamlab.gui.plots import LivePlots  # noqa: E402
 
-SECTION = "## GUI live plots (benchmarks/bench_plot.py)"
+SECTION = "GUI live plots"
 
 
 def synthetic_run(n_points: int, cycles: int = 3, rate_hz: float = 16.0):
@@ -141,33 +140,23 @@ def main() -> int:
         med = statistics.median(medians)
         rows.append((label, args.points, med * 1e3, 1.0 / med, min(medians) * 1e3, max(medians) * 1e3))
 
-    header = ("| variant | points | frame ms (median) | frames/s | best repeat ms | worst repeat ms |\n"
-              "|---|---:|---:|---:|---:|---:|")
-    lines = [header] + [f"| {r[0]} | {r[1]} | {r[2]:.2f} | {r[3]:.0f} | {r[4]:.2f} | {r[5]:.2f} |" for r in rows]
-    table = "\n".join(lines)
-    print(table)
     live_fps = rows[0][3]
     verdict = "meets" if live_fps >= 30 else "MISSES"
-    print(f"\nlive plots: {live_fps:.0f} frames/s with {args.points} points ({verdict} the 30 fps target)")
-
-    if not args.no_write:
-        note = (f"{SECTION}\n\n"
-                f"Offscreen Qt ({platform.python_implementation()} {platform.python_version()}, "
-                f"{os.cpu_count()} cores), plot area {args.size}, {args.chunk} new samples per frame, "
-                f"{args.frames} frames x {args.repeats} repeats; a frame = append + setData of changed "
-                f"curves + synchronous paint. Target >= 30 frames/s with {args.points} points: {verdict}.\n\n"
-                f"{table}\n")
-        path = ROOT / "docs" / "benchmarks.md"
-        path.parent.mkdir(exist_ok=True)
-        text = path.read_text(encoding="utf-8") if path.exists() else "# Benchmarks\n"
-        # Replace this benchmark's own section (up to the next '## ' heading) or append it.
-        pattern = re.compile(re.escape(SECTION) + r".*?(?=^## |\Z)", re.S | re.M)
-        if pattern.search(text):
-            text = pattern.sub(lambda _m: note + "\n", text)
-        else:
-            text = text.rstrip("\n") + "\n\n" + note
-        path.write_text(text, encoding="utf-8")
-        print(f"written to {path.relative_to(ROOT)}")
+    lines = [
+        f"`benchmarks/bench_plot.py`: offscreen Qt, plot area {args.size}, {args.chunk} new samples per frame, "
+        f"{args.frames} frames x {args.repeats} repeats, load average {os.getloadavg()[0]:.1f} on "
+        f"{os.cpu_count()} cores at the end. A frame = append the new samples + setData of the "
+        f"changed curves + one paint of both plots (verified: one paint event per frame).",
+        "",
+        "| variant | points | frame ms (median) | frames/s | best repeat ms | worst repeat ms |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    lines += [f"| {r[0]} | {r[1]} | {r[2]:.2f} | {r[3]:.0f} | {r[4]:.2f} | {r[5]:.2f} |" for r in rows]
+    lines += ["", f"Target >= 30 frames/s with {args.points} points: {verdict} ({live_fps:.0f} frames/s)."]
+    if args.no_write:
+        print("\n".join(lines))
+    else:
+        publish(SECTION, lines)
     return 0
 
 

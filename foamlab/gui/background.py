@@ -48,7 +48,12 @@ class BackgroundQueue(QtCore.QObject):
 
     def submit(self, fn: Callable[[], Any], on_done: Callable[[Any], None] | None = None,
                on_error: Callable[[str], None] | None = None) -> concurrent.futures.Future:
-        """Run `fn()` on this queue's thread; then `on_done(result)` or `on_error(message)` in the GUI."""
+        """Run `fn()` on this queue's thread; then `on_done(result)` or `on_error(message)` in the GUI.
+        After shutdown() nothing runs: the returned future is already cancelled."""
+        if self.closed:
+            future: concurrent.futures.Future = concurrent.futures.Future()
+            future.cancel()
+            return future
 
         def job():
             try:
@@ -65,7 +70,7 @@ class BackgroundQueue(QtCore.QObject):
         return self._executor.submit(job)
 
     def _deliver(self, callback, value) -> None:
-        if callback is not None:
+        if callback is not None and not self.closed:
             callback(value)
 
     def shutdown(self, wait: bool = False) -> None:

@@ -151,9 +151,9 @@ class MachineLink(QtCore.QObject):
     def shutdown(self, timeout_s: float = 10.0) -> None:
         """Close the link and the simulator, then stop the machine thread (blocks up to timeout_s)."""
         conn, self.connection = self.connection, None
-        self.queue.closed = True
-        if conn is not None:
-            future = self.queue.submit(lambda: _close(conn))
+        future = self.queue.submit(lambda: _close(conn)) if conn is not None else None
+        self.queue.closed = True          # no more calls, no more callbacks into the window
+        if future is not None:
             try:
                 future.result(timeout_s)
             except Exception as exc:
