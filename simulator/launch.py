@@ -73,10 +73,6 @@ class RunningSimulator:
     def running(self) -> bool:
         return not self._stopped and self._thread.is_alive()
 
-    def call(self, coro_fn, *args, timeout: float = STOP_TIMEOUT_S):
-        """Run a coroutine function on the server's loop and wait for its result."""
-        return asyncio.run_coroutine_threadsafe(coro_fn(*args), self._loop).result(timeout)
-
     def stop(self) -> None:
         with self._lock:
             if self._stopped:

@@ -29,6 +29,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import random
+import socket
 import struct
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -419,6 +420,19 @@ class _PtyRtuServer(ModbusSerialServer):
 
 # --------------------------------------------------------------------------- the server
 
+def _bind_error(host: str, port: int) -> str:
+    """Why a TCP listen failed, in the OS's words (pymodbus only logs it)."""
+    probe = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET)
+    try:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        probe.bind((host, port))
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    finally:
+        probe.close()
+    return "the address could not be bound"
+
+
 class ModbusSimServer:
     """Both Modbus devices of a profile on one transport, backed by one SimulatedMachine.
 
@@ -467,9 +481,9 @@ class ModbusSimServer:
         self._server.sim = self
         try:
             await self._server.serve_forever(background=True)
-        except RuntimeError as exc:  # pymodbus: "Could not start listen"
+        except RuntimeError:  # pymodbus logs the OSError and raises "Could not start listen"
             await self.stop()
-            raise OSError(f"cannot listen on {self.host}:{self.port}: {exc}") from None
+            raise OSError(f"cannot listen on {self.host}:{self.port}: {_bind_error(self.host, self.port)}") from None
         if self.transport != "rtu-pty":
             self.port = self._server.transport.sockets[0].getsockname()[1]
 
