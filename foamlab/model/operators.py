@@ -132,75 +132,96 @@ class SumOfExponentials:
 
 
 class FractionalOperator:
-    """D^beta x for x piecewise linear, x(t0) = 0 (Riemann-Liouville, lower terminal t0)."""
+    """D^beta x for x piecewise linear, x(t0) = 0 (Riemann-Liouville, lower terminal t0).
+
+    nu = 1 - beta. For nu <= 1: y = I^nu xdot, xdot piecewise constant. For nu > 1:
+    y = I^f w with w = I^j x (j plain integrals, exact by the trapezoid rule for the
+    first one) and f = nu - j - 1 in (0, 1]; w is taken piecewise linear. Both I^f steps
+    integrate the last interval exactly and the history with the SOE.
+    """
 
     def __init__(self, beta: float, h_min: float = 1e-3, t_max: float = 1e4):
         if beta >= 1:
             raise ValueError("fractional order beta must be < 1")
         nu = 1.0 - beta
-        m = math.floor(nu)
-        f = nu - m
-        if f < 1e-9:  # integer order: m-1 plain integrals of I^1
-            m, f = m - 1, 1.0
-        self.beta, self.m, self.f = beta, m, f
+        if nu <= 1.0 + 1e-12:
+            self.linear_input, self.j, f = False, 0, min(nu, 1.0)
+        else:
+            j = math.ceil(nu - 1.0 - 1e-12) - 1       # integer integrations of x before I^f
+            self.linear_input, self.j, f = True, j, nu - 1.0 - j
+        self.beta, self.f = beta, f
         self.soe = SumOfExponentials(f, h_min, t_max)
         self.local = 1.0 / gamma(f + 1.0)
+        # exact last-step weight of the linear part of a piecewise-linear input
+        self.local_slope = 1.0 / ((f + 1.0) * gamma(f)) if f < 1.0 else 0.5
         self.reset()
 
     def reset(self) -> None:
         self._s = np.zeros(len(self.soe.lam))
         self._x_prev = 0.0
-        self._ints = np.zeros(self.m)       # running trapezoid integrals I^1..I^m
-        self._ints_prev_in = np.zeros(self.m)
+        self._ints = np.zeros(self.j)        # running integrals I^1..I^j of x
+        self._w_prev = 0.0
         self._last = 0.0
         self._coef_h, self._coef = None, None
 
-    def _integrate_step(self, h: float, g: float) -> float:
-        # I^m of g by repeated trapezoid (second order; the same rule in batch mode)
-        val = g
-        for j in range(self.m):
-            new = self._ints[j] + 0.5 * h * (self._ints_prev_in[j] + val)
-            self._ints_prev_in[j] = val
-            self._ints[j] = new
-            val = new
-        return val
+    def _coefficients(self, h: float):
+        if h != self._coef_h:  # a simulator steps with a fixed h: compute once
+            if self.linear_input:
+                E, wp, wn = _phi(self.soe.lam, h)
+                self._coef = (E, wp, wn, self.soe.c * E, h**self.f)
+            else:
+                E, b = _phi_const(self.soe.lam, h)
+                self._coef = (E, b, None, self.soe.c * E, h**self.f)
+            self._coef_h = h
+        return self._coef
 
     def step(self, h: float, x: float) -> float:
         if h <= 0:
             return self._last
-        u = (x - self._x_prev) / h
-        self._x_prev = x
-        if self.f >= 1.0:
-            g_hist = self._s[0]
-            g = g_hist + u * h
-            self._s[0] = g
-        else:
-            if h != self._coef_h:  # fixed simulator step: coefficients computed once
-                E, b = _phi_const(self.soe.lam, h)
-                self._coef_h, self._coef = h, (E, b, self.soe.c * E, self.local * h**self.f)
-            E, b, cE, local = self._coef
-            g = u * local + float(cE @ self._s)
+        if not self.linear_input:
+            u = (x - self._x_prev) / h
+            self._x_prev = x
+            E, b, _, cE, hf = self._coefficients(h)
+            y = u * self.local * hf + float(cE @ self._s)
             self._s = E * self._s + b * u
-        self._last = self._integrate_step(h, g)
-        return self._last
+        else:
+            inp_prev, inp_new = self._x_prev, x
+            for i in range(self.j):                 # trapezoid: exact for piecewise-linear x
+                old = self._ints[i]
+                self._ints[i] = old + 0.5 * h * (inp_prev + inp_new)
+                inp_prev, inp_new = old, self._ints[i]
+            w = inp_new
+            self._x_prev = x
+            E, wp, wn, cE, hf = self._coefficients(h)
+            y = hf * (w * self.local - (w - self._w_prev) * self.local_slope) + float(cE @ self._s)
+            self._s = E * self._s + wp * self._w_prev + wn * w
+            self._w_prev = w
+        self._last = y
+        return y
 
     def batch(self, h: float, x: np.ndarray) -> np.ndarray:
         """Uniform step h; x[0] = 0 at the operator's start. Same numbers as step()."""
         n = len(x)
         if n < 2:
             return np.zeros(n)
-        u = np.empty(n)
-        u[0] = 0.0
-        u[1:] = np.diff(x) / h
-        if self.f >= 1.0:
-            g = np.cumsum(u) * h
-        else:
-            g = u * (self.local * h**self.f)
+        hf = h**self.f
+        if not self.linear_input:
+            u = np.empty(n)
+            u[0] = 0.0
+            u[1:] = np.diff(x) / h
+            y = u * (self.local * hf)
             for lam, c in zip(self.soe.lam, self.soe.c):
                 E, b = _phi_const(np.array([lam]), h)
                 s = lfilter([b[0]], [1.0, -E[0]], u)          # s_n after step n
-                g[1:] += c * E[0] * s[:-1]
-        out = g
-        for _ in range(self.m):
-            out = np.concatenate([[0.0], np.cumsum(0.5 * h * (out[1:] + out[:-1]))])
-        return out
+                y[1:] += c * E[0] * s[:-1]
+            return y
+        w = np.asarray(x, float)
+        for _ in range(self.j):
+            w = np.concatenate([[0.0], np.cumsum(0.5 * h * (w[1:] + w[:-1]))])
+        dw = np.concatenate([[w[0]], np.diff(w)])
+        y = hf * (w * self.local - dw * self.local_slope)
+        for lam, c in zip(self.soe.lam, self.soe.c):
+            E, wp, wn = _phi(np.array([lam]), h)
+            s = lfilter([wn[0], wp[0]], [1.0, -E[0]], w)       # s_n after step n
+            y[1:] += c * E[0] * s[:-1]
+        return y
