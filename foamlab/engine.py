@@ -664,9 +664,13 @@ class RunEngine:
         t_done = time.monotonic()
         self._consecutive_failures = 0
         position, force = reading.position_mm, reading.force_N
+        # the sample goes to disk first (also the one that crosses a limit), then the limits
+        # are checked (an abort stops the crosshead at once), then the listeners hear of it
+        sample = self._store((t_request + t_done) / 2, position, force, (t_done - t_request) * 1e3,
+                             lateness * 1e3) if record else None
         self._check_limits(position, force, reading.load_cell_status)
-        if record:
-            self._record((t_request + t_done) / 2, position, force, (t_done - t_request) * 1e3, lateness * 1e3)
+        if sample is not None:
+            self._notify(sample)
         self._maybe_read_status()
         return position, force
 
@@ -680,7 +684,7 @@ class RunEngine:
             raise RunAborted(END_LIMIT, f"travel limit: crosshead at {position:.3f} mm, outside "
                                         f"[{lim.travel_upper_mm:g}, {lim.travel_lower_mm:g}] mm")
 
-    def _record(self, wall: float, position: float, force: float, rtt_ms: float, late_ms: float) -> None:
+    def _store(self, wall: float, position: float, force: float, rtt_ms: float, late_ms: float) -> Sample:
         # rounded far below the instruments' resolution: keeps the float noise of the
         # subtraction (0.015000000000000568) out of the file
         t = round(self._machine_time(wall), 6)
@@ -692,12 +696,15 @@ class RunEngine:
         self._force.append(force)
         self._rtt.append(rtt_ms)
         self._late.append(late_ms)
-        step = self._step
         self._writer.write_sample(t, disp, force, rtt_ms)
+        step = self._step
+        return Sample(index, t, disp, force, rtt_ms, late_ms, position,
+                      step.step.cycle if step else 0, step.index if step else -1)
+
+    def _notify(self, sample: Sample) -> None:
         if self._listeners:
-            self._emit("on_sample", Sample(index, t, disp, force, rtt_ms, late_ms, position,
-                                           step.step.cycle if step else 0, step.index if step else -1))
-        self._emit_progress(disp, force)
+            self._emit("on_sample", sample)
+        self._emit_progress(sample.displacement_mm, sample.force_N)
 
     def _emit_progress(self, disp: float, force: float, fraction: float | None = None,
                        immediate: bool = False) -> None:
@@ -817,8 +824,14 @@ class RunEngine:
         self._stop.clear()
         self._wake.clear()
         try:
+            start = self.machine.read_sample()
+            # moving up unloads the specimen: only a force that rises and stays up means the
+            # plate pushes on something (after a force-limit stop the force starts above the
+            # limit; a viscoelastic specimen may spike for an instant when the motion reverses)
+            force_stop = max(self.limits.force_N, start.force_N + 0.01 * self.limits.force_N)
+            high = 0
             crosshead.move_to(target, speed)
-            distance = abs(crosshead.read_position() - target)
+            distance = abs(start.position_mm - target)
             deadline = time.monotonic() + (distance / speed * 60.0 * 1.5 + 5.0) / self.speedup + 2.0
             poll = max(min(self.period_s, 0.05), 0.001)
             while time.monotonic() < deadline:
@@ -826,8 +839,8 @@ class RunEngine:
                     crosshead.stop()
                     return "park interrupted by a stop request"
                 reading = self.machine.read_sample()
-                if reading.force_N >= self.limits.force_N or (reading.load_cell_status is not None
-                                                              and reading.load_cell_status.over_range):
+                high = high + 1 if reading.force_N >= force_stop else 0
+                if high >= 3 or (reading.load_cell_status is not None and reading.load_cell_status.over_range):
                     crosshead.stop()
                     return f"park stopped: force {reading.force_N:.1f} N"
                 status = crosshead.status()

@@ -1,0 +1,82 @@
+"""Helpers for the run-engine tests against the simulated machine (in its own process)."""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+from drivers.profile import open_machine
+from foamlab.engine import RunEngine
+from foamlab.methods import load_method
+from foamlab.rundata import Specimen
+from simulator.process import start_simulator_process
+
+#: The built-in simulated machine's default specimen (configs/specimens/default.toml).
+SPECIMEN = Specimen("sim-default", 72.5, 100.0, 100.0)
+#: The simulated specimen's top surface, machine coordinates (simulator.machine.MachineSettings).
+SPECIMEN_TOP_MM = 5.0
+
+
+def short_method(tmp_path: Path, *, strain=0.10, speed=23.6, cycles=3, dwell_s=0.0,
+                 search_speed=20.0, hz=16.0, name="short") -> Path:
+    """The paper's protocol in small: `cycles` cycles to `strain` at `speed`, 16 Hz."""
+    dwell = f'{{ action = "dwell", duration_s = {dwell_s} }}, ' if dwell_s else ""
+    path = tmp_path / f"{name}.toml"
+    path.write_text(
+        f'name = "{name}"\ntitle = "{name}"\nsampling_hz = {hz}\n'
+        f'[contact]\npreload_N = 0.5\nsearch_speed_mm_min = {search_speed}\nmax_search_mm = 30.0\n'
+        f'[park]\nspeed_mm_min = 400.0\n'
+        f'[[sequence]]\nlabel = "cycle"\nrepeat = {cycles}\n'
+        f'steps = [{{ action = "compress", strain = {strain}, speed_mm_min = {speed} }}, {dwell}'
+        f'{{ action = "return", speed_mm_min = {speed} }}]\n')
+    return path
+
+
+@contextmanager
+def simulated(transport: str = "modbus-tcp", **kwargs):
+    """A simulator process; always stopped."""
+    sim = start_simulator_process(transport, **kwargs)
+    try:
+        yield sim
+    finally:
+        sim.stop()
+
+
+def machine_for(sim, connect: bool = False):
+    return open_machine(sim.profile, connect=connect, **sim.profile_overrides)
+
+
+def approach(machine, position_mm: float = SPECIMEN_TOP_MM - 0.3, timeout_s: float = 20.0) -> None:
+    """Bring the plate just above the specimen, as an operator jogs it before a test."""
+    machine.connect()
+    machine.crosshead.move_to(position_mm, 400.0)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        status = machine.crosshead.status()
+        if not status.moving and abs(machine.crosshead.read_position() - position_mm) < 0.01:
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"the crosshead did not reach {position_mm} mm")
+
+
+def make_engine(sim, method, out_dir, *, speedup, specimen=SPECIMEN, connect=True, **kwargs) -> RunEngine:
+    if not hasattr(method, "plan"):
+        method = load_method(method)
+    return RunEngine(machine_for(sim), method, specimen, out_dir, speedup=speedup, connect=connect, **kwargs)
+
+
+def wait_at_rest(sim, timeout_s: float = 5.0) -> dict:
+    """The simulator's crosshead state once it stopped moving (fails the test if it does not)."""
+    deadline = time.monotonic() + timeout_s
+    status = sim.crosshead_status()
+    while status["moving"] and time.monotonic() < deadline:
+        time.sleep(0.01)
+        status = sim.crosshead_status()
+    assert not status["moving"], f"the simulated crosshead is still moving: {status}"
+    return status
+
+
+def deadlines_elapsed(result) -> int:
+    """Deadlines of the run's schedule: every one is a sample or a counted miss."""
+    return result.n_samples + result.missed
