@@ -285,3 +285,18 @@ def test_open_bad_file_says_why(qtbot, window, tmp_path):
     window.open_file(bad)
     qtbot.waitUntil(lambda: "cannot open bad.csv" in window.statusBar().currentMessage(), timeout=10_000)
     assert window.shown_run is None
+
+
+def test_connection_failure_is_shown_and_disconnect_closes_the_simulator(qtbot, window):
+    w = window
+    w.profile_combo.setCurrentText("sim-serial")          # /dev/ttyUSB0: no such device here
+    click(qtbot, w.connect_button)
+    qtbot.waitUntil(lambda: "Not connected" in w.connection_label.text(), timeout=CONNECT_TIMEOUT_MS)
+    assert not w.connected and w.connect_button.text() == "Connect" and not w.start_button.isEnabled()
+    w.profile_combo.setCurrentText("Built-in simulated machine")
+    conn = connect(qtbot, w)
+    assert not w.profile_combo.isEnabled()                 # no profile change while connected
+    click(qtbot, w.connect_button)                         # Disconnect
+    qtbot.waitUntil(lambda: w.connection_label.text() == "Disconnected", timeout=10_000)
+    assert not conn.simulator.running
+    assert w.force_label.text() == "–" and w.profile_combo.isEnabled()

@@ -31,7 +31,7 @@ def catalog_rows(out_dir: Path) -> list[dict]:
 def catalog_row(entry) -> dict:
     get = entry.get if isinstance(entry, dict) else (lambda k, d=None: getattr(entry, k, d))
     return {
-        "started": get("started_at", "") or "",
+        "started": (get("started_at", "") or "").replace("T", " ")[:19],
         "specimen": get("specimen_label", "") or get("specimen", "") or "",
         "method": get("method", "") or "",
         "status": get("status", "") or "",

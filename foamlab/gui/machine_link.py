@@ -86,11 +86,18 @@ class MachineLink(QtCore.QObject):
             # A real machine runs in real time whatever --speedup says.
             return Connection(machine, profile, profile_name, 1.0, None)
 
+        def work_unless_closed() -> Connection:
+            conn = work()
+            if self.queue.closed:   # the window closed while connecting: let nothing run on
+                _close(conn)
+                raise RuntimeError("the window was closed while connecting")
+            return conn
+
         def done(conn: Connection) -> None:
             self.connection = conn
             self.connected.emit(conn)
 
-        self.submit(work, done, self.connect_failed.emit)
+        self.submit(work_unless_closed, done, self.connect_failed.emit)
 
     def disconnect_machine(self) -> concurrent.futures.Future | None:
         conn, self.connection = self.connection, None

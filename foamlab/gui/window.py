@@ -402,6 +402,8 @@ class MainWindow(QtWidgets.QMainWindow):
     # ================================================================ idle machine commands
     def _jog(self, direction: int) -> None:
         speed = self.jog_speed.value()
+        if self.limits_form.profile_limits is not None:   # the speed limit entered applies to jogging too
+            speed = min(speed, self.limits_form.values()["max_speed_mm_min"])
         self.link.call("jog", lambda m: m.crosshead.jog(direction, speed))
 
     def _stop_motion(self) -> None:
