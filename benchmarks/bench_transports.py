@@ -175,6 +175,7 @@ def main() -> int:
     ascii_baud = int(ascii_profile["connection"]["baudrate"])
     rtu_limit, rtu_spec_limit = rtu_wire_limit(rtu_baud, block_count)
 
+    load_before = os.getloadavg()[0]
     rows = []
     for transport in ("modbus-tcp", "modbus-rtu", "modbus-rtu-pty", "serial"):
         median, rates, reply_bytes = sustained_rate(transport, args.seconds, args.repeats)
@@ -218,7 +219,8 @@ def main() -> int:
                 f"{os.cpu_count()} cores, pymodbus server classes; one request = one sample (Modbus: the "
                 f"0x3500 load-cell block, 5 registers; ASCII: `n`), one request outstanding, "
                 f"{args.seconds:g} s x {args.repeats} repeats, real-time SimulatedMachine behind the server. "
-                f"Numbers depend on the machine's load (shared CI cores).\n\n"
+                f"Numbers depend on the machine's load: 1-minute load average {load_before:.1f} before, "
+                f"{os.getloadavg()[0]:.1f} after the run.\n\n"
                 f"{table}\n\n{verdict}\n\n{physics}\n")
         path = ROOT / "docs" / "benchmarks.md"
         path.parent.mkdir(exist_ok=True)
