@@ -62,10 +62,10 @@ def word_order(transport: str) -> str:
 
 def pymodbus_client(sim):
     if sim.transport == "modbus-tcp":
-        client = ModbusTcpClient(sim.server.host, port=sim.server.port, timeout=1, retries=0)
+        client = ModbusTcpClient(sim.server.host, port=sim.server.port, timeout=3, retries=0)
     else:
         client = ModbusSerialClient(sim.server.client_url, framer=FramerType.RTU, baudrate=115200,
-                                    timeout=1, retries=0)
+                                    timeout=3, retries=0)
     assert client.connect()
     return client
 
