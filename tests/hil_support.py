@@ -48,16 +48,22 @@ def machine_for(sim, connect: bool = False):
 
 
 def approach(machine, position_mm: float = SPECIMEN_TOP_MM - 0.3, timeout_s: float = 20.0) -> None:
-    """Bring the plate just above the specimen, as an operator jogs it before a test."""
+    """Bring the plate just above the specimen, as an operator jogs it before a test.
+
+    The link is closed afterwards: a serial port is opened exclusively.
+    """
     machine.connect()
-    machine.crosshead.move_to(position_mm, 400.0)
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        status = machine.crosshead.status()
-        if not status.moving and abs(machine.crosshead.read_position() - position_mm) < 0.01:
-            return
-        time.sleep(0.01)
-    raise AssertionError(f"the crosshead did not reach {position_mm} mm")
+    try:
+        machine.crosshead.move_to(position_mm, 400.0)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            status = machine.crosshead.status()
+            if not status.moving and abs(machine.crosshead.read_position() - position_mm) < 0.01:
+                return
+            time.sleep(0.01)
+        raise AssertionError(f"the crosshead did not reach {position_mm} mm")
+    finally:
+        machine.close()
 
 
 def make_engine(sim, method, out_dir, *, speedup, specimen=SPECIMEN, connect=True, **kwargs) -> RunEngine:

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import logging
 import importlib.util
 import math
 import sys
@@ -72,6 +74,8 @@ def register(subparsers) -> None:
     sim.add_argument("--seed", type=int, default=0, help="seed of its noise and random faults (default 0)")
     p.add_argument("--no-fit", action="store_true", help="do not fit the model after the run")
     p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument("--verbose", action="store_true",
+                   help="also print the engine's warnings (retries, failed reads) as they happen")
     p.error = _one_line_error(p)
     p.set_defaults(func=run)
 
@@ -81,6 +85,26 @@ def _one_line_error(parser: argparse.ArgumentParser):
         print(f"{parser.prog}: error: {message}", file=sys.stderr)
         raise SystemExit(2)
     return error
+
+
+@contextlib.contextmanager
+def _engine_logging(verbose: bool):
+    """Quiet by default, so an aborted run ends in exactly one line (its reason); restored after."""
+    logger = logging.getLogger("foamlab")
+    level, handler = logger.level, None
+    if verbose:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("foamlab run: %(levelname)s: %(message)s"))
+        logger.addHandler(handler)
+        logger.setLevel(logging.INFO)
+    else:
+        logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+        if handler is not None:
+            logger.removeHandler(handler)
 
 
 def _positive(name: str, value: float | None) -> None:
@@ -196,7 +220,8 @@ def run(args) -> int:
                   f"{f', {width:g} x {depth:g} mm' if width else ''}; speedup {args.speedup:g}x", flush=True)
         progress = ProgressLine(enabled=not args.quiet)
         engine.add_listener(progress)
-        result = _wait(engine)
+        with _engine_logging(args.verbose):
+            result = _wait(engine)
         progress.close()
     finally:
         if sim is not None:

@@ -1,0 +1,117 @@
+"""Faults of the simulated machine during a run, through the real drivers.
+
+For each fault (dropped connection, no reply, corrupted frames, stalled crosshead, load-cell
+overload; a Modbus exception and serial garbage too): the run stops the crosshead (the
+simulator's own state says it is at rest), every sample acquired before the fault is on
+disk unchanged, the reason is recorded in the result and in the file, and `foamlab run`
+exits non-zero with one line. Every test has a hard timeout.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from foamlab import cli
+from foamlab.storage.runfile import read_run_file
+from tests.hil_support import approach, machine_for, make_engine, short_method, simulated, wait_at_rest
+
+pytestmark = [pytest.mark.hil]
+
+SPEEDUP = 40.0
+#: Virtual time of the fault: the plate is approached (~1 s) and the contact found (~2 s)
+#: well before; the run then has ~15-25 s of samples before the fault.
+FAULT_AT = 30.0
+#: Windows long enough for the engine to give up inside them (4 failed reads of 2 x 40 ms =
+#: 0.32 s wall = 13 s virtual), short enough that its stop commands get through after.
+WINDOW = 30.0
+
+CASES = [
+    # (transport, fault spec, expected words in the reason, end kind)
+    ("modbus-tcp", f"drop@{FAULT_AT}", "connection lost", "link"),
+    ("modbus-tcp", f"timeout@{FAULT_AT}+{WINDOW}", "no reply", "fault"),
+    ("modbus-tcp", f"crc@{FAULT_AT}+{WINDOW}", "invalid reply", "fault"),
+    ("modbus-tcp", f"stall@{FAULT_AT}", "stall", "fault"),
+    ("modbus-tcp", f"overload@{FAULT_AT}", "overload", "overload"),
+    ("modbus-rtu-pty", f"crc@{FAULT_AT}+{WINDOW}", "invalid reply", "fault"),
+    ("serial", f"garbage@{FAULT_AT}+{WINDOW}", "serial", "fault"),
+]
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("transport, fault, words, end", CASES, ids=[f"{c[0]}-{c[1].split('@')[0]}" for c in CASES])
+def test_fault_stops_the_crosshead_and_keeps_the_samples(tmp_path, transport, fault, words, end):
+    with simulated(transport, speedup=SPEEDUP, faults=[fault]) as sim:
+        approach(machine_for(sim))
+        engine = make_engine(sim, short_method(tmp_path, strain=0.3, cycles=1), tmp_path, speedup=SPEEDUP,
+                             fit=False)
+        result = engine.wait(45) if engine.start() is None else None
+        assert result is not None, "the run did not end"
+        status = wait_at_rest(sim)                   # the simulator itself: not moving
+        fired = sim.faults_fired()
+    assert any(name == fault.split("@")[0] for _, name in fired), f"the fault never fired: {fired}"
+    assert result.status == "aborted" and result.end == end, result.reason
+    assert words in result.reason
+    assert not status["moving"]
+    assert result.park.startswith("not parked")     # a fault: the operator looks first
+    assert result.n_samples > 50                     # the run was well under way
+    on_disk = read_run_file(result.path)
+    assert on_disk.status == "aborted" and on_disk.abort_reason == result.reason
+    assert len(on_disk) == result.n_samples
+    np.testing.assert_array_equal(on_disk.force_N, result.run.force_N)
+    np.testing.assert_array_equal(on_disk.displacement_mm, result.run.displacement_mm)
+
+
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize("fault, words", [(f"exception@40+{WINDOW}", "Modbus exception")])
+def test_cli_exits_non_zero_with_one_line(tmp_path, capsys, fault, words):
+    method = short_method(tmp_path, strain=0.3, cycles=1)
+    code = cli.main(["run", "--method", str(method), "--speedup", str(SPEEDUP), "--fault", fault,
+                     "--out", str(tmp_path / "data"), "--quiet", "--no-fit"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1
+    assert len(err) == 1 and err[0].startswith("foamlab run: aborted: ") and words in err[0]
+    kept = list((tmp_path / "data").glob("*.csv"))
+    assert len(kept) == 1 and f"samples kept in {kept[0]}" in err[0]
+    run = read_run_file(kept[0])
+    assert run.status == "aborted" and words in run.abort_reason and len(run) > 0
+
+
+@pytest.mark.timeout(90)
+def test_ctrl_c_stops_the_machine_and_keeps_the_data(tmp_path):
+    """A real process and a real SIGINT: exit 130, one line, the file marked aborted."""
+    out = tmp_path / "data"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "foamlab.cli", "run", "--speedup", str(SPEEDUP), "--out", str(out),
+         "--quiet", "--no-fit"],
+        cwd=Path(__file__).resolve().parent.parent, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:      # wait until samples are on disk
+            files = list(out.glob("*.csv"))
+            if files and files[0].stat().st_size > 4000:
+                break
+            assert proc.poll() is None, proc.communicate()
+            time.sleep(0.05)
+        else:
+            pytest.fail("no samples on disk within 60 s")
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Ctrl-C" in lines[0], err
+    run = read_run_file(files[0])
+    assert run.status == "aborted" and "Ctrl-C" in run.abort_reason and len(run) > 50
