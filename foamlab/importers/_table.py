@@ -19,13 +19,41 @@ from foamlab import FoamlabError
 _FIELDS_ERROR = re.compile(r"Expected (\d+) fields in line (\d+), saw (\d+)")
 
 
-@dataclass
-class Row:
-    line_no: int   # 1-based line number in the file
-    text: str
+class Rows:
+    """The data lines of a file: their text and their 1-based line numbers."""
+
+    def __init__(self, texts: list[str], line_nos: list[int] | range) -> None:
+        self.texts = texts
+        self.line_nos = line_nos
+
+    @classmethod
+    def select(cls, lines: list[str], start: int, comments: bool) -> tuple["Rows", list[tuple[int, str]]]:
+        """Non-blank lines from ``lines[start:]``; ``#`` lines apart when ``comments``.
+
+        Returns the rows and the (line number, text) of the comment lines.
+        """
+        block = lines[start:]
+        skip = [i for i, ln in enumerate(block)
+                if not ln or ln.isspace() or (comments and ln[0] == "#")]
+        if not skip:
+            return cls(block, range(start + 1, start + 1 + len(block))), []
+        skipped = set(skip)
+        keep = [i for i in range(len(block)) if i not in skipped]
+        found = [(start + 1 + i, block[i]) for i in skip if block[i].strip()]
+        return cls([block[i] for i in keep], [start + 1 + i for i in keep]), found
+
+    def __len__(self) -> int:
+        return len(self.texts)
+
+    def drop_last(self) -> int:
+        """Forget the last row; return its line number."""
+        line_no = self.line_nos[-1]
+        self.texts = self.texts[:-1]
+        self.line_nos = self.line_nos[:-1]
+        return line_no
 
 
-def parse_rows(rows: list[Row], *, source: str, sep: str, decimal: str, ncols: int,
+def parse_rows(rows: Rows, *, source: str, sep: str, decimal: str, ncols: int,
                wanted: dict[str, int], required: tuple[str, ...], ends_with_newline: bool,
                ) -> dict[str, np.ndarray]:
     """Numbers of the ``wanted`` columns (name -> column index) of data rows.
@@ -33,10 +61,10 @@ def parse_rows(rows: list[Row], *, source: str, sep: str, decimal: str, ncols: i
     ``required`` columns must be finite in every row; others may be empty (NaN).
     Errors name the file line, the column and the offending text.
     """
-    if not rows:
+    if not len(rows):
         raise FoamlabError(f"{source}: no data rows after the header")
     width = _check_field_counts(rows, source, sep, ncols)
-    joined = "\n".join(r.text for r in rows)
+    joined = "\n".join(rows.texts)
     indices = sorted(set(wanted.values()))
     read = dict(sep=sep, decimal=decimal, header=None, names=list(range(width)),
                 skip_blank_lines=False, quotechar='"', engine="c")
@@ -59,7 +87,7 @@ def parse_rows(rows: list[Row], *, source: str, sep: str, decimal: str, ncols: i
     return out
 
 
-def _check_field_counts(rows: list[Row], source: str, sep: str, ncols: int) -> int:
+def _check_field_counts(rows: Rows, source: str, sep: str, ncols: int) -> int:
     """Refuse rows with more fields than the header (trailing empty fields allowed);
     return how many columns pandas must expect.
 
@@ -67,15 +95,16 @@ def _check_field_counts(rows: list[Row], source: str, sep: str, ncols: int) -> i
     is checked here; rows with quotes are not judged (a quoted field may hold the
     separator), only made room for.
     """
-    texts = pd.Series([r.text for r in rows], dtype=object)
-    width = max(ncols, int(texts.str.count(re.escape(sep)).max()) + 1)
-    trimmed = texts.str.replace(rf"[{re.escape(sep)}\s]+$", "", regex=True)
-    counts = trimmed.str.count(re.escape(sep)) + 1
-    too_many = (counts > ncols) & ~texts.str.contains('"', regex=False)
-    if too_many.any():
-        i = int(np.argmax(too_many.to_numpy()))
-        raise FoamlabError(f"{source}: line {rows[i].line_no}: {int(counts.iloc[i])} fields, "
-                           f"expected {ncols}")
+    counts = [t.count(sep) for t in rows.texts]
+    width = max(ncols, max(counts) + 1)
+    if width > ncols:
+        for i, count in enumerate(counts):
+            if count >= ncols:
+                text = rows.texts[i]
+                fields = text.rstrip().rstrip(sep + " \t").count(sep) + 1
+                if fields > ncols and '"' not in text:
+                    raise FoamlabError(f"{source}: line {rows.line_nos[i]}: {fields} fields, "
+                                       f"expected {ncols}")
     return width
 
 
@@ -84,16 +113,16 @@ def _first_line(exc: BaseException) -> str:
     return text[-1] if text else type(exc).__name__
 
 
-def _raise_field_count(exc: pd.errors.ParserError, rows: list[Row], source: str,
+def _raise_field_count(exc: pd.errors.ParserError, rows: Rows, source: str,
                        ncols: int) -> None:
     m = _FIELDS_ERROR.search(str(exc))
     if m:
         index = int(m.group(2)) - 1
-        line_no = rows[index].line_no if 0 <= index < len(rows) else index + 1
+        line_no = rows.line_nos[index] if 0 <= index < len(rows) else index + 1
         raise FoamlabError(f"{source}: line {line_no}: {m.group(3)} fields, expected {ncols}") from None
 
 
-def _locate_bad_number(joined: str, rows: list[Row], source: str, read: dict,
+def _locate_bad_number(joined: str, rows: Rows, source: str, read: dict,
                        indices: list[int], wanted: dict[str, int]) -> pd.DataFrame:
     try:
         raw = pd.read_csv(io.StringIO(joined), usecols=indices, dtype=str,
@@ -113,26 +142,26 @@ def _locate_bad_number(joined: str, rows: list[Row], source: str, read: dict,
             i = int(np.argmax(bad.to_numpy()))
             shown = raw[index].iloc[i]
             shown = shown if len(shown) <= 30 else shown[:27] + "..."
-            raise FoamlabError(f"{source}: line {rows[i].line_no}: {shown!r} in column "
+            raise FoamlabError(f"{source}: line {rows.line_nos[i]}: {shown!r} in column "
                                f"'{names.get(index, index)}' is not a number")
         table[index] = numbers.astype(float)
     return pd.DataFrame(table)
 
 
-def _raise_missing(i: int, rows: list[Row], source: str, sep: str, ncols: int, name: str,
+def _raise_missing(i: int, rows: Rows, source: str, sep: str, ncols: int, name: str,
                    ends_with_newline: bool) -> None:
-    row = rows[i]
-    fields = len(row.text.split(sep)) if row.text.strip() else 0
+    text, line_no = rows.texts[i], rows.line_nos[i]
+    fields = len(text.split(sep)) if text.strip() else 0
     if fields < ncols:
         if i == len(rows) - 1 and not ends_with_newline:
-            raise FoamlabError(f"{source}: line {row.line_no}: truncated last line "
+            raise FoamlabError(f"{source}: line {line_no}: truncated last line "
                                f"({fields} of {ncols} fields)")
-        raise FoamlabError(f"{source}: line {row.line_no}: {fields} fields, expected {ncols}")
-    raise FoamlabError(f"{source}: line {row.line_no}: no valid number in column '{name}' "
+        raise FoamlabError(f"{source}: line {line_no}: {fields} fields, expected {ncols}")
+    raise FoamlabError(f"{source}: line {line_no}: no valid number in column '{name}' "
                        f"(empty, NaN or infinite)")
 
 
-def check_samples(source: str, time_s: np.ndarray, rows: list[Row]) -> None:
+def check_samples(source: str, time_s: np.ndarray, rows: Rows) -> None:
     """Time must increase strictly: samples are in acquisition order."""
     if len(time_s) < 2:
         raise FoamlabError(f"{source}: only {len(time_s)} sample; a run needs at least 2")
@@ -141,7 +170,7 @@ def check_samples(source: str, time_s: np.ndarray, rows: list[Row]) -> None:
     if len(bad):
         i = int(bad[0]) + 1
         what = "repeats" if steps[i - 1] == 0 else "goes backwards"
-        raise FoamlabError(f"{source}: line {rows[i].line_no}: time {what} "
+        raise FoamlabError(f"{source}: line {rows.line_nos[i]}: time {what} "
                            f"({time_s[i]:g} s after {time_s[i - 1]:g} s)")
 
 

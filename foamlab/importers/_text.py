@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 from foamlab import FoamlabError
@@ -31,7 +32,7 @@ class TextFile:
     text: str
     encoding: str
 
-    @property
+    @cached_property
     def lines(self) -> list[str]:
         return split_lines(self.text)
 
@@ -40,12 +41,17 @@ class TextFile:
         return self.text.endswith(("\n", "\r"))
 
 
+_OTHER_LINE_BREAKS = "\v\f\x1c\x1d\x1e\x85\u2028\u2029"  # str.splitlines() breaks on these too
+
+
 def split_lines(text: str) -> list[str]:
     """Lines as an editor numbers them (CRLF, LF or CR), without a trailing empty line."""
-    lines = re.split(r"\r\n|\r|\n", text)
-    if lines and lines[-1] == "":
-        lines.pop()
-    return lines
+    if any(c in text for c in _OTHER_LINE_BREAKS):
+        lines = re.split(r"\r\n|\r|\n", text)  # slower, but only CR/LF break lines
+        if lines and lines[-1] == "":
+            lines.pop()
+        return lines
+    return text.splitlines()
 
 
 def read_text(path: str | Path) -> TextFile:

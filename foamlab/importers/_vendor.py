@@ -8,7 +8,7 @@ import re
 from dataclasses import dataclass
 
 from foamlab import FoamlabError
-from foamlab.importers._table import (Row, check_samples, normalize_name, parse_date,
+from foamlab.importers._table import (Rows, check_samples, normalize_name, parse_date,
                                       parse_length_mm, parse_rows, pick_channels,
                                       to_foamlab_convention)
 from foamlab.importers._text import TextFile
@@ -63,8 +63,8 @@ def read_vendor(text_file: TextFile, layout: Layout, fmt: str) -> RunData:
     units = split_fields(lines[layout.units_index], sep) if layout.units_index is not None else None
     channels = pick_channels(names, units, source)
     first_data = (layout.units_index if layout.units_index is not None else layout.names_index) + 1
-    rows = [Row(i + 1, lines[i]) for i in range(first_data, len(lines)) if lines[i].strip()]
-    if not rows:
+    rows, _ = Rows.select(lines, first_data, comments=False)
+    if not len(rows):
         raise FoamlabError(f"{source}: no data rows after the column names (line {first_data})")
     decimal = _decimal(rows, sep)
     wanted = {kind: ch.index for kind, ch in channels.items()}
@@ -85,11 +85,11 @@ def read_vendor(text_file: TextFile, layout: Layout, fmt: str) -> RunData:
                    **fields)
 
 
-def _decimal(rows: list[Row], sep: str) -> str:
+def _decimal(rows: Rows, sep: str) -> str:
     if sep == ",":
         return "."
-    for row in rows[:200]:
-        if any(_DECIMAL_COMMA.match(f) for f in row.text.split(sep)):
+    for text in rows.texts[:200]:
+        if any(_DECIMAL_COMMA.match(f) for f in text.split(sep)):
             return ","
     return "."
 

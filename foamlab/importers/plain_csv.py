@@ -10,7 +10,7 @@ from __future__ import annotations
 import re
 
 from foamlab import FoamlabError
-from foamlab.importers._table import Row, check_samples, parse_rows
+from foamlab.importers._table import Rows, check_samples, parse_rows
 from foamlab.importers._text import TextFile
 from foamlab.rundata import RunData
 from foamlab.storage.runfile import BASE_COLUMNS, NO_TRAILER_REASON, runfile_fields
@@ -34,41 +34,42 @@ def looks_like(lines: list[str]) -> bool:
 
 def parse(text_file: TextFile, run_file: bool = False) -> RunData:
     source = str(text_file.path)
+    lines = text_file.lines
     header: dict[str, str] = {}
-    trailer: dict[str, str] = {}
     comments: list[str] = []
     names: list[str] | None = None
-    rows: list[Row] = []
-    for line_no, line in enumerate(text_file.lines, start=1):
+    header_index = 0
+    for header_index, line in enumerate(lines):
         if line.startswith("#"):
             m = _KEY_VALUE.match(line)
             if m:
-                (trailer if names is not None else header)[m.group(1)] = m.group(2).strip()
-            elif names is None and line.strip("# ") and not line.startswith("# foamlab run file"):
+                header[m.group(1)] = m.group(2).strip()
+            elif line.strip("# ") and not line.startswith("# foamlab run file"):
                 comments.append(line.lstrip("# ").rstrip())
             continue
         if not line.strip():
             continue
-        if names is None:
-            names = header_fields(line.lstrip("\ufeff"))
-            if names[:3] != list(BASE_COLUMNS):
-                shown = line if len(line) <= 60 else line[:57] + "..."
-                raise FoamlabError(f"{source}: line {line_no}: header row is {shown!r}; "
-                                   f"expected '{HEADER}'")
-            continue
-        rows.append(Row(line_no, line))
+        names = header_fields(line.lstrip("\ufeff"))
+        if names[:3] != list(BASE_COLUMNS):
+            shown = line if len(line) <= 60 else line[:57] + "..."
+            raise FoamlabError(f"{source}: line {header_index + 1}: header row is {shown!r}; "
+                               f"expected '{HEADER}'")
+        break
     if names is None:
         raise FoamlabError(f"{source}: no header row '{HEADER}' (only comments)")
-    header.update(trailer)
+    rows, trailer_lines = Rows.select(lines, header_index + 1, comments=True)
+    for _, line in trailer_lines:  # e.g. the run file's status trailer
+        m = _KEY_VALUE.match(line)
+        if m:
+            header[m.group(1)] = m.group(2).strip()
     finished = "status" in header
     metadata_extra: dict = {}
-    if run_file and not finished and rows and not text_file.ends_with_newline:
-        last = rows[-1]
-        if len(last.text.split(",")) < len(names):
+    if run_file and not finished and len(rows) and not text_file.ends_with_newline:
+        if len(rows.texts[-1].split(",")) < len(names):
             # the writer was killed while writing this line: the sample in flight
-            rows.pop()
-            metadata_extra["dropped_partial_line"] = last.line_no
-    if not rows:
+            line_no = rows.drop_last()
+            metadata_extra["dropped_partial_line"] = line_no
+    if not len(rows):
         raise FoamlabError(f"{source}: no data rows after the header row")
     data = parse_rows(rows, source=source, sep=",", decimal=".", ncols=len(names),
                       wanted={c: i for i, c in enumerate(BASE_COLUMNS)}, required=BASE_COLUMNS,
