@@ -149,8 +149,13 @@ def _announce(sim, args) -> None:
     if p["protocol"] == "modbus":
         lines.append(f"  load cell unit {p['load_cell']['unit_id']}, crosshead unit {p['crosshead']['unit_id']}, "
                      f"word order {p['word_order']}")
+    run_flags = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in sim.profile_overrides.items())
+    run_flags += f" --specimen-height {sim.machine.settings.specimen_height_mm:g}"
+    if args.speedup != 1:
+        run_flags += f" --speedup {args.speedup:g}"
     lines += [
         f"  profile: {sim.profile_name}   connection: {overrides}",
+        f"  run a test on it: foamlab run --machine {sim.profile_name} {run_flags}",
         f"  speedup {args.speedup:g}x, seed {args.seed}, "
         f"effects: {', '.join(args.effect) or 'none'}, faults: {', '.join(args.fault) or 'none'}",
         "  Ctrl-C to stop",
