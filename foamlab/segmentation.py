@@ -2,11 +2,12 @@
 
 What is found, and how (every threshold comes from the data, none from the file):
 
-- Turning points: a hysteresis ("zig-zag") detector on the smoothed displacement.
-  A reversal counts only once the plate has come back by more than
+- Turning points: a hysteresis ("zig-zag") detector on the displacement. A
+  reversal counts only once the plate has come back by more than
   ``hysteresis_mm`` = max(5 % of the stroke, 10 x displacement noise), so sensor
   noise and small controller wobble never create cycles. Each reversal is then
-  placed on the extreme of the smoothed displacement around it.
+  placed on the extreme of the smoothed displacement around it, refined to the
+  raw extreme within a few samples (window / 8).
 - Holds (dwells): spans where the smoothed speed stays under 10 % of the typical
   crosshead speed for longer than the smoothing window. A hold at a turning point,
   at the start (preload dwell) or at the end is left out of the half-cycles.
@@ -203,13 +204,18 @@ def segment(run: RunData) -> Segmentation:
     is_hold = speed < HOLD_SPEED_FRACTION * moving_speed
     holds = [(a, b) for a, b in _true_spans(is_hold) if b - a >= window]
 
-    # Place each reversal on the extreme of the smoothed displacement nearby.
     turning: list[int] = []
+    # Place each reversal on the extreme of the smoothed displacement nearby, then
+    # on the raw extreme within a few samples of it: smoothing rounds a sharp
+    # reversal off by a sample or so, and the peak force belongs to the loading.
+    radius = max(2, window // 8)
     for p, is_max in coarse_pivots:
         centre = p * step
         a, b = max(0, centre - 2 * step - window), min(n, centre + 2 * step + window + 1)
-        seg = xs[a:b]
-        turning.append(a + int(np.argmax(seg) if is_max else np.argmin(seg)))
+        pick = np.argmax if is_max else np.argmin
+        smooth_at = a + int(pick(xs[a:b]))
+        a, b = max(0, smooth_at - radius), min(n, smooth_at + radius + 1)
+        turning.append(a + int(pick(x[a:b])))
     turning_arr = np.asarray(sorted(set(turning)), dtype=int)
 
     # Half-cycle boundaries, with holds at the boundaries taken out.
@@ -372,7 +378,7 @@ def _contact(x: np.ndarray, f: np.ndarray, window: int, in_stroke: np.ndarray) -
     floor_samples = f[at_floor]
     floor = float(np.median(floor_samples))
     floor_noise = float(1.4826 * np.median(np.abs(floor_samples - floor)))
-    noise = max(floor_noise, _noise_sigma(f), 1e-3 * span)
+    noise = max(floor_noise, _noise_sigma(f), 2e-4 * span)
     # The lowest forces are the unloaded load-cell reading only if they are near
     # zero AND flat: off the specimen the force does not follow the plate. At the
     # bottom of a run that keeps its preload the force still follows the
@@ -387,7 +393,7 @@ def _contact(x: np.ndarray, f: np.ndarray, window: int, in_stroke: np.ndarray) -
         zero = floor
     else:
         # no unloaded reading in this run: the floor's spread is the specimen, not noise
-        zero, noise = 0.0, max(_noise_sigma(f), 1e-3 * span)
+        zero, noise = 0.0, max(_noise_sigma(f), 2e-4 * span)
     threshold = zero + CONTACT_NOISE_MULTIPLE * noise
     in_contact = fs > threshold
     first = int(np.argmax(in_contact)) if in_contact.any() else None
