@@ -1,0 +1,11 @@
+"""Identification: the paper's three-step fit, a joint refinement, honest statistics.
+
+``fit_run(run, orders=(N, M, P), progress=None) -> FitResult`` identifies the combined
+model (foamlab.model) from one run; see docs/identification.md.
+"""
+
+from foamlab.identification.data import Orders
+from foamlab.identification.fit import fit_run
+from foamlab.identification.result import FitResult
+
+__all__ = ["FitResult", "Orders", "fit_run"]

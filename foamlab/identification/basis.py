@@ -1,0 +1,417 @@
+"""The combined model as a linear combination of columns (variable projection).
+
+F(t) = sum_i k_i (x/x_s)^i + sum_i a_i Re z_i(t; alpha_i) + sum_{c,m} r_cm y_cm(t; beta_cm)
+
+is LINEAR in k, a and r; only alpha (damping) and beta (residual) enter nonlinearly,
+and each column depends on one alpha or one beta. So for given (alpha, beta) the
+best (k, a, r) is one linear least-squares solve, and a column's derivative with
+respect to its own nonlinear parameter is all the Jacobian needs.
+
+The columns are the model's own components (foamlab.model), evaluated as
+``evaluate`` does: each cycle's memory runs on a uniform grid from the cycle's
+start (x relative to x at that start), damping is switched on over the cycle's
+loading, and the residual of cycle c from its peak on (cycles beyond the
+identified ones reuse the last cycle's terms). The damping column is the model's
+HereditaryOperator recursion (its step coefficients imported, not copied), run
+with a complex state so that its derivative in alpha comes with it. The fractional column is the exact Riemann-Liouville
+derivative of the piecewise-linear displacement (the same quantity as the
+model's FractionalOperator, which approximates it by a sum of exponentials):
+sum_j ds_j (t - t_j)^nu / Gamma(nu + 1), a convolution done by FFT, with the
+FFT of the slope changes cached per cycle - about 20x cheaper than the SOE
+operator and with an analytic derivative in beta. tests/test_identification.py
+checks that the columns times the parameters reproduce ``evaluate``.
+
+A coarser step than the run's (``step_s``) gives the same model on a decimated
+grid (the operators are continuous in time): the fit runs there and is polished
+at full resolution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import fft as sfft
+from scipy.signal import lfilter
+from scipy.special import digamma, gammaln
+
+from foamlab.model.history import HistoryLabels
+from foamlab.model.operators import _phi  # the model's exact step coefficients (one definition)
+
+#: Relative step for the derivative of the damping step coefficients in alpha.
+ALPHA_FD_STEP = 1e-6
+#: Samples on each side of a turning point kept as exact nodes of the fractional operator.
+CORNER_SAMPLES = 1
+#: Cached operator outputs kept before the cache is cleared (memory bound).
+CACHE_LIMIT = 512
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where each parameter of ModelParameters' flat vector goes.
+
+    linear:    k_0..k_P, a_1..a_N, r_11..r_CM  (columns of the design matrix, in this order)
+    nonlinear: alpha_1 (re, im), ..., alpha_N, beta_11..beta_CM
+    """
+
+    P: int
+    N: int
+    M: int
+    C: int  # cycles with their own residual terms
+
+    @property
+    def n_linear(self) -> int:
+        return self.P + 1 + self.N + self.C * self.M
+
+    @property
+    def n_nonlinear(self) -> int:
+        return 2 * self.N + self.C * self.M
+
+    @property
+    def n_params(self) -> int:
+        return self.n_linear + self.n_nonlinear
+
+    def column_of_nonlinear(self, j: int) -> int:
+        """Design-matrix column that nonlinear parameter j acts on."""
+        if j < 2 * self.N:
+            return self.P + 1 + j // 2
+        return self.P + 1 + self.N + (j - 2 * self.N)
+
+    def to_flat(self, linear: np.ndarray, nonlinear: np.ndarray) -> np.ndarray:
+        """ModelParameters.to_vector() order from (linear, nonlinear)."""
+        p1, N, C, M = self.P + 1, self.N, self.C, self.M
+        k = linear[:p1]
+        a = linear[p1:p1 + N]
+        r = linear[p1 + N:].reshape(C, M)
+        al = nonlinear[:2 * N].reshape(N, 2)
+        beta = nonlinear[2 * N:].reshape(C, M)
+        damping = np.column_stack([a, al[:, 0], al[:, 1]]).ravel()
+        residual = np.stack([r, beta], axis=-1).ravel()
+        return np.concatenate([k, damping, residual])
+
+    def from_flat(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p1, N, C, M = self.P + 1, self.N, self.C, self.M
+        flat = np.asarray(flat, float)
+        d = flat[p1:p1 + 3 * N].reshape(N, 3)
+        res = flat[p1 + 3 * N:].reshape(C, M, 2)
+        linear = np.concatenate([flat[:p1], d[:, 0], res[:, :, 0].ravel()])
+        nonlinear = np.concatenate([d[:, 1:].ravel(), res[:, :, 1].ravel()])
+        return linear, nonlinear
+
+    def canonical_permutation(self, linear: np.ndarray, nonlinear: np.ndarray) -> np.ndarray:
+        """Index into [linear, nonlinear] that puts damping modes in order of decay rate
+        (then frequency) and each cycle's residual terms in order of beta: one name per
+        mode/term whatever order the optimiser found them in."""
+        p1, N, C, M = self.P + 1, self.N, self.C, self.M
+        L = self.n_linear
+        lin_perm = np.arange(L)
+        nl_perm = np.arange(self.n_nonlinear)
+        al = np.asarray(nonlinear[:2 * N], float).reshape(N, 2)
+        order = np.lexsort((al[:, 1], al[:, 0]))
+        lin_perm[p1:p1 + N] = p1 + order
+        nl_perm[:2 * N] = (2 * order[:, None] + np.arange(2)).ravel()
+        beta = np.asarray(nonlinear[2 * N:], float).reshape(C, M)
+        for c in range(C):
+            o = np.argsort(beta[c], kind="stable")
+            lin_perm[p1 + N + c * M:p1 + N + (c + 1) * M] = p1 + N + c * M + o
+            nl_perm[2 * N + c * M:2 * N + (c + 1) * M] = 2 * N + c * M + o
+        return np.concatenate([lin_perm, L + nl_perm])
+
+    def flat_index_of_linear(self) -> np.ndarray:
+        """Index in the flat vector of each linear parameter (design-column order)."""
+        flat = np.arange(self.n_params, dtype=float)
+        lin, _ = self.from_flat(flat)
+        return lin.astype(int)
+
+    def flat_index_of_nonlinear(self) -> np.ndarray:
+        flat = np.arange(self.n_params, dtype=float)
+        _, nl = self.from_flat(flat)
+        return nl.astype(int)
+
+
+class _Interp:
+    """Linear interpolation from a uniform grid (start t0, step h) to fixed times."""
+
+    def __init__(self, t0: float, h: float, times: np.ndarray, n_grid: int):
+        pos = (times - t0) / h
+        pos = np.clip(pos, 0.0, n_grid - 1)
+        i0 = np.minimum(np.floor(pos + 1e-9).astype(int), max(n_grid - 2, 0))
+        self.i0 = i0
+        self.w = np.clip(pos - i0, 0.0, 1.0)
+
+    def __call__(self, y: np.ndarray) -> np.ndarray:
+        """y: (n_grid,) or (n_grid, K)."""
+        if len(y) == 1:
+            return np.repeat(y[:1], len(self.i0), axis=0)
+        w = self.w if y.ndim == 1 else self.w[:, None]
+        return (1.0 - w) * y[self.i0] + w * y[self.i0 + 1]
+
+
+class _Damping:
+    """Cycle k's loading on its own uniform grid from its start, the peak on the grid
+    (step = the requested one shortened so the loading is a whole number of steps)."""
+
+    def __init__(self, t, x, start: int, peak: int, obs: np.ndarray, h: float):
+        t0, duration = float(t[start]), float(t[peak] - t[start])
+        steps = max(int(np.ceil(duration / h - 1e-9)), 1)
+        self.h = duration / steps if duration > 0 else h
+        grid = t0 + self.h * np.arange(steps + 1)
+        grid[-1] = t[peak]
+        self.xk = np.interp(grid, t, x) - x[start]
+        self.rows = np.flatnonzero((obs >= start) & (obs <= peak))
+        self.interp = _Interp(t0, self.h, t[obs[self.rows]], len(grid))
+
+    def columns(self, alpha: complex, derivative: bool):
+        """Re z for a unit a (Eq. 9 kernel on the displacement, the model's exact step
+        for piecewise-linear x: z_n = E z_n-1 + w_p x_n-1 + w_n x_n, as in
+        HereditaryOperator.batch) and, with derivative, d/d(alpha_re), d/d(alpha_im)
+        by differentiating that recursion (z is analytic in alpha)."""
+        al = np.array([alpha], dtype=complex)
+        E, wp, wn = (c[0] for c in _phi(al, self.h))
+        z = lfilter([wn, wp], [1.0, -E], self.xk)
+        col = self.interp(z.real)
+        if not derivative:
+            return col, None, None
+        eps = ALPHA_FD_STEP * max(abs(alpha), 1e-3)
+        hi = [c[0] for c in _phi(al + eps, self.h)]
+        lo = [c[0] for c in _phi(al - eps, self.h)]
+        dE, dwp, dwn = ((a - b) / (2 * eps) for a, b in zip(hi, lo))
+        u = np.zeros(len(z), dtype=complex)
+        u[1:] = dE * z[:-1] + dwp * self.xk[:-1] + dwn * self.xk[1:]
+        dz = lfilter([1.0], [1.0, -E], u)
+        return col, self.interp(dz.real), self.interp(-dz.imag)
+
+
+class _Fractional:
+    """D^beta of (x - x(t_k)) from cycle k's start t_k, at the observed samples after its peak.
+
+    x is taken piecewise linear on the nodes: a uniform grid (step h, shared by all
+    cycles) plus the turning points at their exact times (a corner between grid
+    nodes would otherwise be cut, and the residual is switched on right at one). Then
+    D^beta x(t) = sum_n ds_n (t - t_n)_+^nu / Gamma(nu + 1) over the nodes' slope
+    changes ds_n (the cycle's start is a node: x - x(t_k) is zero before it). Grid
+    sources by FFT convolution, turning-point sources and off-grid samples directly.
+    """
+
+    def __init__(self, t, x, start: int, peak: int, obs: np.ndarray, grid_t: np.ndarray,
+                 grid_x: np.ndarray, turning: np.ndarray):
+        h = grid_t[1] - grid_t[0]
+        tol = 1e-6 * h
+        tk = float(t[start])
+        self.rows = np.flatnonzero(obs > peak)
+        obs_t = t[obs[self.rows]]
+        on_grid = grid_t > tk + tol
+        j0 = int(np.argmax(on_grid)) if on_grid.any() else len(grid_t)
+        # turning points at or after the start that are not grid nodes
+        tp = np.asarray([i for i in turning if t[i] >= tk - tol], dtype=int)
+        tp_t = t[tp]
+        off = np.abs((tp_t - grid_t[0]) / h - np.round((tp_t - grid_t[0]) / h)) * h > tol
+        off |= tp_t <= tk + tol            # the start is always its own node
+        tp, tp_t = tp[off], tp_t[off]
+        node_t = np.concatenate([grid_t[j0:], tp_t])
+        node_u = np.concatenate([grid_x[j0:], x[tp]]) - x[start]
+        is_grid = np.concatenate([np.ones(len(grid_t) - j0, bool), np.zeros(len(tp), bool)])
+        grid_idx = np.concatenate([np.arange(j0, len(grid_t)), np.full(len(tp), -1)])
+        order = np.argsort(node_t, kind="stable")
+        node_t, node_u, is_grid, grid_idx = node_t[order], node_u[order], is_grid[order], grid_idx[order]
+        slopes = np.diff(node_u) / np.diff(node_t)
+        ds = np.zeros(len(node_t))
+        if len(slopes):
+            ds[0] = slopes[0]
+            ds[1:len(slopes)] = np.diff(slopes)
+        n = len(grid_t)
+        self.h, self.n = h, n
+        self.d_grid = np.zeros(n)
+        self.d_grid[grid_idx[is_grid]] = ds[is_grid]
+        self.src_t, self.src_ds = node_t[~is_grid], ds[~is_grid]
+        self.log_m_h = np.log(h * np.arange(1, n))
+        self.nfft = sfft.next_fast_len(2 * n - 1, real=True)
+        self.d_hat = sfft.rfft(self.d_grid[:-1], self.nfft)
+        # where each observed sample's value comes from
+        pos = (obs_t - grid_t[0]) / h
+        near = np.round(pos).astype(int)
+        exact = np.abs(pos - near) * h <= tol
+        special = np.isin(obs[self.rows], turning)
+        self.at_grid = np.flatnonzero(exact)
+        self.at_grid_idx = np.clip(near[exact], 0, n - 1)
+        direct = ~exact & special
+        self.direct = np.flatnonzero(direct)
+        interp = ~exact & ~special
+        self.interp_rows = np.flatnonzero(interp)
+        self.interp = _Interp(float(grid_t[0]), h, obs_t[interp], n)
+        # grid nodes whose value is used, and the lags of the non-grid terms:
+        # extra sources -> used grid nodes, grid and extra sources -> direct samples
+        used = np.union1d(self.at_grid_idx, np.concatenate([self.interp.i0, self.interp.i0 + 1]))
+        self.used = used.astype(int)
+        dt = obs_t[direct][:, None]
+        self.lag_src_grid = _Lags(grid_t[None, self.used] - self.src_t[:, None])
+        self.lag_direct_grid = _Lags(dt - grid_t[None, :])
+        self.lag_direct_src = _Lags(dt - self.src_t[None, :])
+
+    def columns(self, betas: np.ndarray, derivative: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """D^beta on the observed rows for each beta (rows x M) and, with derivative,
+        d/dbeta of each. All kernels go through one batched FFT."""
+        nu = 1.0 - np.asarray(betas, float)
+        m = len(nu)
+        lg = gammaln(nu + 1.0)
+        kern = np.exp(nu[:, None] * self.log_m_h[None, :] - lg[:, None])   # (m h)^nu / Gamma(nu+1)
+        lags = (self.lag_src_grid, self.lag_direct_grid, self.lag_direct_src)
+        powers = [lag.power(nu, lg) for lag in lags]
+        if derivative:
+            # d/dbeta of lag^nu / Gamma(nu + 1) = -(log lag - psi(nu + 1)) * value
+            psi = digamma(nu + 1.0)
+            kern = np.vstack([kern, -kern * (self.log_m_h[None, :] - psi[:, None])])
+            powers = [np.concatenate([pw, lag.dbeta(pw, psi)]) for lag, pw in zip(lags, powers)]
+        out = self._assemble(kern, *powers)
+        return (out[:, :m], out[:, m:]) if derivative else (out, None)
+
+    def _assemble(self, kern, p_sg, p_dg, p_ds) -> np.ndarray:
+        K = kern.shape[0]
+        y = np.zeros((K, self.n))
+        spec = self.d_hat[None, :] * sfft.rfft(kern, self.nfft, axis=1)
+        y[:, 1:] = sfft.irfft(spec, self.nfft, axis=1)[:, :self.n - 1]
+        if len(self.src_t):
+            y[:, self.used] += np.einsum("ksu,s->ku", p_sg, self.src_ds)
+        out = np.empty((len(self.rows), K))
+        out[self.at_grid] = y[:, self.at_grid_idx].T
+        if len(self.direct):
+            out[self.direct] = (p_dg @ self.d_grid + p_ds @ self.src_ds).T
+        if len(self.interp_rows):
+            out[self.interp_rows] = self.interp(y.T)
+        return out
+
+
+class _Lags:
+    """Positive time lags (others contribute nothing) as logs, for lag^nu terms."""
+
+    def __init__(self, lag: np.ndarray):
+        self.mask = lag > 0
+        self.log = np.log(np.where(self.mask, lag, 1.0))
+
+    def power(self, nu: np.ndarray, log_gamma: np.ndarray) -> np.ndarray:
+        """(len(nu), *lag.shape): lag^nu / Gamma(nu + 1)."""
+        return np.exp(nu[:, None, None] * self.log[None] - log_gamma[:, None, None]) * self.mask
+
+    def dbeta(self, power: np.ndarray, psi: np.ndarray) -> np.ndarray:
+        return -power * (self.log[None] - psi[:, None, None])
+
+
+class ModelBasis:
+    """Design matrix of the model at the observed samples ``obs`` of a run.
+
+    step_s: the operators' grid step (the run's own step for full resolution, a
+    multiple of it for the decimated fit).
+    """
+
+    def __init__(self, t: np.ndarray, x: np.ndarray, labels: HistoryLabels, obs: np.ndarray,
+                 layout: Layout, x_scale_mm: float, step_s: float):
+        self.t = np.asarray(t, float)
+        self.x = np.asarray(x, float)
+        self.obs = np.asarray(obs, dtype=int)
+        self.layout = layout
+        self.x_scale_mm = float(x_scale_mm)
+        self.n_obs = len(self.obs)
+        starts, peaks = list(labels.starts), list(labels.peaks)
+        t_end = float(self.t[self.obs].max()) if self.n_obs else float(self.t[-1])
+        t0 = float(self.t[starts[0]]) if starts else float(self.t[0])
+        n_grid = int(np.ceil((t_end - t0) / step_s - 1e-9)) + 1
+        grid_t = t0 + step_s * np.arange(max(n_grid, 2))
+        grid_x = np.interp(grid_t, self.t, self.x)
+        # the samples around each turning point are nodes too: the fractional
+        # derivative near a corner depends on how the samples there cut it
+        turning = np.unique(np.concatenate(
+            [np.arange(i - CORNER_SAMPLES, i + CORNER_SAMPLES + 1) for i in starts + peaks]
+            or [np.zeros(0, int)]))
+        turning = turning[(turning >= 0) & (turning < len(self.t))]
+        self.damping_parts = [_Damping(self.t, self.x, s, p, self.obs, step_s)
+                              for s, p in zip(starts, peaks)]
+        self.residual_parts = [_Fractional(self.t, self.x, s, p, self.obs, grid_t, grid_x, turning)
+                               for s, p in zip(starts, peaks)]
+        xs = self.x[self.obs] / self.x_scale_mm
+        self.elastic = np.vander(xs, layout.P + 1, increasing=True)
+        self._cache: dict = {}
+
+    # -- columns -----------------------------------------------------------------
+    def damping_column(self, alpha: complex, derivative: bool = False):
+        """Column of a_i (unit a) and, with derivative, d/d(alpha_re), d/d(alpha_im)."""
+        key = ("d", complex(alpha))
+        hit = self._cache.get(key)
+        if hit is not None and (hit[1] is not None or not derivative):
+            return hit
+        col = np.zeros(self.n_obs)
+        d_re = np.zeros(self.n_obs) if derivative else None
+        d_im = np.zeros(self.n_obs) if derivative else None
+        for part in self.damping_parts:
+            if not len(part.rows):
+                continue
+            c, dr, di = part.columns(alpha, derivative)
+            col[part.rows] = c
+            if derivative:
+                d_re[part.rows], d_im[part.rows] = dr, di
+        out = (col, d_re, d_im)
+        self._store(key, out)
+        return out
+
+    def residual_columns(self, c: int, betas, derivative: bool = False):
+        """Columns of r_{c,1..M} (unit r, cycle c 0-based; later cycles beyond the
+        identified ones add to the last) and, with derivative, each d/dbeta."""
+        betas = np.atleast_1d(np.asarray(betas, float))
+        key = ("r", c, betas.tobytes())
+        hit = self._cache.get(key)
+        if hit is not None and (hit[1] is not None or not derivative):
+            return hit
+        col = np.zeros((self.n_obs, len(betas)))
+        dcol = np.zeros((self.n_obs, len(betas))) if derivative else None
+        last = self.layout.C - 1
+        for k, part in enumerate(self.residual_parts):
+            if min(k, last) != c or not len(part.rows):
+                continue
+            y, dy = part.columns(betas, derivative)
+            col[part.rows] += y
+            if derivative:
+                dcol[part.rows] += dy
+        out = (col, dcol)
+        self._store(key, out)
+        return out
+
+    def _store(self, key, value) -> None:
+        if len(self._cache) >= CACHE_LIMIT:
+            self._cache.clear()
+        self._cache[key] = value
+
+    # -- design matrix -----------------------------------------------------------------
+    def _alphas(self, nonlinear: np.ndarray) -> np.ndarray:
+        N = self.layout.N
+        al = np.asarray(nonlinear[:2 * N], float).reshape(N, 2)
+        return al[:, 0] + 1j * al[:, 1]
+
+    def design(self, nonlinear: np.ndarray) -> np.ndarray:
+        lay = self.layout
+        out = np.empty((self.n_obs, lay.n_linear))
+        out[:, :lay.P + 1] = self.elastic
+        j = lay.P + 1
+        for al in self._alphas(nonlinear):
+            out[:, j] = self.damping_column(al)[0]
+            j += 1
+        betas = np.asarray(nonlinear[2 * lay.N:], float).reshape(lay.C, lay.M)
+        for c in range(lay.C):
+            out[:, j:j + lay.M] = self.residual_columns(c, betas[c])[0]
+            j += lay.M
+        return out
+
+    def design_derivatives(self, nonlinear: np.ndarray) -> np.ndarray:
+        """(n_obs, n_nonlinear): d(column of j)/d(nonlinear_j) for each j."""
+        lay = self.layout
+        out = np.empty((self.n_obs, lay.n_nonlinear))
+        for i, al in enumerate(self._alphas(nonlinear)):
+            _, d_re, d_im = self.damping_column(al, derivative=True)
+            out[:, 2 * i], out[:, 2 * i + 1] = d_re, d_im
+        betas = np.asarray(nonlinear[2 * lay.N:], float).reshape(lay.C, lay.M)
+        j = 2 * lay.N
+        for c in range(lay.C):
+            out[:, j:j + lay.M] = self.residual_columns(c, betas[c], derivative=True)[1]
+            j += lay.M
+        return out
+
+    def force(self, linear: np.ndarray, nonlinear: np.ndarray) -> np.ndarray:
+        return self.design(nonlinear) @ linear

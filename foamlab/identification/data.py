@@ -1,0 +1,203 @@
+"""What identification needs from a run, checked once: cycles, labels, samples to fit.
+
+Every limit here is a property of the run (its sampling, its half-cycles, its
+noise); none is tuned to a data set. A run that cannot be identified raises a
+FoamlabError that says what is missing, before any optimiser starts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from foamlab import FoamlabError
+from foamlab.model import HistoryLabels, labels_from_extrema
+from foamlab.rundata import RunData
+from foamlab.segmentation import HalfCycle, Segmentation, segment
+
+#: The decimated fit keeps about this many samples per half-cycle (the curves are
+#: smooth over a half-cycle; the final polish and the statistics use every sample).
+FIT_SAMPLES_PER_HALF_CYCLE = 160
+#: Block radius at most (samples since the last turning point) / this.
+CUSP_DISTANCE_RATIO = 4
+#: A force range smaller than this many times the force noise is "flat".
+FLAT_FORCE_NOISE_MULTIPLE = 20.0
+
+
+@dataclass(frozen=True)
+class Orders:
+    """Model orders: N damping modes, M residual terms per cycle, elastic polynomial order P."""
+
+    N: int = 3
+    M: int = 3
+    P: int = 7
+
+    def __post_init__(self) -> None:
+        if self.N < 0 or self.M < 0 or self.P < 1:
+            raise FoamlabError(f"orders N={self.N}, M={self.M}, P={self.P}: need N >= 0, M >= 0, P >= 1")
+        if self.N > 6 or self.M > 6 or self.P > 12:
+            raise FoamlabError(f"orders N={self.N}, M={self.M}, P={self.P}: at most N=6, M=6, P=12 "
+                               "(higher orders are not identifiable from one run)")
+
+    @classmethod
+    def parse(cls, text: str) -> "Orders":
+        """'N,M,P', e.g. '3,3,7' (the paper's orders)."""
+        parts = [p.strip() for p in str(text).split(",")]
+        try:
+            n, m, p = (int(v) for v in parts)
+        except ValueError:
+            raise FoamlabError(f"orders {text!r}: expected three integers N,M,P, e.g. 3,3,7") from None
+        return cls(n, m, p)
+
+    def __str__(self) -> str:
+        return f"N={self.N}, M={self.M}, P={self.P}"
+
+
+def force_noise(f: np.ndarray) -> float:
+    """White-noise sigma from second differences (robust to the curve itself)."""
+    if len(f) < 4:
+        return 0.0
+    d2 = np.diff(f, 2)
+    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
+
+
+@dataclass
+class FitData:
+    run: RunData
+    seg: Segmentation
+    labels: HistoryLabels
+    observed: np.ndarray          # sample indices of the half-cycles (objective rows)
+    contact: np.ndarray           # bool per observed row: in contact (not the recovery region)
+    fit_rows: np.ndarray          # sample indices of the decimated fit (in contact)
+    fit_force: np.ndarray         # force there: mean of the block of samples centred on it
+    fit_count: np.ndarray         # samples in each block (the mean's weight)
+    fit_step_s: float             # operator grid step of the decimated fit
+    native_step_s: float
+    x_scale_mm: float
+    n_residual_cycles: int
+    loading_time_s: float         # median duration of a loading half-cycle
+    noise_N: float
+    warnings: list[str]
+
+    @property
+    def t(self) -> np.ndarray:
+        return self.run.time_s
+
+    @property
+    def x(self) -> np.ndarray:
+        return self.run.displacement_mm
+
+    @property
+    def f(self) -> np.ndarray:
+        return self.run.force_N
+
+    @property
+    def contact_zero_N(self) -> float:
+        return self.seg.contact_zero_N
+
+
+def _block_means(f: np.ndarray, rows: np.ndarray, turning: np.ndarray, seg: Segmentation,
+                 q: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean force over a block of about q samples centred on each row, inside one
+    half-cycle and in contact (symmetric, so its mean time is the row's time and the
+    mean of a smooth curve is its value there to O(step^2)); turning points alone.
+
+    The decimated fit then keeps nearly all the information of the full signal
+    (block means have variance sigma^2 / count) at a fraction of the cost."""
+    n = len(f)
+    usable = ~seg.contact_lost
+    segment_id = np.full(n, -1)
+    for i, h in enumerate(seg.half_cycles):
+        segment_id[h.start:h.stop] = i
+    csum = np.concatenate([[0.0], np.cumsum(f)])
+    half = (q - 1) // 2
+    # samples since the last turning point: the memory terms have a cusp there
+    # ((t - t_turn)^nu), so blocks close to one are narrower (radius <= distance / 4)
+    turning = np.sort(np.asarray(turning, dtype=int))
+    last_turn = turning[np.clip(np.searchsorted(turning, rows, side="right") - 1, 0, None)]
+    since = np.where(rows >= last_turn, rows - last_turn, n)
+    out = np.empty(len(rows))
+    count = np.empty(len(rows), dtype=int)
+    for j, i in enumerate(rows):
+        r = int(min(half, since[j] // CUSP_DISTANCE_RATIO))
+        # shrink the block until it stays in one half-cycle and in contact
+        while r > 0:
+            lo, hi = i - r, i + r
+            if (lo >= 0 and hi < n and segment_id[lo] == segment_id[i] == segment_id[hi]
+                    and usable[lo:hi + 1].all()):
+                break
+            r -= 1
+        out[j] = (csum[i + r + 1] - csum[i - r]) / (2 * r + 1)
+        count[j] = 2 * r + 1
+    return out, count
+
+
+def prepare(run: RunData, x_scale_mm: float | None = None) -> FitData:
+    """Segment the run and check that it can be identified (FoamlabError if not)."""
+    n = len(run)
+    if n < 20:
+        raise FoamlabError(f"run has {n} samples: far too few to identify the model")
+    f = run.force_N
+    if not np.all(np.isfinite(f)):
+        raise FoamlabError("run has NaN or infinite force values")
+    noise = force_noise(f)
+    lo, hi = np.percentile(f, [0.5, 99.5])
+    if hi - lo <= max(FLAT_FORCE_NOISE_MULTIPLE * noise, 1e-9 * max(1.0, abs(hi))):
+        raise FoamlabError(f"force is flat: it spans {hi - lo:.3g} N, within its noise ({noise:.2g} N); "
+                           "the specimen was not loaded or the force channel is not connected")
+    seg = segment(run)
+    cycles = seg.cycles
+    halves = seg.half_cycles
+    if len(halves) == 1:
+        raise FoamlabError(f"run has a single half-cycle ({halves[0].direction}); identification "
+                           "needs at least two cycles (loading, unloading, second loading)")
+    if len(cycles) < 2 or cycles[0].unloading is None:
+        have = ", ".join(h.label for h in halves) or "none"
+        raise FoamlabError(f"too few cycles: identification needs at least two (the paper's Eq. 15 "
+                           f"subtracts the first unloading from the second loading); found {have}")
+    minima = [c.loading.start for c in cycles]
+    maxima = [(c.unloading.start if c.unloading is not None else c.loading.stop - 1) for c in cycles]
+    labels = labels_from_extrema(n, minima, maxima)
+
+    own_halves: list[HalfCycle] = [h for h in halves if h.cycle >= 1]
+    mask = np.zeros(n, dtype=bool)
+    for h in own_halves:
+        mask[h.slice] = True
+    observed = np.flatnonzero(mask)
+    contact = ~seg.contact_lost[observed]
+    if contact.sum() < 50:
+        raise FoamlabError(f"only {int(contact.sum())} samples in contact with the specimen; "
+                           "nothing to identify")
+
+    dt = np.diff(run.time_s)
+    native = float(np.median(dt))
+    half_samples = min(len(h) for h in own_halves)
+    q = max(1, half_samples // FIT_SAMPLES_PER_HALF_CYCLE)
+    in_contact = observed[contact]
+    # decimated rows: the samples nearest to the operators' grid (every q-th sample
+    # from the first cycle's start on a regular clock), plus the turning points
+    fit_step = native * q
+    t0 = run.time_s[minima[0]]
+    grid_t = t0 + fit_step * np.arange(int((run.time_s[-1] - t0) / fit_step) + 1)
+    nearest = np.clip(np.searchsorted(run.time_s, grid_t), 1, n - 1)
+    nearest -= (grid_t - run.time_s[nearest - 1]) < (run.time_s[nearest] - grid_t)
+    turning = np.asarray(maxima + minima)
+    fit_rows = np.intersect1d(np.union1d(nearest, turning), in_contact)
+    fit_force, fit_count = _block_means(run.force_N, fit_rows, turning, seg, q)
+
+    xs = run.displacement_mm[observed]
+    x_scale = float(x_scale_mm) if x_scale_mm else float(np.max(np.abs(xs)))
+    if not x_scale > 0:
+        raise FoamlabError("displacement never leaves zero: nothing to identify")
+    warnings = []
+    if seg.leading_unloading is not None:
+        warnings.append("the run starts with an unloading (before the first loading); it is left out")
+    n_res = sum(1 for c in cycles if c.unloading is not None)
+    loading_times = [run.time_s[c.loading.stop - 1] - run.time_s[c.loading.start] for c in cycles]
+    return FitData(
+        run=run, seg=seg, labels=labels, observed=observed, contact=contact,
+        fit_rows=fit_rows, fit_force=fit_force, fit_count=fit_count, fit_step_s=fit_step, native_step_s=native,
+        x_scale_mm=x_scale, n_residual_cycles=n_res,
+        loading_time_s=float(np.median(loading_times)), noise_N=noise, warnings=warnings,
+    )

@@ -1,0 +1,153 @@
+"""fit_run: the whole identification of one run (docs/identification.md).
+
+segment -> the paper's three steps (start values, Table 5 per step) -> joint
+refinement (decimated variable projection, full-resolution polish) -> the
+model's own evaluation at every sample -> statistics, uncertainty, checks.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from foamlab.identification.data import FitData, Orders, prepare
+from foamlab.identification.joint import JointFit, joint_fit
+from foamlab.identification.paper import BETA_HI, BETA_LO, nonlinear_bounds, paper_steps
+from foamlab.identification.result import FitResult
+from foamlab.identification.statistics import (
+    GoodnessOfFit,
+    autocorrelation_time,
+    information_criteria,
+    parameter_uncertainty,
+)
+from foamlab.model import evaluate, thermodynamic_checks
+from foamlab.rundata import RunData
+
+Progress = Callable[[str, float], None]
+
+#: An amplitude whose 95 % interval contains zero (|value| < this x stderr) is flagged.
+ZERO_T_VALUE = 1.96
+
+
+def fit_run(run: RunData, orders: Orders | str | tuple = Orders(), progress: Progress | None = None,
+            x_scale_mm: float | None = None) -> FitResult:
+    """Identify the model's parameters from one run (any importer's RunData).
+
+    orders: Orders(N, M, P), 'N,M,P' or a tuple; the paper's (3, 3, 7) by default.
+    progress: called with (stage, fraction 0..1) as the fit advances.
+    x_scale_mm: the elastic polynomial's scale (default: the run's largest compression).
+    Raises FoamlabError (one line, what is missing) for runs that cannot be identified.
+    """
+    orders = _orders(orders)
+    report = progress or (lambda stage, fraction: None)
+    started = time.perf_counter()
+    # The matrices here are small: BLAS threads would only contend (and on a busy
+    # machine they slow the fit down many times over).
+    with threadpool_limits(1, user_api="blas"):
+        report("segmenting the run", 0.0)
+        fd = prepare(run, x_scale_mm=x_scale_mm)
+        report("the paper's three steps", 0.1)
+        paper = paper_steps(fd, orders)
+        report("joint refinement", 0.3)
+        jf = joint_fit(fd, orders, paper.start, report)
+        report("statistics", 0.9)
+        result = _result(fd, orders, paper, jf, started)
+    report("done", 1.0)
+    return result
+
+
+def _orders(orders) -> Orders:
+    if isinstance(orders, Orders):
+        return orders
+    if isinstance(orders, str):
+        return Orders.parse(orders)
+    return Orders(*orders)
+
+
+def _result(fd: FitData, orders: Orders, paper, jf: JointFit, started: float) -> FitResult:
+    lay = jf.layout
+    params = jf.params
+    names = params.names()
+    values = params.to_vector()
+    # Jacobian columns: linear (design order), nonlinear, [z0]  ->  flat name order
+    lin_idx, nl_idx = lay.flat_index_of_linear(), lay.flat_index_of_nonlinear()
+    col_names = [names[i] for i in lin_idx] + [names[i] for i in nl_idx]
+    col_values = np.concatenate([jf.linear, jf.nonlinear])
+    if jf.zero_fitted:
+        col_names.append("contact_zero_N")
+        col_values = np.append(col_values, jf.contact_zero_N)
+    lower, upper = nonlinear_bounds(orders, lay.C, fd.loading_time_s)
+    ranges = np.concatenate([np.full(lay.n_linear, np.inf), upper - lower,
+                             [np.inf] if jf.zero_fitted else []])
+    unc = parameter_uncertainty(jf.jacobian, jf.residual, col_values, col_names, ranges=ranges)
+    order = np.concatenate([lin_idx, nl_idx])             # flat index of each column
+    stderr = np.full(len(names), np.nan)
+    stderr[order] = unc.stderr[:len(order)]
+    corr = np.full((len(names), len(names)), np.nan)
+    corr[np.ix_(order, order)] = unc.correlation[:len(order), :len(order)]
+
+    # the model's own evaluation at every sample, what a load cell would read
+    response = evaluate(params, fd.t, fd.x, fd.labels)
+    predicted = np.maximum(response.force, jf.contact_zero_N)
+    y = fd.f[fd.observed]
+    joint = GoodnessOfFit.of(y, predicted[fd.observed], jf.n_free)
+    first, last = int(fd.observed[0]), int(fd.observed[-1]) + 1
+    whole = fd.f[first:last] - predicted[first:last]
+    rmse = float(np.sqrt(np.mean(whole ** 2)))
+    blocks = np.split(y - predicted[fd.observed], np.flatnonzero(np.diff(fd.observed) > 1) + 1)
+    tau = autocorrelation_time(blocks)
+    aic, bic = information_criteria(joint.sse, joint.n, jf.n_free)
+
+    warnings = list(fd.warnings) + list(paper.warnings) + unc.warnings
+    warnings += _bound_warnings(names, values, lay, lower, upper)
+    warnings += _zero_warnings(names, values, stderr, lay)
+    if tau > 2:
+        warnings.append(f"residuals are autocorrelated (tau = {tau:.0f} samples): the plain standard "
+                        "errors are optimistic; see the autocorrelation-corrected ones")
+    statistics = {name: step.stats for name, step in paper.steps.items()}
+    statistics["joint"] = joint
+    return FitResult(
+        params=params, orders=orders, names=names, values=values, stderr=stderr,
+        stderr_autocorr=stderr * np.sqrt(tau), correlation=corr, statistics=statistics,
+        rmse=rmse, constraints=thermodynamic_checks(params), warnings=warnings, aic=aic, bic=bic,
+        n_obs=joint.n, n_params=jf.n_free, autocorrelation_time=tau,
+        contact_zero_N=jf.contact_zero_N, response=response, predicted_force_N=predicted,
+        observed=fd.observed, paper=paper, source=fd.run.source,
+        elapsed_s=time.perf_counter() - started, starts=jf.starts,
+        run_time_s=fd.t, run_displacement_mm=fd.x, run_force_N=fd.f,
+    )
+
+
+def _bound_warnings(names, values, lay, lower, upper) -> list[str]:
+    out = []
+    flat_nl = lay.flat_index_of_nonlinear()
+    for j, i in enumerate(flat_nl):
+        v = values[i]
+        span = upper[j] - lower[j]
+        if names[i].endswith("_im") and v <= lower[j] + 1e-9 * span:
+            continue                      # a real mode: im = 0 is the model, not a limit
+        if v <= lower[j] + 1e-6 * span or v >= upper[j] - 1e-6 * span:
+            which = "lower" if v <= lower[j] + 1e-6 * span else "upper"
+            hint = (" (fractional orders are limited to beta < 1, Eq. 10)"
+                    if names[i].startswith("beta") and which == "upper" and upper[j] == BETA_HI else
+                    " (search range of beta)" if names[i].startswith("beta") and lower[j] == BETA_LO else
+                    " (decay rates are searched within 0.1..100 per loading time)")
+            out.append(f"{names[i]} = {v:.4g} sits at its {which} bound{hint}: the optimum is "
+                       "outside the model's range; the value is not an estimate")
+    return out
+
+
+def _zero_warnings(names, values, stderr, lay) -> list[str]:
+    out = []
+    for i in lay.flat_index_of_linear():
+        n = names[i]
+        if n.startswith("k"):
+            continue
+        s = stderr[i]
+        if np.isfinite(s) and abs(values[i]) < ZERO_T_VALUE * s:
+            out.append(f"{n} = {values[i]:.3g} +/- {s:.2g} is indistinguishable from zero: its term "
+                       "adds nothing the data can see (consider a lower order)")
+    return out

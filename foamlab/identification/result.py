@@ -1,0 +1,155 @@
+"""FitResult: a fit that reports itself (statistics, standard errors, correlations,
+warnings, information criteria), in the spirit of lmfit's MinimizerResult."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from foamlab.identification.data import Orders
+from foamlab.identification.paper import PaperResult
+from foamlab.identification.statistics import GoodnessOfFit
+from foamlab.model import ModelParameters, ModelResponse
+
+#: The steps of Table 5, plus the joint refinement.
+STEPS = ("damping", "residual", "elastic", "joint")
+
+
+def _num(v) -> float | None:
+    return float(v) if v is not None and math.isfinite(float(v)) else None
+
+
+@dataclass
+class FitResult:
+    params: ModelParameters
+    orders: Orders
+    names: list[str]                  # flat ModelParameters order
+    values: np.ndarray
+    stderr: np.ndarray                # nan: not determined
+    stderr_autocorr: np.ndarray       # stderr x sqrt(autocorrelation time)
+    correlation: np.ndarray           # names x names, nan where not determined
+    statistics: dict[str, GoodnessOfFit | None]
+    rmse: float                       # whole run: RMS of measured - fitted, every sample of the cycles
+    constraints: dict[str, bool]
+    warnings: list[str]
+    aic: float
+    bic: float
+    n_obs: int
+    n_params: int
+    autocorrelation_time: float
+    contact_zero_N: float             # unloaded load-cell reading (fitted with the rest if used)
+    response: ModelResponse           # the model's components at every sample (foamlab.model.evaluate)
+    predicted_force_N: np.ndarray     # what the load cell would read: max(model force, unloaded reading)
+    observed: np.ndarray              # sample indices the joint fit used
+    paper: PaperResult
+    source: str = ""
+    elapsed_s: float = 0.0
+    starts: list[str] = field(default_factory=list)
+    run_time_s: np.ndarray | None = None
+    run_displacement_mm: np.ndarray | None = None
+    run_force_N: np.ndarray | None = None
+
+    # -- views -----------------------------------------------------------------------
+    @property
+    def predicted(self) -> np.ndarray:
+        return self.predicted_force_N
+
+    @property
+    def residual_N(self) -> np.ndarray:
+        """Measured minus fitted force at every sample of the run."""
+        return self.run_force_N - self.predicted_force_N
+
+    def value(self, name: str) -> float:
+        return float(self.values[self.names.index(name)])
+
+    def standard_error(self, name: str) -> float | None:
+        return _num(self.stderr[self.names.index(name)])
+
+    # -- JSON ---------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        """The object of ``foamlab fit --json`` (DESIGN.md): parameters, statistics, rmse,
+        constraints. Standard errors of parameters the data do not determine are null."""
+        parameters = {n: {"value": float(v), "stderr": _num(s)}
+                      for n, v, s in zip(self.names, self.values, self.stderr)}
+        parameters["x_scale_mm"] = {"value": float(self.params.x_scale_mm), "stderr": None}
+        statistics = {}
+        for step in STEPS:
+            st = self.statistics.get(step)
+            statistics[step] = st.to_dict() if st is not None else {
+                "sse": None, "r2": None, "adj_r2": None, "rmse": None}
+        return {"parameters": parameters, "statistics": statistics, "rmse": _num(self.rmse),
+                "constraints": {k: bool(v) for k, v in self.constraints.items()}}
+
+    def to_json(self, indent: int | None = 2) -> str:
+        return json.dumps(self.to_dict(), indent=indent)
+
+    def sidecar_dict(self) -> dict:
+        """What is stored beside the run: the JSON object plus the model (so the file
+        loads with ModelParameters.load as a simulator specimen) and the rest."""
+        out = self.to_dict()
+        corr = [[_num(c) for c in row] for row in self.correlation]
+        out.update({
+            "model": self.params.to_dict(),
+            "orders": {"N": self.orders.N, "M": self.orders.M, "P": self.orders.P},
+            "stderr_autocorrelation_corrected": {n: _num(s) for n, s in zip(self.names, self.stderr_autocorr)},
+            "autocorrelation_time": _num(self.autocorrelation_time),
+            "correlation": {"names": self.names, "matrix": corr},
+            "warnings": list(self.warnings),
+            "aic": _num(self.aic), "bic": _num(self.bic),
+            "n_obs": self.n_obs, "n_params": self.n_params,
+            "contact_zero_N": _num(self.contact_zero_N),
+            "source": self.source,
+            "elapsed_s": _num(self.elapsed_s),
+        })
+        return out
+
+    def save(self, path: str | Path) -> Path:
+        """Write the sidecar JSON (atomically: a reader never sees half a file)."""
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(self.sidecar_dict(), indent=2), encoding="utf-8")
+        tmp.replace(path)
+        return path
+
+    # -- text ---------------------------------------------------------------------------
+    def summary(self) -> str:
+        """A readable report: statistics per step (Table 5), parameters, checks, warnings."""
+        lines = [f"[[Fit]] {self.source or 'run'}",
+                 f"    orders            {self.orders}",
+                 f"    samples fitted    {self.n_obs}  (parameters {self.n_params})",
+                 f"    RMSE (whole run)  {self.rmse:.4g} N",
+                 f"    AIC / BIC         {self.aic:.1f} / {self.bic:.1f}",
+                 f"    time              {self.elapsed_s:.2f} s",
+                 "[[Statistics]] (Table 5; joint = all parameters on the raw signal)",
+                 f"    {'step':<10}{'SSE':>12}{'R^2':>10}{'adj R^2':>10}{'RMSE':>10}{'n':>7}{'p':>5}"]
+        for step in STEPS:
+            st = self.statistics.get(step)
+            if st is None:
+                lines.append(f"    {step:<10}{'(skipped)':>12}")
+            else:
+                lines.append(f"    {step:<10}{st.sse:>12.5g}{st.r2:>10.5f}{st.adj_r2:>10.5f}"
+                             f"{st.rmse:>10.4g}{st.n:>7d}{st.p:>5d}")
+        lines.append("[[Parameters]] (value, standard error, relative; 'ac' = corrected for "
+                     f"residual autocorrelation, tau = {self.autocorrelation_time:.1f})")
+        lines.append(f"    {'name':<11}{'value':>14}{'stderr':>12}{'rel':>9}{'stderr ac':>12}")
+        for n, v, s, sa in zip(self.names, self.values, self.stderr, self.stderr_autocorr):
+            if math.isfinite(s):
+                rel = f"{abs(s / v) * 100:8.1f}%" if v != 0 else f"{'-':>9}"
+                lines.append(f"    {n:<11}{v:>14.6g}{s:>12.3g}{rel}{sa:>12.3g}")
+            else:
+                lines.append(f"    {n:<11}{v:>14.6g}{'(not determined)':>33}")
+        lines.append(f"    {'x_scale_mm':<11}{self.params.x_scale_mm:>14.6g}{'(fixed)':>12}")
+        lines.append("[[Constraints]] (thermodynamic checks, Eqs. 23-25)")
+        for k, ok in self.constraints.items():
+            lines.append(f"    {k:<28}{'pass' if ok else 'FAIL'}")
+        if self.warnings:
+            lines.append("[[Warnings]]")
+            lines += [f"    - {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+    def __str__(self) -> str:
+        return self.summary()
