@@ -257,3 +257,15 @@ def test_random_valid_tables_import_exactly(tmp_path, samples):
     run = load_run(_write(tmp_path, text, "valid.csv"))
     assert np.array_equal(run.displacement_mm, [x for x, _ in samples])
     assert np.array_equal(run.force_N, [f for _, f in samples])
+
+
+def test_cli_show_json(capsys):
+    import json
+
+    assert main(["show", str(REAL), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["cycles"] == 3 and summary["samples"] == 18011
+    assert [tp["index"] for tp in summary["turning_points"]] == [3004, 6005, 9006, 12008, 15009]
+    assert [tp["kind"] for tp in summary["turning_points"]] == ["max", "min", "max", "min", "max"]
+    assert [c["cycle"] for c in summary["contact_lost"]] == [2, 3, 3]
+    assert summary["linear_region"]["r2"] > 0.998
