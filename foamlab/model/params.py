@@ -13,6 +13,7 @@ Units (chosen so that every component takes displacement in mm and time in s):
 from __future__ import annotations
 
 import json
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -129,6 +130,8 @@ class ModelParameters:
     @classmethod
     def from_dict(cls, d: dict) -> "ModelParameters":
         try:
+            if "model" not in d and isinstance(d.get("parameters"), dict):  # `foamlab fit --json`
+                return cls.from_fit_parameters(d["parameters"])
             if "model" in d and isinstance(d["model"], dict):  # a fit result file
                 d = d["model"]
             dmp, res = d["damping"], d["residual"]
@@ -143,6 +146,28 @@ class ModelParameters:
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise FoamlabError(f"model parameters: missing or malformed entry ({exc})") from None
+
+    @classmethod
+    def from_fit_parameters(cls, parameters: dict) -> "ModelParameters":
+        """From the "parameters" object of `foamlab fit --json` (name -> {value, stderr}):
+        the flat names of names() plus x_scale_mm; the orders follow from the names."""
+        try:
+            v = {str(k): float(e["value"] if isinstance(e, dict) else e) for k, e in parameters.items()}
+            P = max(int(k[1:]) for k in v if re.fullmatch(r"k\d+", k))
+            N = max([int(k[1:]) for k in v if re.fullmatch(r"a\d+", k)], default=0)
+            cm = [tuple(map(int, m.groups())) for k in v if (m := re.fullmatch(r"r(\d+)_(\d+)", k))]
+            C, M = (max(c for c, _ in cm), max(i for _, i in cm)) if cm else (1, 0)
+            return cls(
+                x_scale_mm=v["x_scale_mm"],
+                elastic_k=[v[f"k{i}"] for i in range(P + 1)],
+                damping_a=[v[f"a{i}"] for i in range(1, N + 1)],
+                damping_alpha=[v[f"alpha{i}_re"] + 1j * v[f"alpha{i}_im"] for i in range(1, N + 1)],
+                residual_r=np.array([[v[f"r{c}_{i}"] for i in range(1, M + 1)] for c in range(1, C + 1)]).reshape(C, M),
+                residual_beta=np.array([[v[f"beta{c}_{i}"] for i in range(1, M + 1)]
+                                        for c in range(1, C + 1)]).reshape(C, M),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise FoamlabError(f"model parameters: fit result incomplete or malformed ({exc})") from None
 
     @classmethod
     def load(cls, path: str | Path) -> "ModelParameters":

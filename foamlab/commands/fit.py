@@ -1,0 +1,102 @@
+"""`foamlab fit PATH`: identify the model's parameters from a measured run."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from foamlab import FoamlabError
+
+HELP = "identify the model's parameters from a run (paper's three steps + joint refinement)"
+
+EXAMPLES = """\
+examples:
+  foamlab fit run.csv                         # table: Table-5 statistics, parameters, checks, warnings
+  foamlab fit Specimen_RawData_6.csv --json   # one JSON object (parameters, statistics, rmse, constraints)
+  foamlab fit run.csv --plot fit.png          # measured vs fitted per cycle, residuals below
+  foamlab fit run.csv --orders 2,3,7          # N damping modes, M residual terms per cycle, P elastic order
+  foamlab fit run.csv --compare 1,1,7 2,2,7 3,3,7   # AIC/BIC of several orders
+
+The fit is stored beside the run as <run>.fit.json (loadable as a simulator specimen:
+foamlab sim --specimen <run>.fit.json) and indexed in the run catalog; --no-store skips that.
+"""
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "fit", help=HELP,
+        description=("Fit the combined model (elastic polynomial, hereditary damping, fractional "
+                     "residual force) to a run: the paper's three-step identification for start "
+                     "values and its Table-5 statistics, then a joint refinement of all parameters on "
+                     "the raw signal, with standard errors, correlations, warnings for parameters the "
+                     "data do not determine, and the thermodynamic checks. PATH is a foamlab run file, "
+                     "a plain CSV (time_s,displacement_mm,force_N), an Instron Bluehill or a "
+                     "ZwickRoell testXpert export."),
+        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("path", metavar="PATH", help="data file of the run")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object: parameters (value, stderr), statistics per step "
+                        "(sse, r2, adj_r2, rmse), rmse of the whole run, constraints")
+    p.add_argument("--plot", metavar="OUT.png", help="draw measured vs fitted force per cycle, residuals below")
+    p.add_argument("--orders", metavar="N,M,P", default="3,3,7",
+                   help="damping modes N, residual terms per cycle M, elastic order P (default 3,3,7, the paper's)")
+    p.add_argument("--compare", nargs="+", metavar="N,M,P",
+                   help="fit each of these orders too and print their AIC/BIC (lower is better)")
+    p.add_argument("--no-store", action="store_true",
+                   help="do not write <run>.fit.json beside the run or index it in the catalog")
+    p.error = _one_line_error(p)
+    p.set_defaults(func=run)
+
+
+def _one_line_error(parser: argparse.ArgumentParser):
+    def error(message: str):
+        print(f"{parser.prog}: error: {message}", file=sys.stderr)
+        raise SystemExit(2)
+    return error
+
+
+def run(args: argparse.Namespace) -> int:
+    from foamlab.identification import Orders, fit_run  # noqa: PLC0415 (keep `foamlab --help` fast)
+    from foamlab.importers import load_run  # noqa: PLC0415
+
+    orders = Orders.parse(args.orders)
+    compare = [Orders.parse(o) for o in args.compare or []]
+    run_data = load_run(args.path)
+    result = fit_run(run_data, orders)
+    notes: list[str] = []
+    if not args.no_store:
+        from foamlab.identification.store import store_fit  # noqa: PLC0415
+        try:
+            stored = store_fit(result, args.path)
+            notes.append(f"stored: {stored.path}" + (f" (catalog {stored.catalog})" if stored.catalog
+                                                      else f" ({stored.note})"))
+        except FoamlabError as exc:       # the fit itself is fine: say so, do not fail
+            notes.append(f"not stored: {exc}")
+    if args.plot:
+        from foamlab.identification.plot import plot_fit  # noqa: PLC0415
+        plot_fit(result, Path(args.plot))
+        notes.append(f"plot: {args.plot}")
+    if args.json:
+        print(result.to_json())
+        for note in notes:
+            print(f"foamlab fit: {note}", file=sys.stderr)
+    else:
+        print(result.summary())
+        for note in notes:
+            print(note)
+    if compare:
+        _print_comparison(run_data, [orders] + [o for o in compare if o != orders], result,
+                          sys.stderr if args.json else sys.stdout)
+    return 0
+
+
+def _print_comparison(run_data, orders_list, first, stream) -> None:
+    from foamlab.identification.compare import compare_orders  # noqa: PLC0415
+
+    rows = compare_orders(run_data, orders_list, known={orders_list[0]: first})
+    print("[[Orders]] (information criteria on the raw signal; lower is better)", file=stream)
+    print(f"    {'orders':<16}{'params':>7}{'RMSE':>10}{'AIC':>12}{'BIC':>12}", file=stream)
+    for row in rows:
+        print(f"    {str(row.orders):<16}{row.n_params:>7d}{row.rmse:>10.4g}{row.aic:>12.1f}{row.bic:>12.1f}"
+              + ("   <- best BIC" if row.best else ""), file=stream)
