@@ -171,6 +171,12 @@ class Segmentation:
 
 def segment(run: RunData) -> Segmentation:
     """Turning points, cycles, contact loss and first-cycle linear region of a run."""
+    # absurd magnitudes (1e300) overflow in squares; the result is still defined
+    with np.errstate(over="ignore", invalid="ignore"):
+        return _segment(run)
+
+
+def _segment(run: RunData) -> Segmentation:
     x = np.asarray(run.displacement_mm, dtype=float)
     f = np.asarray(run.force_N, dtype=float)
     n = len(x)
@@ -386,7 +392,10 @@ def _contact(x: np.ndarray, f: np.ndarray, window: int, in_stroke: np.ndarray) -
     x_floor = x[at_floor]
     change = 0.0
     if np.ptp(x_floor) > 0:
-        change = abs(np.polyfit(x_floor, floor_samples, 1)[0]) * float(np.ptp(x_floor))
+        dx = x_floor - x_floor.mean()
+        with np.errstate(all="ignore"):
+            slope = float(np.dot(dx, floor_samples - floor_samples.mean()) / np.dot(dx, dx))
+        change = abs(slope) * float(np.ptp(x_floor)) if np.isfinite(slope) else np.inf
     flat = change <= 0.5 * band
     near_zero = abs(floor) <= max(CONTACT_NOISE_MULTIPLE * noise, 0.02 * span)
     if near_zero and flat:
