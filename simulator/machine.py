@@ -65,6 +65,8 @@ TICK_REAL_S = 0.005             # background ticker period (wall clock)
 TICK_CHUNK_STEPS = 8            # physics steps per lock hold in the ticker
 MAX_STEPS_PER_ADVANCE = 200     # beyond this backlog, steps grow (bounded lock time, no runaway)
 RANDOM_OVERLOAD_S = 1.0         # duration of one random overload event (virtual s)
+MIN_STEP_S = 1e-6               # shorter steps would differentiate rounding errors (rates ~ dx/h)
+SPECIMEN_T_MAX_S = 1e6          # memory operators stay accurate over this much virtual time
 
 
 @dataclass(frozen=True)
@@ -307,7 +309,7 @@ class SimulatedMachine:
         self._overload_until = -math.inf
 
         # specimen and load cell
-        self._specimen = SpecimenState(self.params, t_max=1e6)  # hours of virtual time stay accurate
+        self._specimen = SpecimenState(self.params, t_max=SPECIMEN_T_MAX_S)
         self._online = self.effects.online()
         self._x_cross = 0.0
         self._x_spec = 0.0
@@ -391,7 +393,7 @@ class SimulatedMachine:
 
     def _advance(self, t_end: float, exact: bool, max_steps: int | None = None) -> bool:
         """Step the physics towards t_end; True when there (or less than one step behind)."""
-        if t_end <= self._t:
+        if t_end <= self._t + MIN_STEP_S:     # within a microsecond: that is now
             return True
         step = self.max_step_s
         backlog = t_end - self._t
@@ -405,8 +407,10 @@ class SimulatedMachine:
                 return False
             nxt = min(self._t + step, t_end)
             for b in self._breakpoints(self._t):
-                if self._t + 1e-12 < b < nxt:
+                if self._t + MIN_STEP_S <= b < nxt:
                     nxt = b
+            if t_end - nxt < MIN_STEP_S:
+                nxt = t_end
             self._physics_step(nxt)
             n += 1
         return True
@@ -421,10 +425,9 @@ class SimulatedMachine:
         self._t = t
         st = self.settings
         x_cross = max(self._p - st.specimen_top_mm, 0.0)
-        x_s = self._online.specimen_x(x_cross)
+        x_s = self._online.specimen_x(t, x_cross)
         comps = self._specimen.step(t, x_s)
-        contact = self._online.contact_force(comps.elastic, comps.damping, comps.residual,
-                                             comps.cycle, self._v, x_s)
+        contact = self._online.contact_force(t, x_cross, x_s, comps, self._v)
         sensor = self._online.sensor(t, contact)
         self._x_cross, self._x_spec, self._contact, self._sensor, self._comps = x_cross, x_s, contact, sensor, comps
         # load cell: overload faults, no-motion window, peak
@@ -465,7 +468,7 @@ class SimulatedMachine:
                                    m.target, m.speed)
             m = self._motion
         self._p, self._v = m.at(t1)
-        if t1 >= m.end - 1e-12:
+        if t1 >= m.end - MIN_STEP_S:
             self._p, self._v = m.target, 0.0
             self._motion = None
             if m.kind == "move":
@@ -720,9 +723,12 @@ class SimulatedMachine:
             return None if self._motion is None else self._motion.end
 
     def start_trace(self) -> None:
-        """Record every physics step from now on (tests, benchmarks)."""
+        """Record every physics step from now on (tests, benchmarks); the first row is now."""
         with self._lock:
-            self._trace = []
+            self._sync(exact=True)
+            s = self._snapshot()
+            self._trace = [(s.t, s.position_mm, s.velocity_mm_s, s.x_crosshead_mm, s.x_specimen_mm,
+                            s.contact_force_N, s.sensor_force_N, s.cycle, s.direction)]
 
     def trace(self) -> dict[str, np.ndarray]:
         with self._lock:

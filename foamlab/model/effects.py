@@ -61,6 +61,8 @@ class Components:
     extra: Any            # forces added by effects (friction, ...)
     cycle: Any            # 1-based cycle of the model's labels (0 before the first loading)
     velocity: Any         # crosshead velocity, mm/s, positive compressing
+    rate: Any = None      # mean crosshead speed since the current cycle started, mm/s
+                          # (None: |velocity|; see loading_rate)
 
     @property
     def total(self):
@@ -183,12 +185,13 @@ class DampingCycleChange(Effect):
 class RateDependence(Effect):
     """Damping depends on the crosshead rate beyond what the model's kernel gives.
 
-    V_D -> V_D (|v| / v_ref)^m. At the reference speed v_ref (the speed the base model
-    was identified at) the factor is 1, so one run at v_ref cannot show it, and one
-    run at any single speed cannot tell m from the damping amplitude a_i: m needs runs
-    at two or more speeds (the ratio of their damping forces is (v1/v2)^m times the
-    base model's own ratio). v is the crosshead rate, not a property of the data's
-    noise: pass the commanded velocity if you have it.
+    V_D -> V_D (v / v_ref)^m, v = the loading rate: the mean crosshead speed since the
+    cycle started, (x - x_start) / (t - t_start) (a pause lowers it slowly instead of
+    switching the damping off). At the reference speed v_ref (the speed the base model
+    was identified at) the factor is 1, so one run at v_ref cannot show it, and one run
+    at any single speed cannot tell m from the damping amplitudes a_i: m needs runs at
+    two or more speeds (their damping forces differ by (v1/v2)^m beyond the base
+    model's own rate dependence).
     """
 
     name = "rate_dependence"
@@ -202,7 +205,8 @@ class RateDependence(Effect):
     def modify(self, c: Components) -> Components:
         v_ref = self.values["v_ref_mm_min"] / 60.0
         # floor |v| smoothly so a pause does not send the factor to 0 or infinity
-        speed = np.sqrt(np.square(c.velocity) + (1e-3 * v_ref) ** 2)
+        rate = np.abs(c.velocity) if c.rate is None else c.rate
+        speed = np.sqrt(np.square(rate) + (1e-3 * v_ref) ** 2)
         return replace(c, damping=c.damping * (speed / v_ref) ** self.values["m"])
 
 
@@ -231,20 +235,30 @@ class DirectionFriction(Effect):
 class MachineCompliance(Effect):
     """The frame and load cell deflect under load: the specimen sees less than the crosshead.
 
-    x_specimen = x_crosshead - C F, with F the measured force. Stiff foam regions
-    (densification) then look softer than the model and the loading peak is rounded.
-    The loop is closed with the force of the previous sample (the frame follows the
-    load one sample late), which keeps it causal and well posed at the model's
-    damping switch; within each crosshead half-cycle the specimen displacement is kept
-    monotone (the frame springing back when damping vanishes at a turning point does
-    not re-load the foam). Batch: a fixed-point iteration on the same recursion, or a
-    single pass when the measured force is given.
+    x_specimen = x_crosshead - C G, G = the force seen by the frame: the measured force
+    through a first-order response of time constant tau_frame_s (servo + structure),
+    updated from the previous sample's force. Stiff foam regions (densification) then
+    look softer than the model and the loading peak is rounded. Within each crosshead
+    half-cycle the specimen displacement is kept monotone: the frame springing back when
+    the model's damping vanishes at a turning point does not re-load the foam.
+
+    Why the frame response: the model's fractional residual reacts to a one-step change
+    of x like a dashpot (~100 N/mm at 50 ms steps, more at shorter ones); a loop closed
+    on the instantaneous force oscillates at the simulator's small steps, while through
+    tau_frame_s = 0.2 s it settles within a few steps for C up to the upper bound
+    (0.01 mm/N, a 100 N/mm frame: softer than any real one) at any step size.
+    Batch forms: given the measured force, ``specimen_displacement`` (one pass, linear
+    in F: what diagnosis fits); from the model alone, the same loop iterated to its
+    fixed point. Both are the simulator's arithmetic, sample for sample.
     """
 
     name = "machine_compliance"
     stage = "input"
-    parameters = (EffectParameter("c_mm_per_N", "mm/N", 0.005, 0.0, 0.1,
-                                  doc="frame + load-cell compliance"),)
+    parameters = (
+        EffectParameter("c_mm_per_N", "mm/N", 0.005, 0.0, 0.01, doc="frame + load-cell compliance"),
+        EffectParameter("tau_frame_s", "s", 0.2, 1e-3, 10.0, fitted=False,
+                        doc="response time of the frame deflection to the force"),
+    )
 
 
 class ChannelLag(Effect):
@@ -349,23 +363,54 @@ def motion_direction(x: np.ndarray) -> np.ndarray:
     return d[idx]
 
 
-def estimate_velocity(t, x, window_s: float = 0.25) -> np.ndarray:
-    """Crosshead velocity (mm/s) from sampled displacement.
+def estimate_velocity(t, x, labels: HistoryLabels | None = None, window_s: float = 1.0) -> np.ndarray:
+    """Crosshead velocity (mm/s) from sampled displacement, one half-cycle at a time.
 
-    Near-uniform sampling: a Savitzky-Golay derivative (quadratic over ~window_s),
-    exact on straight segments and robust to the 1 um resolution of a crosshead
-    encoder; otherwise central differences.
+    The history is split at its turning points (the labels' starts and peaks when
+    given, else where the direction of motion changes), so the estimate does not smear
+    a reversal; inside each piece a local least-squares slope over ~window_s
+    (Savitzky-Golay, order 1) is exact on a constant-speed ramp and averages out the
+    1 um resolution of a crosshead encoder. Irregular sampling: central differences.
     """
     t = np.asarray(t, float)
     x = np.asarray(x, float)
-    if len(t) < 3:
-        return np.zeros(len(t)) if len(t) < 2 else np.full(len(t), (x[1] - x[0]) / (t[1] - t[0]))
+    n = len(t)
+    if n < 2:
+        return np.zeros(n)
+    if labels is not None:
+        cuts = sorted({int(i) for i in list(labels.starts) + [p + 1 for p in labels.peaks] if 0 < i < n})
+    else:
+        cuts = list(np.flatnonzero(np.diff(motion_direction(x)) != 0) + 1)
+    v = np.empty(n)
     dt = np.diff(t)
     h = float(np.median(dt))
-    window = int(round(window_s / h)) | 1 if h > 0 else 1
-    if window >= 5 and np.all(np.abs(dt - h) <= 0.05 * h) and window <= len(t):
-        return savgol_filter(x, window, 2, deriv=1, delta=h, mode="interp")
-    return np.gradient(x, t)
+    uniform = h > 0 and bool(np.all(np.abs(dt - h) <= 0.05 * h))
+    for a, b in zip([0] + cuts, cuts + [n]):
+        seg_t, seg_x = t[a:b], x[a:b]
+        m = b - a
+        window = min(int(round(window_s / h)) | 1, m if m % 2 else m - 1) if uniform else 0
+        if window >= 3:
+            v[a:b] = savgol_filter(seg_x, window, 1, deriv=1, delta=h, mode="interp")
+        elif m >= 2:
+            v[a:b] = np.gradient(seg_x, seg_t)
+        else:   # a single sample between two cuts: the motion that brought it there
+            v[a:b] = (x[a] - x[a - 1]) / (t[a] - t[a - 1]) if a > 0 else 0.0
+    return v
+
+
+def loading_rate(t, x, starts) -> np.ndarray:
+    """Mean crosshead speed since the start of the current cycle (|velocity| before the first);
+    at a start sample itself 0 (the damping is zero there)."""
+    t = np.asarray(t, float)
+    x = np.asarray(x, float)
+    rate = np.zeros(len(t))
+    bounds = list(starts) + [len(t)]
+    for s, e in zip(bounds[:-1], bounds[1:]):
+        dt = t[s + 1:e] - t[s]
+        rate[s + 1:e] = np.abs(x[s + 1:e] - x[s]) / np.where(dt > 0, dt, np.inf)
+    if bounds[0] > 1:
+        rate[1:bounds[0]] = np.abs(np.diff(x[:bounds[0]]) / np.diff(t[:bounds[0]]))
+    return rate
 
 
 def _monotone_in_runs(x_s: np.ndarray, direction: np.ndarray, x0: float = 0.0) -> np.ndarray:
@@ -390,17 +435,34 @@ def _monotone_in_runs(x_s: np.ndarray, direction: np.ndarray, x0: float = 0.0) -
     return out
 
 
-def specimen_displacement(x, force, compliance_mm_per_N: float) -> np.ndarray:
+def frame_force(t, force, tau_s: float) -> np.ndarray:
+    """Force the frame deflects under: the previous sample's force through a first-order
+    response of time constant tau_s (exact for a force held over each step); 0 at t[0]."""
+    tl, fl = np.asarray(t, float).tolist(), np.asarray(force, float).tolist()
+    out = [0.0] * len(tl)
+    g = 0.0
+    for i in range(1, len(tl)):    # a plain loop: the simulator's arithmetic, bit for bit
+        g += -math.expm1(-(tl[i] - tl[i - 1]) / tau_s) * (fl[i - 1] - g)
+        out[i] = g
+    return np.asarray(out)
+
+
+def specimen_displacement(x, force, compliance_mm_per_N: float, t=None,
+                          tau_frame_s: float | None = None) -> np.ndarray:
     """machine_compliance's input stage: the compression the specimen sees for crosshead x.
 
-    x - C F(previous sample), kept monotone within each crosshead half-cycle (see
-    MachineCompliance); force is the measured (or contact) force on the same samples.
+    x - C frame_force(t, force, tau_frame_s), kept monotone within each crosshead
+    half-cycle (see MachineCompliance); force is the measured (or contact) force on the
+    same samples t (required: the frame response is in time).
     """
+    if t is None:
+        raise ValueError("specimen_displacement needs the sample times t (the frame responds in time)")
+    tau = MachineCompliance.parameters[1].typical if tau_frame_s is None else tau_frame_s
     x = np.asarray(x, float)
     if len(x) == 0:
         return x.copy()
-    lagged = np.concatenate([[0.0], np.asarray(force, float)[:-1]])
-    return _monotone_in_runs(x - compliance_mm_per_N * lagged, motion_direction(x), x0=min(x[0], 0.0))
+    g = frame_force(t, force, tau)
+    return _monotone_in_runs(x - compliance_mm_per_N * g, motion_direction(x), x0=min(x[0], 0.0))
 
 
 def _as_model_fn(model) -> ModelFn:
@@ -429,7 +491,9 @@ class EffectChain:
         names = [e.name for e in self.effects]
         if len(set(names)) != len(names):
             raise ValueError("each effect can be applied once")
-        self.compliance = sum(e.values["c_mm_per_N"] for e in self.effects if e.stage == "input")
+        inputs = [e for e in self.effects if e.stage == "input"]
+        self.compliance = inputs[0].values["c_mm_per_N"] if inputs else 0.0
+        self.frame_tau_s = inputs[0].values["tau_frame_s"] if inputs else 1.0
         self._specimen = [e for e in self.effects if e.stage == "specimen"]
         self._sensor = sorted((e for e in self.effects if e.stage == "sensor"),
                               key=lambda e: e.name != ChannelLag.name)   # lag, then drift
@@ -451,8 +515,8 @@ class EffectChain:
         return f"EffectChain({self.effects!r})"
 
     # ---- shared per-sample formulas (arrays or floats)
-    def _contact_force(self, elastic, damping, residual, cycle, velocity, x_s):
-        c = Components(elastic, damping, residual, 0.0 * elastic, cycle, velocity)
+    def _contact_force(self, elastic, damping, residual, cycle, velocity, rate, x_s):
+        c = Components(elastic, damping, residual, 0.0 * elastic, cycle, velocity, rate)
         for e in self._specimen:
             c = e.modify(c)
         return np.where(x_s > 0, np.maximum(c.total, 0.0), 0.0)
@@ -460,27 +524,28 @@ class EffectChain:
     # ---- batch
     def measured_force(self, model, t, x, *, velocity=None, labels: HistoryLabels | None = None,
                        measured_force=None, max_iter: int = 200, tol_mm: float = 1e-9) -> np.ndarray:
-        return self.response(model, t, x, velocity=velocity, labels=labels,
-                             measured_force=measured_force, max_iter=max_iter, tol_mm=tol_mm).force
+        return self.response(model, t, x, velocity=velocity, labels=labels, measured_force=measured_force,
+                             max_iter=max_iter, tol_mm=tol_mm).force
 
     def response(self, model, t, x, *, velocity=None, labels: HistoryLabels | None = None,
                  measured_force=None, max_iter: int = 200, tol_mm: float = 1e-9) -> EffectResponse:
         """The force a load cell reads for the crosshead history x(t), with these effects.
 
         model: ModelParameters or a callable (t, x, labels) -> ModelResponse.
-        velocity: crosshead velocity in mm/s (default: estimate_velocity(t, x)).
+        velocity: crosshead velocity in mm/s (default: estimate_velocity(t, x, labels)).
         labels: half-cycle labels of the measured data (default: from the specimen's history).
         measured_force: with machine_compliance, close the loop with this measured force
-        (one pass) instead of iterating to the fixed point.
+        (one pass, specimen_displacement) instead of iterating to the fixed point.
         """
         fn = _as_model_fn(model)
         t = np.asarray(t, float)
         x = np.asarray(x, float)
-        v = estimate_velocity(t, x) if velocity is None else np.broadcast_to(np.asarray(velocity, float), t.shape)
+        v = estimate_velocity(t, x, labels) if velocity is None else np.broadcast_to(np.asarray(velocity, float), t.shape)
 
         def forward(x_s):
             base = fn(t, x_s, labels)
-            contact = self._contact_force(base.elastic, base.damping, base.residual, base.cycle, v, x_s)
+            rate = loading_rate(t, x, base.labels.starts)
+            contact = self._contact_force(base.elastic, base.damping, base.residual, base.cycle, v, rate, x_s)
             return base, contact
 
         if self.compliance == 0.0:
@@ -488,7 +553,7 @@ class EffectChain:
             base, contact = forward(x_s)
         else:
             def specimen_x(force):
-                return specimen_displacement(x, force, self.compliance)
+                return specimen_displacement(x, force, self.compliance, t, self.frame_tau_s)
 
             if measured_force is not None:
                 x_s = specimen_x(np.asarray(measured_force, float))
@@ -514,6 +579,7 @@ class EffectChain:
 
     # ---- online
     def online(self) -> "OnlineEffects":
+        """The stepper SimulatedMachine uses."""
         return OnlineEffects(self)
 
 
@@ -521,39 +587,60 @@ class OnlineEffects:
     """The chain stepped one sample at a time (SimulatedMachine's physics step).
 
     Per step the machine calls, in this order:
-      x_s = specimen_x(x_crosshead)          (compliance, with the previous step's force)
+      x_s = specimen_x(t, x_crosshead)       (compliance, through the frame response)
       comps = SpecimenState.step(t, x_s)
-      F_contact = contact_force(comps, velocity, x_s)
+      F_contact = contact_force(t, x_crosshead, x_s, comps, velocity)
       F_sensor = sensor(t, F_contact)
     """
 
     def __init__(self, chain: EffectChain):
         self.chain = chain
+        self._frame = 0.0                 # frame_force, online
         self._sensors = [s for s in (e.sensor_online() for e in chain._sensor) if s is not None]
         self._prev_force = 0.0
+        self._prev_t: float | None = None
         self._prev_x: float | None = None
-        self._prev_x_s: float | None = None
+        self._prev_x_s = 0.0
         self._direction = 0
+        self._cycle = 0
+        self._start: tuple[float, float] = (0.0, 0.0)
+        self._last: tuple[float, float] | None = None
 
-    def specimen_x(self, x: float) -> float:
-        c = self.chain.compliance
-        if self._prev_x is not None and x != self._prev_x:
+    def specimen_x(self, t: float, x: float) -> float:
+        first = self._prev_x is None
+        if not first and x != self._prev_x:
             self._direction = 1 if x > self._prev_x else -1
         self._prev_x = x
+        c = self.chain.compliance
         if c == 0.0:
-            return x
-        raw = x - c * self._prev_force
-        prev = self._prev_x_s if self._prev_x_s is not None else min(x, 0.0)
-        if self._direction > 0:
-            raw = max(prev, raw)
-        elif self._direction < 0:
-            raw = min(prev, raw)
-        self._prev_x_s = raw
-        return raw
+            x_s = x
+        else:
+            prev = self._prev_x_s if not first else min(x, 0.0)
+            if not first:
+                self._frame += -math.expm1(-(t - self._prev_t) / self.chain.frame_tau_s) * (
+                    self._prev_force - self._frame)
+            x_s = x - c * self._frame
+            if self._direction > 0:
+                x_s = max(prev, x_s)
+            elif self._direction < 0:
+                x_s = min(prev, x_s)
+        self._prev_t, self._prev_x_s = t, x_s
+        return x_s
 
-    def contact_force(self, elastic: float, damping: float, residual: float, cycle: int,
-                      velocity: float, x_s: float) -> float:
-        f = float(self.chain._contact_force(elastic, damping, residual, cycle, velocity, x_s))
+    def contact_force(self, t: float, x: float, x_s: float, comps, velocity: float) -> float:
+        """comps: the SpecimenState step (elastic, damping, residual, direction, cycle); x: crosshead."""
+        if comps.cycle != self._cycle:           # a cycle starts at the previous sample
+            self._cycle = comps.cycle
+            self._start = self._last if self._last is not None else (t, x)
+        if self._cycle > 0:
+            dt = t - self._start[0]
+            rate = abs(x - self._start[1]) / dt if dt > 0 else 0.0
+        else:
+            last = self._last
+            rate = abs(x - last[1]) / (t - last[0]) if last is not None and t > last[0] else 0.0
+        self._last = (t, x)
+        f = float(self.chain._contact_force(comps.elastic, comps.damping, comps.residual, comps.cycle,
+                                            velocity, rate, x_s))
         self._prev_force = f
         return f
 
