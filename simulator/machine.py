@@ -290,6 +290,7 @@ class SimulatedMachine:
         self._faults_breaks = self.faults.scheduled_times(("stall", "overload"))
         self.events: collections.deque[tuple[float, str]] = collections.deque(maxlen=1000)
         self._trace: list[tuple] | None = None
+        self.physics_steps = 0          # steps taken so far (benchmarks, diagnostics)
 
         # crosshead (physical coordinates: machine zero at start; user = physical - zero)
         self._t = self.clock.now()
@@ -419,6 +420,7 @@ class SimulatedMachine:
         return self._jam_latched or self.faults.in_window("stall", self._t)
 
     def _physics_step(self, t: float, first: bool = False) -> None:
+        self.physics_steps += 1
         t_prev = self._t
         if not first:
             self._crosshead_step(t_prev, t)
