@@ -207,6 +207,8 @@ def test_machine_applies_effects_from_names(params):
     m.close()
     with pytest.raises(ValueError, match="unknown effect"):
         SimulatedMachine(clock=ManualClock(), effects={"gremlins": 1.0})
+    with pytest.raises(ValueError, match=r"outside \[0, 0.01\] mm/N"):
+        SimulatedMachine(clock=ManualClock(), effects={"machine_compliance": 0.05})
     with pytest.raises(ValueError, match="tau_s >= 0"):
         SimulatedMachine(clock=ManualClock(), effects={"channel_lag": -0.1})
 

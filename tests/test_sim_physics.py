@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from foamlab.model import ModelParameters, closed_form
+from foamlab.model import closed_form
 from simulator.clock import ManualClock, VirtualClock
 from simulator.faults import FaultPlan
 from simulator.machine import (

@@ -661,6 +661,9 @@ def make_effects(spec: Mapping[str, float] | Iterable[Effect] | EffectChain | No
         for name, magnitude in spec.items():
             if name not in EFFECTS:
                 raise ValueError(f"unknown effect {name!r} (known: {', '.join(EFFECTS)})")
+            p = EFFECTS[name].parameters[0]
+            if not p.lower <= magnitude <= p.upper:   # the plausible range (also the fit bounds)
+                raise ValueError(f"effect {name}={magnitude:g} is outside [{p.lower:g}, {p.upper:g}] {p.unit}")
             effects.append(EFFECTS[name](magnitude))
         return EffectChain(effects)
     return EffectChain(spec)
