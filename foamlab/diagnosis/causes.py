@@ -1,0 +1,234 @@
+"""Candidate causes: one small class each, registered by name.
+
+A cause names one effect of foamlab.model.effects (the one definition of its
+physics), says when it can be tested, on what scale its parameter lives for this
+data (the starting grid of the fit), and how to say the fitted value in words.
+A new cause is an Effect subclass in foamlab.model.effects plus one class here.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from foamlab.diagnosis.design import Series
+from foamlab.model import effects as fx
+
+CAUSES: dict[str, type["Cause"]] = {}
+
+#: Multiples of a cause's scale tried before the local fit (both signs unless bounded).
+SCAN_MULTIPLES = (0.003, 0.03, 0.3, 1.0)
+
+
+def register(cls: type["Cause"]) -> type["Cause"]:
+    CAUSES[cls.name] = cls
+    return cls
+
+
+class Cause:
+    name: ClassVar[str]
+    effect: ClassVar[type[fx.Effect]]
+    meaning: ClassVar[str]                # what it is, physically (one line)
+    signature: ClassVar[str]              # how it shows in the residuals of the base model
+    min_speeds: ClassVar[int] = 1         # runs at this many distinct speeds are needed
+
+    @classmethod
+    def applicable(cls, series: list[Series]) -> str | None:
+        """None if the cause can be tested on these runs, else why not."""
+        speeds = distinct_speeds(series)
+        if len(speeds) < cls.min_speeds:
+            return f"needs runs at {cls.min_speeds} or more distinct speeds (got {len(speeds)})"
+        return None
+
+    @classmethod
+    def settings(cls, series: list[Series]) -> dict[str, float]:
+        """Fixed (not fitted) values of the effect for these runs."""
+        return {}
+
+    @classmethod
+    def scale(cls, series: list[Series]) -> float:
+        """A size of the parameter that changes the force by a visible amount on these runs."""
+        raise NotImplementedError
+
+    @classmethod
+    def starts(cls, series: list[Series]) -> np.ndarray:
+        """Starting values of the fitted parameter (one per row), inside the bounds."""
+        lo, hi = cls.effect.bounds()
+        scale = cls.scale(series)
+        vals = [0.0] + [s * m * scale for m in SCAN_MULTIPLES for s in (1.0, -1.0)]
+        vals = sorted({float(np.clip(v, lo[0], hi[0])) for v in vals})
+        return np.array(vals)[:, None]
+
+    @classmethod
+    def describe(cls, values: dict[str, float], stderr: dict[str, float]) -> str:
+        p = cls.effect.parameters[0]
+        v, se = values[p.name], stderr.get(p.name, float("nan"))
+        return f"{p.name} = {v:.4g} ± {se:.2g} {p.unit}"
+
+
+def force_scale(series: list[Series]) -> float:
+    return max(float(np.percentile(s.y, 99)) for s in series)
+
+
+def distinct_speeds(series: list[Series], rel_tol: float = 0.1) -> list[float]:
+    out: list[float] = []
+    for v in sorted(s.speed_mm_min for s in series):
+        if not out or v > out[-1] * (1 + rel_tol):
+            out.append(v)
+    return out
+
+
+@register
+class CycleSoftening(Cause):
+    name = "cycle_softening"
+    effect = fx.CycleSoftening
+    meaning = ("the elastic force softens from cycle to cycle (Mullins-type stress softening): "
+               "the model's assumption (c) of one elastic curve for every cycle does not hold")
+    signature = "later cycles lie below the model on loading and unloading, more at large displacement"
+
+    @classmethod
+    def applicable(cls, series):
+        if max(int(s.cycle.max()) for s in series) < 2:
+            return "needs two or more cycles"
+        return None
+
+    @classmethod
+    def scale(cls, series):
+        return 0.1
+
+    @classmethod
+    def describe(cls, values, stderr):
+        return (f"the elastic force drops {100 * values['s']:.3g} % ± {100 * stderr.get('s', np.nan):.2g} % "
+                "per cycle")
+
+
+@register
+class DampingCycleChange(Cause):
+    name = "damping_cycle_change"
+    effect = fx.DampingCycleChange
+    meaning = ("the damping force differs between loading half-cycles: the model's assumption (b) "
+               "of one damping force for every loading does not hold")
+    signature = "later loadings differ from the model by a loading-only, rate-like amount"
+
+    @classmethod
+    def applicable(cls, series):
+        if max(int(s.cycle.max()) for s in series) < 2:
+            return "needs two or more cycles"
+        return None
+
+    @classmethod
+    def scale(cls, series):
+        return 0.5
+
+    @classmethod
+    def describe(cls, values, stderr):
+        return (f"the damping force changes {100 * values['d']:+.3g} % ± {100 * stderr.get('d', np.nan):.2g} % "
+                "per cycle")
+
+
+@register
+class ChannelLag(Cause):
+    name = "channel_lag"
+    effect = fx.ChannelLag
+    meaning = "force and displacement are sampled out of step (the force channel is late or early)"
+    signature = "extra hysteresis on loading and unloading alike, growing with the force's slope"
+
+    @classmethod
+    def scale(cls, series):
+        h = min(float(np.median(np.diff(s.t))) for s in series)
+        return 20 * h
+
+    @classmethod
+    def starts(cls, series):
+        h = min(float(np.median(np.diff(s.t))) for s in series)
+        lo, hi = cls.effect.bounds()
+        vals = [0.0] + [sg * m * h for m in (0.3, 1.0, 3.0, 10.0, 30.0) for sg in (1.0, -1.0)]
+        return np.array(sorted({float(np.clip(v, lo[0], hi[0])) for v in vals}))[:, None]
+
+    @classmethod
+    def describe(cls, values, stderr):
+        tau = values["tau_s"]
+        side = "late" if tau > 0 else "early"
+        return f"the force channel is {side} by {1000 * abs(tau):.3g} ± {1000 * stderr.get('tau_s', np.nan):.2g} ms"
+
+
+@register
+class ForceZeroDrift(Cause):
+    name = "force_zero_drift"
+    effect = fx.ForceZeroDrift
+    meaning = "the load cell's zero drifts during the run (temperature, bridge creep)"
+    signature = "an error growing linearly in time, seen also where the plate is off the specimen"
+
+    @classmethod
+    def scale(cls, series):
+        duration = max(float(s.t[-1] - s.t[0]) for s in series)
+        return 0.05 * force_scale(series) / max(duration, 1e-9)
+
+    @classmethod
+    def describe(cls, values, stderr):
+        r = values["rate_N_per_s"]
+        return f"the force zero drifts {60 * r:+.3g} ± {60 * stderr.get('rate_N_per_s', np.nan):.2g} N/min"
+
+
+@register
+class MachineCompliance(Cause):
+    name = "machine_compliance"
+    effect = fx.MachineCompliance
+    meaning = "the frame and load train deflect: part of the measured displacement is the machine's"
+    signature = "the stiff (high-force) part of the curve is softer than the model and the peak is rounded"
+
+    @classmethod
+    def scale(cls, series):
+        stroke = max(float(np.ptp(s.x)) for s in series)
+        return 0.02 * stroke / force_scale(series)
+
+    @classmethod
+    def describe(cls, values, stderr):
+        c = values["c_mm_per_N"]
+        return (f"the machine deflects {1000 * c:.3g} ± {1000 * stderr.get('c_mm_per_N', np.nan):.2g} um/N "
+                f"(stiffness {1 / c if c > 0 else float('inf'):.3g} N/mm)")
+
+
+@register
+class DirectionFriction(Cause):
+    name = "direction_friction"
+    effect = fx.DirectionFriction
+    meaning = "a constant force opposes the motion (platen or guide friction)"
+    signature = "loading above and unloading below the model by the same force, independent of x"
+
+    @classmethod
+    def scale(cls, series):
+        return 0.03 * force_scale(series)
+
+    @classmethod
+    def settings(cls, series):
+        # reverse over ~1 % of the crosshead speed: sharp but smooth at the turning points
+        return {"v_smooth_mm_s": 0.01 * min(s.speed_mm_min for s in series) / 60.0}
+
+    @classmethod
+    def describe(cls, values, stderr):
+        return f"a friction force of {values['f_N']:.3g} ± {stderr.get('f_N', np.nan):.2g} N opposes the motion"
+
+
+@register
+class RateDependence(Cause):
+    name = "rate_dependence"
+    effect = fx.RateDependence
+    meaning = ("the damping depends on the crosshead rate beyond the model's kernel: a model "
+               "identified at one speed mispredicts another")
+    signature = "the runs at other speeds miss the model by a loading-only amount that grows with the speed ratio"
+    min_speeds = 2
+
+    @classmethod
+    def settings(cls, series):
+        return {"v_ref_mm_min": series[0].speed_mm_min}
+
+    @classmethod
+    def scale(cls, series):
+        return 0.5
+
+    @classmethod
+    def describe(cls, values, stderr):
+        return (f"the damping scales as (v / {values['v_ref_mm_min']:.3g} mm/min)^{values['m']:.3g} "
+                f"(± {stderr.get('m', np.nan):.2g})")

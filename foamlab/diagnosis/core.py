@@ -1,0 +1,421 @@
+"""Diagnosis: fit the base model, test each candidate cause as an extension, decide.
+
+Procedure (a nested-model test that does not cry wolf):
+
+1. Base model: identification's fit, its alpha/beta polished together with k, a, r
+   and the load cell's zero on all runs at once (contact clipping included).
+2. Each applicable cause is fitted as an extension: first with the base's
+   alpha/beta held (a scan of the effect's parameter, then least squares: cheap),
+   then the most promising (JOINT_CANDIDATES) with everything free -- the base
+   model may have bent its alpha/beta to mimic the effect. Variable projection
+   throughout: the linear parameters are re-solved at every step.
+3. Evidence, on the same prewhitened scale for every model (an AR(p) filter fitted
+   to the best model's residuals): Delta BIC = n ln(RSS_before/RSS_after) - q ln n and
+   the likelihood-ratio p-value. A candidate with Delta BIC > DELTA_BIC_MIN is
+   checked on held-out data: each run is cut into contiguous blocks, held out
+   HELDOUT_FOLDS interleaved groups at a time, each group predicted by the model
+   refitted (all its parameters) without it; the candidate passes if its held-out
+   RMSE is below the model's without it.
+4. The best passing candidate is accepted; the others are tried again on top of it
+   (up to MAX_FINDINGS findings).
+5. Verdict: `none` when no candidate passes and the base residuals are white;
+   the first finding's name when the accepted extension leaves white residuals or
+   explains at least EXPLAINED_SHARE_MIN of the structure the base model left
+   above the noise; `unexplained` otherwise (structure, and where it is).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.stats import chi2
+from threadpoolctl import threadpool_limits
+
+from foamlab.diagnosis.causes import CAUSES, Cause
+from foamlab.diagnosis.design import ExtendedModel, Series, Solution, layout_of
+from foamlab.identification.data import Orders
+from foamlab.identification.paper import nonlinear_bounds
+from foamlab.diagnosis.noise import ArWhitener, Whiteness, series_noise_sigma, whiteness
+from foamlab.diagnosis.residuals import ResidualAnalysis, analyse
+from foamlab.model import ModelParameters
+
+#: A candidate must improve BIC (prewhitened residuals) by more than this ("very strong" evidence).
+DELTA_BIC_MIN = 10.0
+#: Whiteness tests below this p-value mean structure.
+WHITE_P = 1e-3
+#: Share of the base model's excess over the noise an extension must explain to be named
+#: when its residuals are still not white.
+EXPLAINED_SHARE_MIN = 0.5
+#: Contiguous blocks of each run in the held-out check.
+HELDOUT_FOLDS = 8
+#: ...each made of this many blocks spread over the run.
+HELDOUT_BLOCKS_PER_FOLD = 6
+#: Iterations of the refit without the held-out blocks.
+HELDOUT_NFEV = 3
+#: Candidates (by Delta BIC) that get the held-out check in each round.
+HELDOUT_CANDIDATES = 3
+MAX_FINDINGS = 3
+#: Candidates (by the screening's gain) refitted with the base model's alpha/beta free.
+JOINT_CANDIDATES = 2
+#: Iteration budgets of the screening (effect parameters only) and of the joint fits.
+SCREEN_NFEV, JOINT_NFEV = 15, 25
+
+
+@dataclass
+class Fit:
+    """A model (base or extension) fitted to all the data."""
+
+    causes: list[type[Cause]]
+    model: ExtendedModel
+    nu: np.ndarray                     # [phi if the base was free, effect parameters]
+    stderr: np.ndarray                 # of the effect parameters
+    solution: Solution
+    heldout_rmse: float | None = None
+
+    @property
+    def name(self) -> str:
+        return self.causes[-1].name if self.causes else "base"
+
+    @property
+    def eta(self) -> np.ndarray:
+        return self.model.split(self.nu)[1]
+
+    @property
+    def rss(self) -> float:
+        return self.solution.rss()
+
+    @property
+    def n(self) -> int:
+        return len(self.solution.residual)
+
+    @property
+    def rmse(self) -> float:
+        return float(np.sqrt(self.rss / self.n))
+
+    @property
+    def params(self) -> ModelParameters:
+        """The base model's parameters in this fit (effects aside)."""
+        return self.model.parameters(self.nu, self.solution.theta)
+
+    def effect_values(self) -> list[dict]:
+        """Fitted values of each effect in the chain, with standard errors."""
+        out, i = [], 0
+        for cls, e in zip(self.model.effect_types, self.model.effects(self.eta)):
+            names = [p.name for p in cls.fitted_parameters()]
+            se = dict(zip(names, self.stderr[i:i + len(names)]))
+            out.append({"effect": cls.name, "values": dict(e.values), "stderr": se})
+            i += len(names)
+        return out
+
+
+@dataclass
+class Candidate:
+    cause: type[Cause]
+    fit: Fit
+    before: Fit
+    delta_bic: float = float("nan")
+    lr_p: float = float("nan")
+    passed: bool = False
+    reason: str = ""
+
+    @property
+    def name(self) -> str:
+        return self.cause.name
+
+    @property
+    def values(self) -> dict:
+        return self.fit.effect_values()[-1]
+
+    def description(self) -> str:
+        v = self.values
+        return self.cause.describe(v["values"], v["stderr"])
+
+    def gain(self) -> dict:
+        return {
+            "rmse_before": self.before.rmse,
+            "rmse_after": self.fit.rmse,
+            "heldout_rmse_before": self.before.heldout_rmse,
+            "heldout_rmse_after": self.fit.heldout_rmse,
+            "delta_bic": self.delta_bic,
+        }
+
+
+@dataclass
+class Diagnosis:
+    verdict: str
+    findings: list[Candidate]
+    tested: list[list[Candidate]]          # every candidate of every round
+    skipped: dict[str, str]                # cause -> why it was not tested
+    base: Fit
+    final: Fit
+    base_analysis: ResidualAnalysis
+    final_analysis: ResidualAnalysis
+    final_whiteness: Whiteness
+    explained_share: float
+    noise_sigma: float
+    series: list[Series]
+    params: ModelParameters
+    seconds: float = 0.0
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        """The JSON object of `foamlab diagnose --json` (see docs/DESIGN: verdict, findings)."""
+        findings = []
+        if self.verdict == "unexplained":
+            findings.append({
+                "effect": "unexplained",
+                "gain": {"rmse_before": self.base.rmse, "rmse_after": self.final.rmse,
+                         "heldout_rmse_before": self.base.heldout_rmse,
+                         "heldout_rmse_after": self.final.heldout_rmse, "delta_bic": 0.0},
+                "where": self.final_analysis.where(),
+                "residuals": self.final_analysis.to_dict(),
+                "explained_share": self.explained_share,
+            })
+        for i, c in enumerate(self.findings):
+            findings.append({
+                "effect": c.name,
+                "gain": c.gain(),
+                "parameters": {k: {"value": v, "stderr": c.values["stderr"].get(k)}
+                               for k, v in c.values["values"].items()},
+                "description": c.description(),
+                "meaning": c.cause.meaning,
+                "p_value": c.lr_p,
+                "rank": i + 1,
+                "named": self.verdict == c.name,
+            })
+        return {"verdict": self.verdict, "findings": _jsonable(findings)}
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        v = float(obj)
+        return v if np.isfinite(v) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
+# ----------------------------------------------------------------------------- fitting
+
+def _settings(causes: list[type[Cause]], series: list[Series]) -> dict:
+    return {c.effect.name: c.settings(series) for c in causes}
+
+
+def loading_time_s(series: list[Series]) -> float:
+    """Median duration of the reference run's loading half-cycles."""
+    s = series[0]
+    d = [s.t[p] - s.t[a] for a, p in zip(s.labels.starts, s.labels.peaks) if p > a]
+    return float(np.median(d)) if d else float(s.t[-1] - s.t[0])
+
+
+def base_bounds(series: list[Series], params: ModelParameters) -> tuple[np.ndarray, np.ndarray]:
+    """Identification's bounds of alpha and beta (from the loading time), widened to hold params."""
+    lay = layout_of(params)
+    lo, hi = nonlinear_bounds(Orders(N=lay.N, M=lay.M, P=lay.P), lay.C, loading_time_s(series))
+    phi = lay.from_flat(params.to_vector())[1]
+    return np.minimum(lo, phi), np.maximum(hi, phi)
+
+
+def _least_squares(model: ExtendedModel, nu0: np.ndarray, keep: list[np.ndarray] | None = None,
+                   max_nfev: int | None = None) -> tuple[np.ndarray, np.ndarray, Solution]:
+    """Variable projection on nu (trust-region reflective, Kaufman's Jacobian)."""
+    lo, hi = model.bounds()
+    nu0 = np.clip(np.asarray(nu0, float), lo, hi)
+    fun, jac = model.residual_fn(keep)
+    r0 = fun(nu0)
+    # stop when a step gains less than a tenth of the noise variance: below what the data resolve
+    ftol = max(0.1 / max(len(r0), 1), 1e-10)
+    res = least_squares(fun, nu0, jac=jac, bounds=(lo, hi), x_scale="jac", method="trf",
+                        xtol=1e-8, ftol=ftol, max_nfev=max_nfev)
+    sol = model.solve(res.x, keep)
+    # standard errors of the effect parameters (linear parameters profiled out)
+    r = res.fun
+    dof = max(len(r) - model.n_linear - model.n_nonlinear, 1)
+    s2 = float(r @ r) / dof
+    stderr = np.full(model.n_eta, np.nan)
+    if model.n_eta:
+        try:
+            cov = np.linalg.pinv(res.jac.T @ res.jac) * s2
+            stderr = np.sqrt(np.maximum(np.diag(cov), 0.0))[model.n_phi:]
+        except np.linalg.LinAlgError:
+            pass
+    return res.x, stderr, sol
+
+
+def fit_base(series: list[Series], params: ModelParameters) -> Fit:
+    """The base model on all runs: identification's alpha/beta polished with the rest."""
+    model = ExtendedModel(series, params, [], free_base=True, base_bounds=base_bounds(series, params))
+    nu, stderr, sol = _least_squares(model, model.start(), max_nfev=JOINT_NFEV)
+    return Fit([], model, nu, stderr, sol)
+
+
+def screen(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
+    """Fit base + causes with the base's alpha/beta held: the last cause's parameter scanned,
+    then the effect parameters refined (cheap: only the linear parameters move with them)."""
+    params = current.params
+    model = ExtendedModel(series, params, [c.effect for c in causes], _settings(causes, series))
+    prev = current.eta
+    trials = [np.concatenate([prev, row]) for row in causes[-1].starts(series)]
+    rss = [model.solve(eta).rss() for eta in trials]
+    nu, stderr, sol = _least_squares(model, trials[int(np.argmin(rss))], max_nfev=SCREEN_NFEV)
+    return Fit(list(causes), model, nu, stderr, sol)
+
+
+def fit_joint(series: list[Series], screened: Fit) -> Fit:
+    """Fit base + causes with everything free (alpha, beta, effect and linear parameters)."""
+    params = screened.params
+    model = ExtendedModel(series, params, screened.model.effect_types, screened.model.settings,
+                          free_base=True, base_bounds=base_bounds(series, params))
+    nu, stderr, sol = _least_squares(model, model.start(screened.eta), max_nfev=JOINT_NFEV)
+    return Fit(list(screened.causes), model, nu, stderr, sol)
+
+
+def folds(series: list[Series], n_folds: int = HELDOUT_FOLDS,
+          blocks_per_fold: int = HELDOUT_BLOCKS_PER_FOLD) -> list[list[np.ndarray]]:
+    """Keep-masks per fold. Each run is cut into n_folds x blocks_per_fold contiguous
+    blocks; fold k leaves out blocks k, k + n_folds, ... (interleaved), so every
+    cycle keeps data that determine its own parameters and each held-out block is
+    predicted, not extrapolated past the end of what was fitted."""
+    out = []
+    for k in range(n_folds):
+        masks = []
+        for s in series:
+            m = np.ones(len(s), dtype=bool)
+            edges = np.linspace(0, len(s), n_folds * blocks_per_fold + 1).astype(int)
+            for b in range(k, n_folds * blocks_per_fold, n_folds):
+                m[edges[b]:edges[b + 1]] = False
+            masks.append(m)
+        out.append(masks)
+    return out
+
+
+def heldout_rmse(fit: Fit, n_folds: int = HELDOUT_FOLDS) -> float:
+    """RMSE of every block predicted by the model fitted (all its free parameters) without it."""
+    if fit.heldout_rmse is not None:
+        return fit.heldout_rmse
+    sq, count = 0.0, 0
+    for keep in folds(fit.model.series, n_folds):
+        sol = _refit_without(fit, keep)
+        out = ~np.concatenate(keep)
+        r = sol.residual[out]
+        sq += float(r @ r)
+        count += len(r)
+    fit.heldout_rmse = float(np.sqrt(sq / max(count, 1)))
+    return fit.heldout_rmse
+
+
+def _refit_without(fit: Fit, keep: list[np.ndarray]) -> Solution:
+    """The fit redone without the held-out samples: the linear parameters exactly, the
+    nonlinear ones (alpha, beta, effect parameters) by a few trust-region steps from
+    the full-data optimum (they move by about a standard error)."""
+    model = fit.model
+    if not model.n_nonlinear:
+        return model.solve((), keep)
+    _, _, sol = _least_squares(model, fit.nu, keep, max_nfev=HELDOUT_NFEV)
+    return sol
+
+
+def _compare(cands: list[Candidate], before: Fit) -> None:
+    """Delta BIC and LR p-value of each candidate against `before`, on one prewhitened scale."""
+    best = min([c.fit for c in cands] + [before], key=lambda f: f.rss)
+    whitener = ArWhitener.fit(best.solution.residuals)
+    wb = whitener.apply(before.solution.residuals)
+    rss_b = float(wb @ wb)
+    n = len(wb)
+    for c in cands:
+        we = whitener.apply(c.fit.solution.residuals)
+        rss_e = float(we @ we)
+        q = c.fit.model.n_eta - before.model.n_eta
+        lr = n * np.log(rss_b / rss_e) if rss_e > 0 and rss_b > 0 else 0.0
+        c.delta_bic = float(lr - q * np.log(n))
+        c.lr_p = float(chi2.sf(max(lr, 0.0), q))
+
+
+# ----------------------------------------------------------------------------- diagnose
+
+def diagnose_series(series: list[Series], params: ModelParameters,
+                    causes: list[str] | None = None) -> Diagnosis:
+    with threadpool_limits(1, user_api="blas"):    # small dense solves: threads only contend
+        return _diagnose(series, params, causes)
+
+
+def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] | None) -> Diagnosis:
+    t0 = time.perf_counter()
+    names = list(CAUSES) if causes is None else list(causes)
+    sigma = series_noise_sigma([s.y for s in series])
+    base = fit_base(series, params)
+    base_analysis = analyse(series, base.solution.residuals, sigma)
+    skipped = {}
+    remaining: list[type[Cause]] = []
+    for name in names:
+        why = CAUSES[name].applicable(series)
+        if why:
+            skipped[name] = why
+        else:
+            remaining.append(CAUSES[name])
+
+    findings: list[Candidate] = []
+    tested: list[list[Candidate]] = []
+    current = base
+    for _ in range(MAX_FINDINGS):
+        if not remaining:
+            break
+        accepted = [c.cause for c in findings]
+        screened = sorted((screen(series, current, accepted + [cause]) for cause in remaining),
+                          key=lambda f: f.rss)
+        fits = []
+        for i, f in enumerate(screened):
+            # the most promising ones (a raw gain above one BIC penalty) are refitted
+            # with the base model free as well
+            promising = current.n * np.log(current.rss / f.rss) > np.log(current.n)
+            fits.append(fit_joint(series, f) if i < JOINT_CANDIDATES and promising else f)
+        cands = [Candidate(f.causes[-1], f, current) for f in fits]
+        _compare(cands, current)
+        tested.append(cands)
+        strong = sorted((c for c in cands if c.delta_bic > DELTA_BIC_MIN), key=lambda c: -c.delta_bic)
+        for c in cands:
+            if c.delta_bic <= DELTA_BIC_MIN:
+                c.reason = f"delta BIC {c.delta_bic:.1f} <= {DELTA_BIC_MIN:g}"
+        chosen = None
+        for c in strong[:HELDOUT_CANDIDATES]:
+            before = heldout_rmse(current)
+            after = heldout_rmse(c.fit)
+            c.passed = after < before
+            c.reason = "" if c.passed else f"held-out RMSE not lower ({after:.4g} >= {before:.4g})"
+            if c.passed and chosen is None:
+                chosen = c
+        for c in strong[HELDOUT_CANDIDATES:]:
+            c.reason = "weaker than the candidates checked on held-out data"
+        if chosen is None:
+            break
+        findings.append(chosen)
+        current = chosen.fit
+        remaining = [c.cause for c in strong if c is not chosen]
+
+    final = current
+    final_analysis = analyse(series, final.solution.residuals, sigma) if findings else base_analysis
+    white_final = final_analysis.whiteness
+    excess = base.rss - base.n * sigma ** 2
+    removed = base.rss - final.rss
+    share = 1.0 if removed >= excess else max(removed, 0.0) / excess
+    if not findings:
+        verdict = "unexplained" if base_analysis.whiteness.min_p < WHITE_P else "none"
+        if verdict == "unexplained":
+            heldout_rmse(base)
+    elif white_final.min_p >= WHITE_P or share >= EXPLAINED_SHARE_MIN:
+        verdict = findings[0].name
+    else:
+        verdict = "unexplained"
+    return Diagnosis(
+        verdict=verdict, findings=findings, tested=tested, skipped=skipped, base=base, final=final,
+        base_analysis=base_analysis, final_analysis=final_analysis, final_whiteness=white_final,
+        explained_share=float(share), noise_sigma=sigma, series=series, params=params,
+        seconds=time.perf_counter() - t0,
+    )

@@ -1,0 +1,421 @@
+"""The base model as a linear design, extended by the catalogue's effects.
+
+For fixed nonlinear parameters phi (damping exponents alpha_i, fractional orders
+beta) the paper's force is linear in its other parameters: elastic k_i, damping
+a_i and residual r_ci. Identification's ModelBasis gives that design matrix and
+each column's derivative in its own phi (foamlab.identification.basis). The
+effects of foamlab.model.effects act on it as follows:
+
+- specimen stage (cycle_softening, damping_cycle_change, rate_dependence,
+  direction_friction): each effect's own ``modify``, probed with unit components,
+  gives a per-sample gain of the elastic, damping and residual components and an
+  added force (they are elementwise affine maps: checked on every use);
+- contact: the plate cannot pull -- the force is max(total, 0) where the specimen is
+  compressed. Handled as an active set: the columns are zeroed where the current
+  solution is out of contact, and the set is updated until it is consistent;
+- sensor stage (channel_lag, force_zero_drift): each effect's own ``sensor_batch``
+  applied to each masked column (affine in the force);
+- input stage (machine_compliance): the specimen sees x_s = x - C G, G the force
+  the frame deflects under (effects.frame_force of the measured force). Elastic
+  columns are evaluated at x_s; the memory operators are linear in the
+  displacement history, so their columns at x_s are those of x minus C times
+  those of G (exact except where the effect keeps x_s monotone after a turning
+  point: a few samples, see tests/test_diagnosis_design.py).
+- the load cell's zero offset (its unloaded reading) is one more linear column.
+
+Given the nonlinear vector nu = [phi (when the base is free), effect parameters],
+the linear parameters are solved by least squares (variable projection); the
+Jacobian in nu is Kaufman's, -(I - P) d(design theta)/d nu, with the phi
+columns from ModelBasis' analytic derivatives pushed through the same effects.
+The prediction equals ``EffectChain(effects).measured_force`` of the model with
+those parameters (tests/test_diagnosis_design.py checks every effect).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from foamlab.identification.basis import Layout, ModelBasis
+from foamlab.model import ModelParameters
+from foamlab.model.effects import Components, Effect, EffectChain, frame_force, specimen_displacement
+from foamlab.model.history import HistoryLabels
+
+#: The active (contact) set is iterated at most this many times per solve.
+MAX_CONTACT_ITERATIONS = 12
+#: Relative eigenvalue cut-off of the (column-scaled) normal equations.
+RCOND = 1e-13
+
+
+# ----------------------------------------------------------------------------- linear algebra
+
+class NormalSolve:
+    """min |a theta - b| for a tall, narrow design, by the column-scaled normal equations.
+
+    Why not np.linalg.lstsq: LAPACK's QR/SVD of a tall-skinny matrix runs many times
+    slower than A^T A on a busy 2-core machine; with column scaling the normal
+    equations keep ~1e-6 relative accuracy in theta, far below the noise in the
+    prediction. Zero and redundant columns get the minimum-norm answer. Also gives
+    the projection on the design's range (Kaufman's Jacobian).
+    """
+
+    def __init__(self, a: np.ndarray):
+        scale = np.sqrt(np.einsum("ij,ij->j", a, a))
+        scale[scale == 0] = 1.0
+        self.scale = scale
+        self.a_s = a / scale
+        w, v = np.linalg.eigh(self.a_s.T @ self.a_s)
+        keep = w > w.max() * RCOND if w.max() > 0 else np.zeros_like(w, dtype=bool)
+        self.v = v[:, keep]
+        self.w = w[keep]
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        b = np.asarray(b, float)
+        col = b.ndim > 1
+        coef = self.v @ ((self.v.T @ (self.a_s.T @ b)) / (self.w[:, None] if col else self.w))
+        return coef / (self.scale[:, None] if col else self.scale)
+
+    def residual_of(self, vectors: np.ndarray) -> np.ndarray:
+        """(I - P) vectors, P the orthogonal projection on the design's range."""
+        coef = self.v @ ((self.v.T @ (self.a_s.T @ vectors)) / self.w[:, None])
+        return vectors - self.a_s @ coef
+
+
+def least_squares_normal(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return NormalSolve(a).solve(b)
+
+
+# ----------------------------------------------------------------------------- runs
+
+@dataclass
+class Series:
+    """One run as diagnosis sees it: samples, half-cycle labels, crosshead velocity."""
+
+    name: str
+    t: np.ndarray
+    x: np.ndarray
+    y: np.ndarray                    # measured force
+    labels: HistoryLabels
+    velocity: np.ndarray             # crosshead, mm/s, positive compressing
+    rate: np.ndarray                 # mean crosshead speed since the cycle started, mm/s
+    speed_mm_min: float              # typical crosshead speed while moving
+    _bases: dict = field(default_factory=dict, repr=False)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @property
+    def cycle(self) -> np.ndarray:
+        return self.labels.cycle
+
+    @property
+    def direction(self) -> np.ndarray:
+        return self.labels.direction
+
+    @property
+    def step_s(self) -> float:
+        return float(np.median(np.diff(self.t))) if len(self.t) > 1 else 1.0
+
+    def basis(self, layout: Layout, x_scale_mm: float, frame_tau_s: float | None = None) -> ModelBasis:
+        """Design of the displacement history, or (frame_tau_s given) of the force the frame
+        deflects under (machine_compliance subtracts C times its memory columns)."""
+        key = (layout, x_scale_mm, frame_tau_s)
+        if key not in self._bases:
+            src = self.x if frame_tau_s is None else frame_force(self.t, self.y, frame_tau_s)
+            self._bases[key] = ModelBasis(self.t, src, self.labels, np.arange(len(self.t)), layout,
+                                          x_scale_mm, self.step_s)
+        return self._bases[key]
+
+
+def layout_of(params: ModelParameters) -> Layout:
+    return Layout(P=params.order_P, N=params.order_N, M=params.order_M, C=params.n_residual_cycles)
+
+
+def specimen_gains(chain: EffectChain, cycle, velocity, rate) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
+    """Per-sample gains of the elastic, damping and residual components and the added force.
+
+    The specimen-stage effects are elementwise affine in the components (each scales a
+    component or adds a force), so probing their own ``modify`` with unit components
+    gives the whole map; a random probe checks the affinity (a new effect that mixes
+    samples or components in another way is refused instead of silently mis-fitted).
+    """
+    n = len(cycle)
+    effects = chain.specimen_effects
+    if not effects:
+        one = np.ones(n)
+        return (one, one, one), np.zeros(n)
+
+    def total(e, d, r):
+        c = Components(np.broadcast_to(e, n).astype(float), np.broadcast_to(d, n).astype(float),
+                       np.broadcast_to(r, n).astype(float), np.zeros(n), cycle, velocity, rate)
+        for eff in effects:
+            c = eff.modify(c)
+        return np.broadcast_to(c.total, n)
+
+    offset = total(0.0, 0.0, 0.0).copy()
+    gains = tuple(total(*unit) - offset for unit in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)))
+    probe = np.random.default_rng(0).normal(size=(3, n))
+    expected = offset + sum(g * p for g, p in zip(gains, probe))
+    if not np.allclose(total(*probe), expected, rtol=1e-9, atol=1e-9 * (1 + np.abs(expected).max())):
+        raise ValueError("a specimen-stage effect is not an elementwise affine map of the model's "
+                         "components; diagnosis cannot project it")
+    return gains, offset
+
+
+# ----------------------------------------------------------------------------- the model
+
+@dataclass
+class Solution:
+    theta: np.ndarray                  # model linear parameters + zero offset
+    predictions: list[np.ndarray]      # per series
+    residuals: list[np.ndarray]        # measured - predicted, per series
+    masks: list[np.ndarray]            # contact set per series
+    designs: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list, repr=False)
+    normal: NormalSolve | None = field(default=None, repr=False)
+
+    @property
+    def residual(self) -> np.ndarray:
+        return np.concatenate(self.residuals)
+
+    def rss(self, keep: np.ndarray | None = None) -> float:
+        r = self.residual if keep is None else self.residual[keep]
+        return float(r @ r)
+
+
+class ExtendedModel:
+    """Base model + a chain of effect classes, on one or more runs.
+
+    nu = [phi, eta]: phi the base model's nonlinear parameters (alpha, beta; only if
+    ``free_base``, else fixed at ``params``), eta the effects' fitted parameters in
+    chain order; ``settings`` holds the effects' fixed values (e.g. a reference speed).
+    """
+
+    def __init__(self, series: list[Series], params: ModelParameters,
+                 effects: list[type[Effect]] = (), settings: dict[str, dict[str, float]] | None = None,
+                 free_base: bool = False, base_bounds: tuple[np.ndarray, np.ndarray] | None = None):
+        self.series = series
+        self.params = params
+        self.layout = layout_of(params)
+        self.linear0, self.phi0 = self.layout.from_flat(params.to_vector())
+        self.effect_types = list(effects)
+        self.settings = settings or {}
+        self.free_base = free_base
+        self.base_bounds = base_bounds
+        self.n_model = self.layout.n_linear
+        self.n_linear = self.n_model + 1          # + the load cell's zero offset
+        lay = self.layout
+        self._component = np.array([0] * (lay.P + 1) + [1] * lay.N + [2] * (lay.C * lay.M))
+        self._column_of = np.array([lay.column_of_nonlinear(j) for j in range(lay.n_nonlinear)], int)
+        self._masks: list[np.ndarray | None] = [None] * len(series)
+        self._cache: tuple | None = None
+
+    # -- parameters
+    @property
+    def n_phi(self) -> int:
+        return self.layout.n_nonlinear if self.free_base else 0
+
+    @property
+    def n_eta(self) -> int:
+        return sum(len(e.fitted_parameters()) for e in self.effect_types)
+
+    @property
+    def n_nonlinear(self) -> int:
+        return self.n_phi + self.n_eta
+
+    def split(self, nu) -> tuple[np.ndarray, np.ndarray]:
+        nu = np.atleast_1d(np.asarray(nu, float))
+        if self.free_base:
+            return nu[:self.n_phi], nu[self.n_phi:]
+        return self.phi0, nu
+
+    def start(self, eta=()) -> np.ndarray:
+        return np.concatenate([self.phi0 if self.free_base else [], np.atleast_1d(eta)]).astype(float)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = [], []
+        if self.free_base:
+            if self.base_bounds is None:
+                raise ValueError("a free base model needs bounds for its nonlinear parameters")
+            lo += list(self.base_bounds[0])
+            hi += list(self.base_bounds[1])
+        for e in self.effect_types:
+            b = e.bounds()
+            lo += list(b[0])
+            hi += list(b[1])
+        return np.array(lo, float), np.array(hi, float)
+
+    def effects(self, eta) -> list[Effect]:
+        eta = np.atleast_1d(np.asarray(eta, float))
+        out, i = [], 0
+        for cls in self.effect_types:
+            k = len(cls.fitted_parameters())
+            e = cls(**self.settings.get(cls.name, {}))
+            out.append(e.with_vector(eta[i:i + k]))
+            i += k
+        return out
+
+    def parameters(self, nu, theta) -> ModelParameters:
+        """The base model's parameters (effects aside) at a solution."""
+        phi, _ = self.split(nu)
+        flat = self.layout.to_flat(np.asarray(theta[:self.n_model], float), phi)
+        return self.params.with_vector(flat)
+
+    # -- columns for one series
+    def _columns(self, s: Series, chain: EffectChain, phi, derivative: bool = False):
+        """Pre-contact specimen force: design (n, L), offset (n,), specimen x, and with
+        derivative the phi-derivative columns (n, K) (each of its own design column)."""
+        lay, xs_mm = self.layout, self.params.x_scale_mm
+        basis = s.basis(lay, xs_mm)
+        cols = basis.design(phi)
+        deriv = basis.design_derivatives(phi) if derivative else None
+        if chain.compliance:
+            x_s = specimen_displacement(s.x, s.y, chain.compliance, s.t, chain.frame_tau_s)
+            frame = s.basis(lay, xs_mm, chain.frame_tau_s)
+            cols = cols - chain.compliance * frame.design(phi)
+            cols[:, :lay.P + 1] = np.vander(x_s / xs_mm, lay.P + 1, increasing=True)
+            if derivative:
+                deriv = deriv - chain.compliance * frame.design_derivatives(phi)
+        else:
+            x_s = s.x
+        gains, offset = specimen_gains(chain, s.cycle, s.velocity, s.rate)
+        g = np.stack(gains, axis=1)                      # (n, 3)
+        cols = cols * g[:, self._component]
+        if derivative:
+            deriv = deriv * g[:, self._component[self._column_of]]
+        return cols, offset, x_s, deriv
+
+    @staticmethod
+    def _sensor(chain: EffectChain, t, force):
+        for e in chain.sensor_effects:
+            force = e.sensor_batch(t, force)
+        return force
+
+    def _through_sensor(self, s: Series, chain: EffectChain, columns: np.ndarray) -> np.ndarray:
+        """The sensor stage's linear part applied to each column."""
+        if not chain.sensor_effects:
+            return columns
+        zero = self._sensor(chain, s.t, np.zeros(len(s)))
+        out = np.empty_like(columns)
+        for j in range(columns.shape[1]):
+            out[:, j] = self._sensor(chain, s.t, columns[:, j]) - zero
+        return out
+
+    def _measured_design(self, s: Series, chain: EffectChain, cols, offset, mask):
+        """Measured force = M theta + const for a fixed contact set; M's last column is the
+        load cell's zero offset (its unloaded reading, there in and out of contact)."""
+        n, p = cols.shape
+        m = np.empty((n, p + 1))
+        m[:, :p] = self._through_sensor(s, chain, cols * mask[:, None])
+        m[:, p] = 1.0
+        const = self._sensor(chain, s.t, offset * mask) if chain.sensor_effects else offset * mask
+        return m, const
+
+    # -- solve
+    def solve(self, nu=(), keep: list[np.ndarray] | None = None) -> Solution:
+        """Linear parameters by least squares on the kept samples, for nonlinear parameters nu.
+
+        The contact set (where the model pushes) is iterated to consistency.
+        """
+        phi, eta = self.split(nu)
+        chain = EffectChain(self.effects(eta))
+        prepared = []
+        for i, s in enumerate(self.series):
+            cols, offset, x_s, _ = self._columns(s, chain, phi)
+            compressed = x_s > 0
+            mask = self._masks[i] if self._masks[i] is not None else compressed & (s.y > 0)
+            prepared.append([s, cols, offset, compressed, mask & compressed])
+        keep_all = None if keep is None else np.concatenate(keep)
+        best = None
+        seen: list[list[np.ndarray]] = []
+        for _ in range(MAX_CONTACT_ITERATIONS):
+            designs = [self._measured_design(s, chain, cols, offset, mask)
+                       for s, cols, offset, _, mask in prepared]
+            a = np.vstack([m if keep is None else m[keep[k]] for k, (m, _) in enumerate(designs)])
+            b = np.concatenate([(p[0].y - c) if keep is None else (p[0].y - c)[keep[k]]
+                                for k, (p, (_, c)) in enumerate(zip(prepared, designs))])
+            normal = NormalSolve(a)
+            theta = normal.solve(b)
+            preds = [m @ theta + c for m, c in designs]
+            sol = Solution(theta, preds, [p[0].y - q for p, q in zip(prepared, preds)],
+                           [p[4] for p in prepared], designs, normal)
+            if best is None or sol.rss(keep_all) < best.rss(keep_all):
+                best = sol
+            new_masks = [compressed & (cols @ theta[:-1] + offset > 0)
+                         for _, cols, offset, compressed, _ in prepared]
+            old_masks = [p[4] for p in prepared]
+            if all(np.array_equal(a_, b_) for a_, b_ in zip(new_masks, old_masks)):
+                break
+            seen.append(old_masks)
+            if any(all(np.array_equal(a_, b_) for a_, b_ in zip(new_masks, old)) for old in seen):
+                break   # the active set cycles: keep the best solution seen
+            for p, mk in zip(prepared, new_masks):
+                p[4] = mk
+        if keep is None:
+            self._masks = list(best.masks)
+        return best
+
+    def residual_fn(self, keep: list[np.ndarray] | None = None):
+        """(fun, jac) of nu for scipy.optimize.least_squares: residuals on the kept samples
+        and Kaufman's variable-projection Jacobian."""
+        keep_all = None if keep is None else np.concatenate(keep)
+
+        def solved(nu):
+            key = np.asarray(nu, float).tobytes()
+            if self._cache is None or self._cache[0] != key or self._cache[1] is not keep:
+                self._cache = (key, keep, self.solve(nu, keep))
+            return self._cache[2]
+
+        def fun(nu):
+            r = solved(nu).residual
+            return r if keep_all is None else r[keep_all]
+
+        def jac(nu):
+            sol = solved(nu)
+            d = self.prediction_derivatives(nu, sol)
+            if keep_all is not None:
+                d = d[keep_all]
+            return -sol.normal.residual_of(d)
+
+        return fun, jac
+
+    def prediction_derivatives(self, nu, sol: Solution) -> np.ndarray:
+        """d(prediction)/d nu at fixed linear parameters and contact set, all samples."""
+        phi, eta = self.split(nu)
+        chain = EffectChain(self.effects(eta))
+        theta = sol.theta
+        blocks = []
+        for s, mask, (m, const) in zip(self.series, sol.masks, sol.designs):
+            out = np.empty((len(s), self.n_nonlinear))
+            if self.free_base:
+                _, _, _, deriv = self._columns(s, chain, phi, derivative=True)
+                out[:, :self.n_phi] = self._through_sensor(
+                    s, chain, deriv * (mask[:, None] * theta[self._column_of][None, :]))
+            base_pred = m @ theta + const
+            for j in range(self.n_eta):
+                step = np.zeros(self.n_eta)
+                h = 1e-6 * max(abs(eta[j]), 1e-3)
+                step[j] = h
+                chain_j = EffectChain(self.effects(eta + step))
+                cols, offset, _, _ = self._columns(s, chain_j, phi)
+                mj, cj = self._measured_design(s, chain_j, cols, offset, mask)
+                out[:, self.n_phi + j] = (mj @ theta + cj - base_pred) / h
+            blocks.append(out)
+        return np.vstack(blocks)
+
+    def predict(self, theta, nu=()) -> list[np.ndarray]:
+        """Measured force per series for given linear parameters (+ zero offset) and nu."""
+        phi, eta = self.split(nu)
+        chain = EffectChain(self.effects(eta))
+        theta = np.asarray(theta, float)
+        out = []
+        for s in self.series:
+            cols, offset, x_s, _ = self._columns(s, chain, phi)
+            mask = (x_s > 0) & (cols @ theta[:-1] + offset > 0)
+            m, const = self._measured_design(s, chain, cols, offset, mask)
+            out.append(m @ theta + const)
+        return out
+
+    def linear_start(self) -> np.ndarray:
+        """The given parameters' linear values, zero offset 0."""
+        return np.append(self.linear0, 0.0)

@@ -1,0 +1,116 @@
+"""Noise level from the data itself, whiteness tests, and AR prewhitening.
+
+- noise_sigma: the load cell's white-noise level from second differences of the
+  measured force (a slowly varying signal has second differences far below the
+  noise at the sampling rates of a compression test), MAD-based so the jumps at
+  turning points and contact changes do not count.
+- whiteness: Ljung-Box (statsmodels) and the Wald-Wolfowitz runs test
+  (statsmodels.sandbox) on residuals.
+- ArWhitener: an AR(p) filter (Yule-Walker, order by BIC) estimated on one residual
+  series and applied to others, so nested models are compared on the same
+  prewhitened scale (generalised least squares with the noise's correlation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from statsmodels.regression.linear_model import yule_walker
+from statsmodels.sandbox.stats.runs import runstest_1samp
+from statsmodels.stats.diagnostic import acorr_ljungbox
+
+MAD_TO_SIGMA = 1.0 / 0.6744897501960817
+#: Highest AR order tried when prewhitening.
+MAX_AR_ORDER = 6
+#: Lags of the Ljung-Box test.
+LJUNG_BOX_LAGS = 20
+
+
+def noise_sigma(force: np.ndarray) -> float:
+    """White-noise sigma of a sampled force from its second differences (MAD-based).
+
+    For white noise of variance s^2, x[i-1] - 2 x[i] + x[i+1] has variance 6 s^2.
+    """
+    f = np.asarray(force, float)
+    if len(f) < 5:
+        return float("nan")
+    d2 = np.diff(f, 2)
+    return float(np.median(np.abs(d2 - np.median(d2))) * MAD_TO_SIGMA / np.sqrt(6.0))
+
+
+def series_noise_sigma(forces: list[np.ndarray]) -> float:
+    """Noise level of several runs' forces (pooled second differences)."""
+    d2 = np.concatenate([np.diff(np.asarray(f, float), 2) for f in forces if len(f) >= 5])
+    if len(d2) == 0:
+        return float("nan")
+    return float(np.median(np.abs(d2 - np.median(d2))) * MAD_TO_SIGMA / np.sqrt(6.0))
+
+
+@dataclass
+class Whiteness:
+    ljung_box_p: float
+    runs_p: float
+    lag1_correlation: float
+
+    @property
+    def min_p(self) -> float:
+        return min(self.ljung_box_p, self.runs_p)
+
+    def to_dict(self) -> dict:
+        return {"ljung_box_p": self.ljung_box_p, "runs_p": self.runs_p,
+                "lag1_correlation": self.lag1_correlation}
+
+
+def whiteness(residual: np.ndarray) -> Whiteness:
+    r = np.asarray(residual, float)
+    r = r - r.mean()
+    if len(r) < 3 * LJUNG_BOX_LAGS or not np.any(r):
+        return Whiteness(1.0, 1.0, 0.0)
+    lb = acorr_ljungbox(r, lags=[LJUNG_BOX_LAGS], return_df=True)
+    lb_p = float(lb["lb_pvalue"].iloc[0])
+    nonzero = r[r != 0]
+    runs_p = float(runstest_1samp(nonzero, cutoff=0.0)[1]) if len(nonzero) > 10 else 1.0
+    lag1 = float(r[1:] @ r[:-1] / (r @ r))
+    return Whiteness(lb_p, runs_p, lag1)
+
+
+@dataclass
+class ArWhitener:
+    """e[t] - sum_i phi_i e[t-i], applied within each series (no filtering across runs)."""
+
+    phi: np.ndarray
+
+    @property
+    def order(self) -> int:
+        return len(self.phi)
+
+    @classmethod
+    def fit(cls, residuals: list[np.ndarray], max_order: int = MAX_AR_ORDER) -> "ArWhitener":
+        """Yule-Walker AR(p) of the pooled residuals, p = 0..max_order by BIC."""
+        r = np.concatenate([np.asarray(x, float) - np.mean(x) for x in residuals])
+        n = len(r)
+        if n < 10 * (max_order + 1) or not np.any(r):
+            return cls(np.zeros(0))
+        best = (n * np.log(r @ r / n), np.zeros(0))
+        for p in range(1, max_order + 1):
+            phi, sigma = yule_walker(r, order=p, method="mle", result_object=False)
+            if not np.all(np.isfinite(phi)) or sigma <= 0:
+                break
+            bic = n * np.log(sigma ** 2) + p * np.log(n)
+            if bic < best[0]:
+                best = (bic, np.asarray(phi, float))
+        return cls(best[1])
+
+    def apply(self, residuals: list[np.ndarray]) -> np.ndarray:
+        out = []
+        p = self.order
+        for x in residuals:
+            x = np.asarray(x, float)
+            if len(x) <= p:
+                continue
+            w = x[p:].copy()
+            for i, ph in enumerate(self.phi, start=1):
+                w -= ph * x[p - i:len(x) - i]
+            out.append(w)
+        return np.concatenate(out) if out else np.zeros(0)

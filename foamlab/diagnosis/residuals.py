@@ -1,0 +1,166 @@
+"""Where the model misses: residuals by cycle, half-cycle, displacement and time.
+
+A region's bias is its mean residual; its score is that mean in units of its
+standard error under the data's own noise level (sigma / sqrt(samples), widened by
+the residuals' lag-1 correlation), so |score| > ~4 is structure, not noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import signal
+
+from foamlab.diagnosis.design import Series
+from foamlab.diagnosis.noise import Whiteness, whiteness
+
+#: Displacement bins per half-cycle in the residual map.
+X_BINS = 10
+#: Time bins per run.
+TIME_BINS = 30
+#: A region with |score| above this is reported as structure.
+SCORE_THRESHOLD = 4.0
+
+
+@dataclass
+class Region:
+    run: str
+    cycle: int
+    direction: int        # +1 loading, -1 unloading, 0 outside cycles
+    x_lo: float
+    x_hi: float
+    n: int
+    mean: float
+    rms: float
+    score: float
+
+    @property
+    def phase(self) -> str:
+        return {1: "loading", -1: "unloading"}.get(self.direction, "outside cycles")
+
+    def text(self) -> str:
+        run = f"{self.run}: " if self.run else ""
+        return (f"{run}cycle {self.cycle} {self.phase}, x {self.x_lo:.3g}-{self.x_hi:.3g} mm: "
+                f"mean residual {self.mean:+.3g} N ({self.score:+.1f} se)")
+
+    def to_dict(self) -> dict:
+        return {"run": self.run, "cycle": self.cycle, "phase": self.phase,
+                "x_mm": [round(self.x_lo, 4), round(self.x_hi, 4)], "samples": self.n,
+                "mean_N": self.mean, "rms_N": self.rms, "score": self.score}
+
+
+@dataclass
+class Periodicity:
+    period_s: float
+    power_share: float     # share of the residual variance in the peak's neighbourhood
+
+    def to_dict(self) -> dict:
+        return {"period_s": self.period_s, "power_share": self.power_share}
+
+
+@dataclass
+class ResidualAnalysis:
+    rmse: float
+    noise_sigma: float
+    whiteness: Whiteness
+    regions: list[Region]
+    time_bins: list[tuple[str, float, float, float]]   # (run, t_mid, mean, score)
+    periodicity: Periodicity | None
+    by_half_cycle: list[tuple[str, int, int, float, float]] = field(default_factory=list)
+
+    @property
+    def excess_ratio(self) -> float:
+        return self.rmse / self.noise_sigma if self.noise_sigma > 0 else float("inf")
+
+    def structured_regions(self, limit: int = 5) -> list[Region]:
+        hot = [r for r in self.regions if abs(r.score) > SCORE_THRESHOLD]
+        return sorted(hot, key=lambda r: -abs(r.score))[:limit]
+
+    def where(self, limit: int = 5) -> list[str]:
+        out = [r.text() for r in self.structured_regions(limit)]
+        if self.periodicity is not None and self.periodicity.power_share > 0.25:
+            out.append(f"periodic: {self.periodicity.power_share:.0%} of the residual power near "
+                       f"a period of {self.periodicity.period_s:.3g} s")
+        return out
+
+    def to_dict(self) -> dict:
+        return {
+            "rmse": self.rmse,
+            "noise_sigma": self.noise_sigma,
+            "excess_ratio": self.excess_ratio,
+            "whiteness": self.whiteness.to_dict(),
+            "where": self.where(),
+            "regions": [r.to_dict() for r in self.structured_regions(10)],
+            "periodicity": self.periodicity.to_dict() if self.periodicity else None,
+        }
+
+
+def analyse(series: list[Series], residuals: list[np.ndarray], noise_sigma: float) -> ResidualAnalysis:
+    all_r = np.concatenate(residuals)
+    white = whiteness(all_r)
+    rho = min(max(white.lag1_correlation, 0.0), 0.99)
+    inflation = np.sqrt((1 + rho) / (1 - rho))     # AR(1) variance of a mean
+    regions: list[Region] = []
+    halves: list[tuple[str, int, int, float, float]] = []
+    time_bins = []
+    multi = len(series) > 1
+    for s, r in zip(series, residuals):
+        name = s.name if multi else ""
+        x_max = float(np.max(s.x)) if len(s.x) else 1.0
+        x_min = float(np.min(s.x)) if len(s.x) else 0.0
+        edges = np.linspace(x_min, x_max, X_BINS + 1)
+        for cyc in np.unique(s.cycle):
+            for d in (1, -1, 0):
+                sel = (s.cycle == cyc) & (s.direction == d)
+                if not np.any(sel):
+                    continue
+                rr = r[sel]
+                halves.append((name, int(cyc), d, float(np.mean(rr)), float(np.sqrt(np.mean(rr ** 2)))))
+                idx = np.clip(np.digitize(s.x[sel], edges) - 1, 0, X_BINS - 1)
+                for b in range(X_BINS):
+                    rb = rr[idx == b]
+                    if len(rb) < 5:
+                        continue
+                    se = noise_sigma * inflation / np.sqrt(len(rb))
+                    mean = float(np.mean(rb))
+                    regions.append(Region(name, int(cyc), d, float(edges[b]), float(edges[b + 1]), len(rb),
+                                          mean, float(np.sqrt(np.mean(rb ** 2))), mean / se if se > 0 else 0.0))
+        tb = np.array_split(np.arange(len(r)), min(TIME_BINS, max(len(r) // 5, 1)))
+        for ix in tb:
+            if len(ix) == 0:
+                continue
+            se = noise_sigma * inflation / np.sqrt(len(ix))
+            m = float(np.mean(r[ix]))
+            time_bins.append((s.name, float(np.mean(s.t[ix])), m, m / se if se > 0 else 0.0))
+    return ResidualAnalysis(
+        rmse=float(np.sqrt(np.mean(all_r ** 2))),
+        noise_sigma=noise_sigma,
+        whiteness=white,
+        regions=regions,
+        time_bins=time_bins,
+        periodicity=_periodicity(series, residuals),
+        by_half_cycle=halves,
+    )
+
+
+def _periodicity(series: list[Series], residuals: list[np.ndarray]) -> Periodicity | None:
+    """Strongest spectral line of the residuals (the longest run), if any.
+
+    Periods longer than a quarter of the run are trends, not periodicity.
+    """
+    k = int(np.argmax([len(s) for s in series]))
+    s, r = series[k], residuals[k]
+    if len(r) < 64:
+        return None
+    h = float(np.median(np.diff(s.t)))
+    f, p = signal.periodogram(r - np.mean(r), fs=1.0 / h, detrend="linear")
+    total = float(np.sum(p[1:]))
+    duration = float(s.t[-1] - s.t[0])
+    usable = f > 4.0 / duration
+    if total <= 0 or not np.any(usable):
+        return None
+    i = int(np.flatnonzero(usable)[np.argmax(p[usable])])
+    df = f[1] - f[0]
+    near = np.abs(f - f[i]) <= 3 * df
+    return Periodicity(period_s=float(1.0 / f[i]), power_share=float(np.sum(p[near]) / total))
