@@ -65,8 +65,9 @@ def evaluate(
 
     labels: the half-cycle labels (from the segmentation of measured data); if
     omitted they are taken from x with label_history (exact histories).
-    Cost is O(len(t)) per cycle (no history sums). A non-uniform time grid is
-    evaluated on a uniform grid of the median step and interpolated back.
+    Cost is O(len(t)) per cycle (no history sums). A clock with jitter under 10 % of
+    its step is used as is (step = median); a really irregular one is evaluated on a
+    uniform grid of the median step and interpolated back.
     """
     t = np.asarray(t, float)
     x = np.asarray(x, float)
