@@ -24,21 +24,17 @@ from scipy.optimize import least_squares
 
 from foamlab.identification.basis import Layout, ModelBasis
 from foamlab.identification.data import FitData, Orders
-from foamlab.identification.paper import (
-    alpha_candidates,
-    alpha_candidates_from,
-    beta_candidates,
-    nonlinear_bounds,
-)
-from foamlab.identification.varpro import GreedyBasis, SeparableProblem
+from foamlab.identification.paper import alpha_candidates, beta_candidates, nonlinear_bounds
+from foamlab.identification.varpro import GreedyBasis, SeparableProblem, solve_linear
 from foamlab.model import ModelParameters
 
 #: Budget of the short runs that pick the better start, and of the continuation.
 PROBE_NFEV, FIT_NFEV = 8, 40
 #: Budget of the full-resolution polish (it starts next to the optimum).
 POLISH_NFEV = 4
-#: Two modes closer than this (relative) or two orders closer than this are one term twice.
-DEGENERATE_RELATIVE, DEGENERATE_BETA = 0.02, 0.02
+#: A far jump is refitted if its SSE (before refitting) is within this fraction of the
+#: current SSE; at most MAX_JUMPS of them per round, the most promising first.
+JUMP_MARGIN, MAX_JUMPS = 0.25, 3
 #: Fit the unloaded reading z0 only with at least this many samples out of contact.
 MIN_CENSORED = 20
 
@@ -71,80 +67,148 @@ def generic_start(orders: Orders, n_cycles: int, loading_time_s: float) -> np.nd
 
 
 def greedy_start(basis: ModelBasis, w: np.ndarray, y: np.ndarray, orders: Orders,
-                 loading_time_s: float) -> np.ndarray:
-    """Forward selection: add damping modes, then each cycle's residual terms, one at a
+                 loading_time_s: float, residual_first: bool = False) -> np.ndarray:
+    """Forward selection: add damping modes and each cycle's residual terms one at a
     time, each the candidate (decay rate / fractional order from a data-scaled grid)
-    that lowers the SSE most with all linear coefficients re-solved exactly."""
+    that lowers the SSE most with all linear coefficients re-solved exactly. The
+    order of the two groups matters (the first chosen explain what they can), so
+    both orders serve as starts."""
     lay = basis.layout
     sel = GreedyBasis(w[:, None] * basis.elastic, y)
     alphas: list[np.ndarray] = []
-    for _ in range(lay.N):
-        cands = [c for c in alpha_candidates(loading_time_s)
-                 if not any(np.array_equal(c, a) for a in alphas)]
-        cols = [w * basis.damping_column(c[0] + 1j * c[1])[0] for c in cands]
-        k = int(np.argmax([sel.gain(col) for col in cols]))
-        alphas.append(cands[k])
-        sel.add(cols[k])
     betas = np.zeros((lay.C, lay.M))
     grid = np.array([b[0] for b in beta_candidates()])
-    for c in range(lay.C):
-        cols = w[:, None] * basis.residual_columns(c, grid)[0]
-        free = np.ones(len(grid), bool)
-        for m in range(lay.M):
-            gains = [sel.gain(cols[:, i]) if free[i] else -1.0 for i in range(len(grid))]
-            k = int(np.argmax(gains))
-            betas[c, m] = grid[k]
-            free[k] = False
-            sel.add(cols[:, k])
+
+    def pick_damping():
+        for _ in range(lay.N):
+            cands = [c for c in alpha_candidates(loading_time_s)
+                     if not any(np.array_equal(c, a) for a in alphas)]
+            cols = [w * basis.damping_column(c[0] + 1j * c[1])[0] for c in cands]
+            k = int(np.argmax([sel.gain(col) for col in cols]))
+            alphas.append(cands[k])
+            sel.add(cols[k])
+
+    def pick_residual():
+        for c in range(lay.C):
+            cols = w[:, None] * basis.residual_columns(c, grid)[0]
+            free = np.ones(len(grid), bool)
+            for m in range(lay.M):
+                gains = [sel.gain(cols[:, i]) if free[i] else -1.0 for i in range(len(grid))]
+                k = int(np.argmax(gains))
+                betas[c, m] = grid[k]
+                free[k] = False
+                sel.add(cols[:, k])
+
+    for step in ((pick_residual, pick_damping) if residual_first else (pick_damping, pick_residual)):
+        step()
     return np.concatenate([np.concatenate(alphas) if alphas else np.zeros(0), betas.ravel()])
 
 
-def _degenerate(lay: Layout, nonlinear: np.ndarray) -> list[int]:
-    """Nonlinear indices of one member of each coincident pair: two damping modes with
-    (nearly) the same alpha, or two residual terms of a cycle with the same beta. Such a
-    pair with opposite amplitudes is the derivative of one term (a ridge of the SSE the
-    trust region stalls on); moving one member elsewhere lets it leave."""
+@dataclass
+class _Slot:
+    """One damping mode (alpha re, im) or one residual term (beta) and its grid."""
+
+    sl: slice
+    column: int                                # design column it moves
+    grid: np.ndarray                           # (G, size) candidate values
+    columns: Callable[[], np.ndarray]          # (rows, G) weighted columns of the grid
+
+
+def _slots(lay: Layout, basis: ModelBasis, w: np.ndarray, loading_time_s: float) -> list[_Slot]:
     out = []
-    al = nonlinear[:2 * lay.N].reshape(lay.N, 2)
+    alpha_grid = np.array(alpha_candidates(loading_time_s))
+    beta_grid = np.array(beta_candidates())
     for i in range(lay.N):
-        for j in range(i):
-            if abs(complex(*al[i]) - complex(*al[j])) <= DEGENERATE_RELATIVE * abs(complex(*al[j])):
-                out.append(2 * i)
-                break
-    beta = nonlinear[2 * lay.N:].reshape(lay.C, lay.M)
-    for c in range(lay.C):
-        for i in range(lay.M):
-            if any(abs(beta[c, i] - beta[c, j]) <= DEGENERATE_BETA for j in range(i)):
-                out.append(2 * lay.N + c * lay.M + i)
+        out.append(_Slot(slice(2 * i, 2 * i + 2), lay.column_of_nonlinear(2 * i), alpha_grid,
+                         lambda: w[:, None] * np.column_stack(
+                             [basis.damping_column(a + 1j * b)[0] for a, b in alpha_grid])))
+    for j in range(2 * lay.N, lay.n_nonlinear):
+        c = (j - 2 * lay.N) // lay.M
+        out.append(_Slot(slice(j, j + 1), lay.column_of_nonlinear(j), beta_grid,
+                         lambda c=c: w[:, None] * basis.residual_columns(c, beta_grid[:, 0])[0]))
     return out
 
 
-def _reseed(problem: SeparableProblem, lay: Layout, fit, lower, upper, ftol: float, rounds: int = 2):
-    """Move one member of each coincident pair to the candidate that lowers the SSE most
-    (others fixed), refit, keep the result if the SSE is lower."""
+def _scan(problem: SeparableProblem, theta: np.ndarray, slots: list[_Slot]):
+    """Coordinate-wise global moves: each slot in turn goes to the grid value that
+    lowers the SSE most with all others fixed (linear terms re-solved). Also returns,
+    per slot, its best grid value far from where it is (at least two grid steps away)
+    and that SSE: the other side of the landscape, for jumps followed by a refit.
+
+    With the other columns fixed, the SSE of a candidate column c is
+    |r|^2 - (q.r)^2/(q.q), q = c minus its projection on them, r the residual
+    without it: one factorisation per slot, not per candidate."""
+    theta = theta.copy()
+    design = problem.design(theta)
+    y = problem.y
+    best = problem.solve(theta).sse
+    far = []
+    for slot in slots:
+        others = np.delete(design, slot.column, axis=1)
+        Q = solve_linear(others, y).basis
+        r = y - Q @ (Q.T @ y)
+        cand = slot.columns()
+        q = cand - Q @ (Q.T @ cand)
+        qq = np.einsum("ij,ij->j", q, q)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sse = float(r @ r) - np.where(qq > 0, (q.T @ r) ** 2 / qq, 0.0)
+        start = theta[slot.sl].copy()
+        k = int(np.argmin(sse))
+        if sse[k] < best:
+            best = float(sse[k])
+            theta[slot.sl] = slot.grid[k]
+            design[:, slot.column] = cand[:, k]
+        spacing = _grid_spacing(slot.grid)
+        far_idx = [g for g in range(len(slot.grid)) if _distance(slot.grid[g], start, spacing) >= 2]
+        if far_idx:
+            g = min(far_idx, key=lambda i: sse[i])
+            th = theta.copy()
+            th[slot.sl] = slot.grid[g]
+            far.append((float(sse[g]), th))
+        else:
+            far.append((np.inf, None))
+    return theta, best, far
+
+
+def _grid_spacing(grid: np.ndarray) -> float:
+    g = np.asarray(grid, float)
+    if g.shape[1] == 1:
+        return float(np.min(np.diff(np.unique(g[:, 0]))))
+    return float(np.min(np.diff(np.unique(np.log(g[:, 0])))))
+
+
+def _distance(value, current, spacing: float) -> float:
+    """Grid steps between two values of a slot (decay rates on a log scale; real vs
+    oscillating counts as two steps)."""
+    value, current = np.asarray(value, float), np.asarray(current, float)
+    if len(value) == 1:
+        return float(abs(value[0] - current[0]) / spacing)
+    steps = abs(np.log(value[0]) - np.log(max(current[0], 1e-12))) / spacing
+    return float(steps + (0 if (value[1] > 0) == (current[1] > 1e-3 * current[0]) else 2))
+
+
+def _globalise(problem: SeparableProblem, fit, slots, lower, upper, ftol: float, rounds: int = 2):
+    """Global moves the local refinement cannot make, kept while the SSE drops by more
+    than a tenth of the noise variance. Local refinement stalls where a term sits in
+    the wrong place (a term whose best amplitude is ~0 has no gradient in its rate or
+    order; two coinciding terms sit on a ridge; a term can explain the wrong feature).
+    Each round: the coordinate scan, then a short refit from each of the few most
+    promising far jumps (a slot moved to the other side of its grid)."""
     for _ in range(rounds):
-        bad = _degenerate(lay, fit.nonlinear)
-        if not bad:
+        noise_var = fit.sse / max(len(problem.y), 1)
+        theta, sse, far = _scan(problem, fit.nonlinear, slots)
+        starts = [theta] if sse < fit.sse - 0.1 * noise_var else []
+        jumps = sorted((f for f in far if f[1] is not None and f[0] < fit.sse * (1 + JUMP_MARGIN)),
+                       key=lambda f: f[0])
+        starts += [th for _, th in jumps[:MAX_JUMPS]]
+        best = fit
+        for th in starts:
+            refit = problem.fit(th, lower, upper, max_nfev=PROBE_NFEV, ftol=ftol, xtol=1e-6)
+            if refit.sse < best.sse:
+                best = refit
+        if best.sse >= fit.sse - 0.1 * noise_var:
             break
-        theta = fit.nonlinear.copy()
-        for j in bad:
-            if j < 2 * lay.N:
-                cands = [c for c in alpha_candidates_from(lower[j], upper[j])]
-                def trial(c, j=j):
-                    th = theta.copy()
-                    th[j:j + 2] = c
-                    return th
-            else:
-                cands = [b for b in beta_candidates()]
-                def trial(c, j=j):
-                    th = theta.copy()
-                    th[j] = c[0]
-                    return th
-            theta = min((trial(c) for c in cands), key=lambda th: problem.solve(th).sse)
-        refit = problem.fit(theta, lower, upper, max_nfev=FIT_NFEV, ftol=ftol, xtol=1e-6)
-        if refit.sse >= fit.sse:
-            break
-        fit = refit
+        fit = problem.fit(best.nonlinear, lower, upper, max_nfev=FIT_NFEV, ftol=ftol, xtol=1e-6)
     return fit
 
 
@@ -164,8 +228,10 @@ def joint_fit(fd: FitData, orders: Orders, start: ModelParameters | None,
     candidates: list[tuple[str, np.ndarray]] = []
     if start is not None:
         candidates.append(("paper three-step", lay.from_flat(start.to_vector())[1]))
-    candidates.append(("forward selection", greedy_start(coarse, w[:, 0], problem.y, orders,
-                                                         fd.loading_time_s)))
+    slots = _slots(lay, coarse, w[:, 0], fd.loading_time_s)
+    for name, residual_first in (("forward selection", False), ("forward selection, residual first", True)):
+        theta0 = greedy_start(coarse, w[:, 0], problem.y, orders, fd.loading_time_s, residual_first)
+        candidates.append((name, theta0))
     # stop when an iteration gains less than a tenth of the noise variance (the
     # weighted SSE is ~ rows x sigma^2): further progress is below what the data resolve
     ftol = 0.1 / len(problem.y)
@@ -177,7 +243,7 @@ def joint_fit(fd: FitData, orders: Orders, start: ModelParameters | None,
             progress(f"joint fit: start '{name}'", 0.5 + 0.1 * len(probes))
     best, best_name = min(probes, key=lambda fr: fr[0].sse)
     fit = problem.fit(best.nonlinear, lower, upper, max_nfev=FIT_NFEV, ftol=ftol, xtol=1e-6)
-    fit = _reseed(problem, lay, fit, lower, upper, ftol)
+    fit = _globalise(problem, fit, slots, lower, upper, ftol)
     nfev = problem.nfev
     if progress:
         progress("joint fit: full-resolution polish", 0.8)
