@@ -63,9 +63,10 @@ END_FINISHED, END_STOP, END_LIMIT = "finished", "stop", "limit"
 END_ESTOP, END_OVERLOAD, END_FAULT, END_LINK, END_ERROR = "estop", "overload", "fault", "link", "error"
 PARK_AFTER = (END_FINISHED, END_STOP, END_LIMIT)
 
-#: A move is complete when the position is this close to the target (drives report um).
+#: A move is complete when the drive is at rest and in position (or this close to the
+#: target: drives report um)...
 AT_TARGET_MM = 0.003
-#: ...or when the drive says in-position this close to the target.
+#: ...which is asked once the position is this close to the target.
 NEAR_TARGET_MM = 0.05
 #: Consecutive failed reads (after the driver's own retries) tolerated before aborting.
 MAX_FAILED_READS = 3
@@ -242,6 +243,38 @@ class SampleSchedule:
         return self.deadline(self.k) - self.clock()
 
 
+# --------------------------------------------------------------------------- durability
+
+class FileSyncer:
+    """fsync a file every `interval_s` from a background thread (a power cut loses at most that).
+
+    fsync works on the file (inode), whatever descriptor wrote it, so this thread opens its
+    own read-only descriptor and the writer never waits for the disk.
+    """
+
+    def __init__(self, path: Path, interval_s: float = 0.5):
+        self._fd = os.open(path, os.O_RDONLY)
+        self._interval = interval_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="foamlab-run-fsync", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self._interval):
+            try:
+                os.fsync(self._fd)
+            except OSError as exc:
+                log.warning("fsync of the run file failed: %s", exc)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5.0)
+        try:
+            os.close(self._fd)
+        except OSError:
+            pass
+
+
 # --------------------------------------------------------------------------- engine
 
 #: Real-time priority asked for the worker thread (Linux SCHED_FIFO, low priority: above
@@ -335,6 +368,7 @@ class RunEngine:
 
         # filled by the worker
         self._writer = None
+        self._syncer: FileSyncer | None = None
         self._path: Path | None = None
         self._start_position: float | None = None
         self._contact: float | None = None
@@ -552,8 +586,12 @@ class RunEngine:
             path = self.out_dir / f"{name}-{n}.csv"
             n += 1
         self._started_at = _now_iso()
-        self._writer = RunWriter(path, self._header())
+        # Each sample is flushed to the OS as it is written (a crash of this process loses
+        # nothing); the fsync to the disk (5-10 ms here) runs on its own thread so that it
+        # never delays a sample (FileSyncer).
+        self._writer = RunWriter(path, self._header(), fsync_interval_s=math.inf)
         self._path = path
+        self._syncer = FileSyncer(path)
 
     def _header(self) -> dict:
         lim = self.limits
@@ -603,11 +641,12 @@ class RunEngine:
                 continue
             position = sample[0]
             now_s = self._times[-1]
-            if abs(position - target) <= AT_TARGET_MM:
-                return
             if abs(position - target) <= NEAR_TARGET_MM:
+                # done once the drive is at rest there: reversing a crosshead that is still
+                # decelerating would overshoot the target (a drive may fault on that)
                 status = self._read_status()
-                if status is not None and status.in_position and not status.moving:
+                if status is not None and not status.moving and (
+                        status.in_position or abs(position - target) <= AT_TARGET_MM):
                     return
             window.append((now_s, position))
             while window and window[0][0] < now_s - STALL_WINDOW_S:
@@ -918,6 +957,8 @@ class RunEngine:
     def _close_file(self, status: str, reason: str) -> None:
         if self._writer is None:
             return
+        if self._syncer is not None:
+            self._syncer.close()
         try:
             self._writer.finish(status, reason)
         except Exception as exc:

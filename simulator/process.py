@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import sys
 import threading
 from dataclasses import asdict
 from typing import Any
@@ -29,6 +30,8 @@ REPLY_TIMEOUT_S = 10.0
 #: SCHED_FIFO priority asked for the child (below the run engine's 10: the engine preempts
 #: it at a deadline, and it runs whenever the engine waits for a reply).
 REALTIME_PRIORITY = 5
+#: Interpreter-lock switch interval in the child (Python's default is 5 ms).
+SWITCH_INTERVAL_S = 0.0005
 
 
 def _child(conn, transport: str, kwargs: dict, realtime: bool) -> None:
@@ -40,6 +43,9 @@ def _child(conn, transport: str, kwargs: dict, realtime: bool) -> None:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
         except (AttributeError, OSError):
             pass
+    # The server thread answers requests while the physics thread steps the specimen; with
+    # the default 5 ms switch interval a reply could wait that long for the interpreter lock.
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     try:
         from simulator.launch import start_simulator
 
@@ -64,6 +70,8 @@ def _child(conn, transport: str, kwargs: dict, realtime: bool) -> None:
                     conn.send(("ok", asdict(sim.machine.snapshot())))
                 elif request == "faults_fired":
                     conn.send(("ok", list(sim.machine.faults.fired)))
+                elif request == "events":
+                    conn.send(("ok", list(sim.machine.events)))
                 else:
                     conn.send(("error", f"unknown request {request!r}"))
             except Exception as exc:
@@ -111,6 +119,10 @@ class SimulatorProcess:
 
     def faults_fired(self) -> list[tuple[float, str]]:
         return [tuple(f) for f in self._ask("faults_fired")]
+
+    def events(self) -> list[tuple[float, str]]:
+        """The machine's recent events (virtual time, what): moves, stops, faults latched."""
+        return [tuple(e) for e in self._ask("events")]
 
     def stop(self) -> None:
         """Stop serving and end the child (idempotent; kills it if it does not end)."""

@@ -6,6 +6,7 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+from drivers.base import DeviceError
 from drivers.profile import open_machine
 from foamlab.engine import RunEngine
 from foamlab.methods import load_method
@@ -57,9 +58,12 @@ def approach(machine, position_mm: float = SPECIMEN_TOP_MM - 0.3, timeout_s: flo
         machine.crosshead.move_to(position_mm, 400.0)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            status = machine.crosshead.status()
-            if not status.moving and abs(machine.crosshead.read_position() - position_mm) < 0.01:
-                return
+            try:
+                if (not machine.crosshead.status().moving
+                        and abs(machine.crosshead.read_position() - position_mm) < 0.01):
+                    return
+            except DeviceError:   # a lost reply while polling: ask again
+                pass
             time.sleep(0.01)
         raise AssertionError(f"the crosshead did not reach {position_mm} mm")
     finally:

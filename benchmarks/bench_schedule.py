@@ -1,0 +1,145 @@
+"""The run engine's 16 Hz schedule against the simulated machine, through the real drivers.
+
+1. Real time (speedup 1), each transport: deviation of each sample's request from its
+   deadline (p50 / p99 / max, ms), request round trip, samples and missed deadlines
+   (target: p99 <= 2 ms, zero missed). Medians over repeats.
+2. Throughput: the same short method at rising speedups (16 Hz of machine time = 16 x S
+   samples per wall second): the fraction of deadlines missed shows what each transport
+   sustains, hence the speedups the HIL tests use.
+
+    python benchmarks/bench_schedule.py [--seconds 20] [--repeats 3] [--no-sweep]
+
+The simulated machine runs in its own process (simulator.process), as a real one would.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from drivers.base import DeviceError  # noqa: E402
+from drivers.profile import open_machine  # noqa: E402
+from foamlab.engine import RunEngine  # noqa: E402
+from foamlab.methods import parse_method  # noqa: E402
+from foamlab.rundata import Specimen  # noqa: E402
+from simulator.process import start_simulator_process  # noqa: E402
+
+try:
+    from _table import publish  # noqa: E402
+except ImportError:   # run from elsewhere
+    from benchmarks._table import publish  # noqa: E402
+
+SECTION = "Run engine: 16 Hz schedule (benchmarks/bench_schedule.py)"
+TRANSPORTS = {"modbus-tcp": "Modbus TCP", "modbus-rtu-pty": "Modbus RTU on a pty", "serial": "ASCII serial on a pty"}
+SPECIMEN = Specimen("bench", 72.5, 100.0, 100.0)
+APPROACH_MM = 4.7          # just above the simulated specimen's top (5 mm)
+
+
+def method(seconds: float, speed: float = 35.0) -> object:
+    """One cycle lasting `seconds` (half down, half up) at `speed` mm/min, 16 Hz."""
+    strain = speed * seconds / 2 / 60 / SPECIMEN.height_mm
+    return parse_method({
+        "name": "bench", "sampling_hz": 16.0,
+        "contact": {"preload_N": 0.5, "search_speed_mm_min": 20.0, "max_search_mm": 30.0},
+        "park": {"speed_mm_min": 400.0},
+        "sequence": [{"steps": [{"action": "compress", "strain": strain, "speed_mm_min": speed},
+                                {"action": "return", "speed_mm_min": speed}]}],
+    })
+
+
+def approach(sim) -> None:
+    machine = open_machine(sim.profile, **sim.profile_overrides)
+    try:
+        machine.crosshead.move_to(APPROACH_MM, 400.0)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            try:
+                if not machine.crosshead.status().moving:
+                    return
+            except DeviceError:   # a lost reply while polling: ask again
+                pass
+            time.sleep(0.01)
+    finally:
+        machine.close()
+
+
+def one_run(transport: str, speedup: float, seconds: float, out: Path, realtime: bool = True):
+    with start_simulator_process(transport, speedup=speedup) as sim:
+        approach(sim)
+        machine = open_machine(sim.profile, connect=False, **sim.profile_overrides)
+        engine = RunEngine(machine, method(seconds), SPECIMEN, out, speedup=speedup, fit=False,
+                           realtime=realtime)
+        result = engine.run()
+    if result.status != "finished":
+        raise RuntimeError(f"{transport} at speedup {speedup}: run aborted: {result.reason}")
+    return result, engine.scheduling
+
+
+def realtime_table(seconds: float, repeats: int, out: Path, transports: dict) -> list[str]:
+    lines = [f"Speedup 1 (real time), one {seconds:g} s cycle per run, {repeats} runs per row, medians; "
+             f"deviation = request start - deadline.", "",
+             "| transport | scheduling | samples | missed | deviation p50 / p99 / max (ms) | request p50 / p99 / max (ms) |",
+             "|---|---|---:|---:|---:|---:|"]
+    for transport, label in transports.items():
+        for realtime in (True, False):
+            stats, scheduling = [], ""
+            for _ in range(repeats):
+                result, scheduling = one_run(transport, 1.0, seconds, out, realtime=realtime)
+                stats.append(result.timing)
+            med = lambda attr: statistics.median(getattr(s, attr) for s in stats)  # noqa: E731
+            lines.append(
+                f"| {label} | {scheduling} | {med('samples'):.0f} | {med('missed'):.0f} "
+                f"(max {max(s.missed for s in stats)}) | {med('lateness_p50_ms'):.2f} / {med('lateness_p99_ms'):.2f} / "
+                f"{med('lateness_max_ms'):.2f} | {med('rtt_p50_ms'):.2f} / {med('rtt_p99_ms'):.2f} / "
+                f"{med('rtt_max_ms'):.2f} |")
+            print(lines[-1], flush=True)
+    return lines
+
+
+def sweep_table(out: Path, transports: dict) -> list[str]:
+    speedups = (2, 5, 10, 20, 40)
+    lines = ["", "Throughput: one cycle of 20 s machine time (320 deadlines) at speedup S = 16 x S samples "
+             "per wall second; missed deadlines in % (one run each).", "",
+             "| transport | " + " | ".join(f"S = {s}" for s in speedups) + " |",
+             "|---|" + "---:|" * len(speedups)]
+    for transport, label in transports.items():
+        cells = []
+        for s in speedups:
+            result, _ = one_run(transport, float(s), 20.0, out)
+            deadlines = result.n_samples + result.missed
+            cells.append(f"{100 * result.missed / deadlines:.1f}")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        print(lines[-1], flush=True)
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=20.0, help="sampling time per real-time run")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--no-sweep", action="store_true", help="skip the throughput sweep")
+    parser.add_argument("--transports", nargs="+", choices=list(TRANSPORTS), default=list(TRANSPORTS))
+    args = parser.parse_args()
+    transports = {t: TRANSPORTS[t] for t in args.transports}
+    load = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp)
+        lines = realtime_table(args.seconds, args.repeats, out, transports)
+        if not args.no_sweep:
+            lines += sweep_table(out, transports)
+    lines += ["", f"Load average at the start: {load:.1f} on {os.cpu_count()} cores (other jobs share them). "
+              "SCHED_FIFO is asked for the engine's worker thread and the simulator process "
+              "(granted here as root; on a lab PC it needs CAP_SYS_NICE or an rtprio limit); the rows "
+              "'normal' show the same runs without it."]
+    publish(SECTION, lines)
+
+
+if __name__ == "__main__":
+    main()
