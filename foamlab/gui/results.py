@@ -9,6 +9,7 @@ not depend on their classes' internals.
 from __future__ import annotations
 
 import csv
+import html
 import json
 import math
 from dataclasses import dataclass, field
@@ -61,6 +62,7 @@ class Report:
     verdict: str = ""
     findings: list[tuple[str, Any, Any, Any]] = field(default_factory=list)     # effect, rmse before, after, delta BIC
     fit_note: str = ""
+    fit_warnings: list[str] = field(default_factory=list)
     diagnosis_note: str = ""
 
     def set_fit(self, fit: Any) -> None:
@@ -73,6 +75,7 @@ class Report:
         if "rmse" in data and not any(row[0] in ("run", "whole run", "total") for row in self.statistics):
             self.statistics.append(("whole run", None, None, None, data["rmse"]))
         self.constraints = [(name, bool(ok)) for name, ok in (data.get("constraints") or {}).items()]
+        self.fit_warnings = [str(w) for w in (getattr(fit, "warnings", None) or data.get("warnings") or [])]
 
     def set_method_results(self, results: Any) -> None:
         values = results.to_dict() if hasattr(results, "to_dict") else (results or [])
@@ -97,6 +100,7 @@ class Report:
                 if value is not None:
                     rows.append(["statistic", f"{step}.{key}", _num(value), "", ""])
         rows += [["constraint", n, "pass" if ok else "FAIL", "", ""] for n, ok in self.constraints]
+        rows += [["fit_warning", "", w, "", ""] for w in self.fit_warnings]
         rows += [["method_result", n + (f" (cycle {c})" if c else ""), _num(v), u, note]
                  for n, c, v, u, note in self.method_results]
         if self.verdict:
@@ -180,7 +184,10 @@ class ResultsPanel(QtWidgets.QWidget):
         parts = [f"<b>{k}</b>: {v}" for k, v in report.run]
         if report.fit_note:
             parts.append(f"<b>fit</b>: {report.fit_note}")
-        self.summary.setText(" &nbsp;·&nbsp; ".join(parts) or "No run yet.")
+        text = " &nbsp;·&nbsp; ".join(parts) or "No run yet."
+        if report.fit_warnings:
+            text += "<br><b>fit warnings</b>: " + "; ".join(html.escape(w) for w in report.fit_warnings)
+        self.summary.setText(text)
         params = []
         for name, value, stderr in report.parameters:
             rel = None
