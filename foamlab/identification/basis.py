@@ -166,16 +166,15 @@ class _Damping:
         for piecewise-linear x: z_n = E z_n-1 + w_p x_n-1 + w_n x_n, as in
         HereditaryOperator.batch) and, with derivative, d/d(alpha_re), d/d(alpha_im)
         by differentiating that recursion (z is analytic in alpha)."""
-        al = np.array([alpha], dtype=complex)
-        E, wp, wn = (c[0] for c in _phi(al, self.h))
+        eps = ALPHA_FD_STEP * max(abs(alpha), 1e-3)
+        at = np.array([alpha, alpha + eps, alpha - eps] if derivative else [alpha], dtype=complex)
+        E_all, wp_all, wn_all = _phi(at, self.h)            # one call for value and derivative
+        E, wp, wn = E_all[0], wp_all[0], wn_all[0]
         z = lfilter([wn, wp], [1.0, -E], self.xk)
         col = self.interp(z.real)
         if not derivative:
             return col, None, None
-        eps = ALPHA_FD_STEP * max(abs(alpha), 1e-3)
-        hi = [c[0] for c in _phi(al + eps, self.h)]
-        lo = [c[0] for c in _phi(al - eps, self.h)]
-        dE, dwp, dwn = ((a - b) / (2 * eps) for a, b in zip(hi, lo))
+        dE, dwp, dwn = ((c[1] - c[2]) / (2 * eps) for c in (E_all, wp_all, wn_all))
         u = np.zeros(len(z), dtype=complex)
         u[1:] = dE * z[:-1] + dwp * self.xk[:-1] + dwn * self.xk[1:]
         dz = lfilter([1.0], [1.0, -E], u)

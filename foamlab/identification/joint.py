@@ -29,12 +29,12 @@ from foamlab.identification.varpro import GreedyBasis, SeparableProblem, solve_l
 from foamlab.model import ModelParameters
 
 #: Budget of the short runs that pick the better start, and of the continuation.
-PROBE_NFEV, FIT_NFEV = 8, 40
+PROBE_NFEV, FIT_NFEV = 6, 40
 #: Budget of the full-resolution polish (it starts next to the optimum).
-POLISH_NFEV = 4
+POLISH_NFEV = 3
 #: A far jump is refitted if its SSE (before refitting) is within this fraction of the
 #: current SSE; at most MAX_JUMPS of them per round, the most promising first.
-JUMP_MARGIN, MAX_JUMPS = 0.25, 3
+JUMP_MARGIN, MAX_JUMPS = 0.25, 2
 #: Fit the unloaded reading z0 only with at least this many samples out of contact.
 MIN_CENSORED = 20
 
@@ -66,7 +66,7 @@ def generic_start(orders: Orders, n_cycles: int, loading_time_s: float) -> np.nd
     return np.concatenate([np.asarray(alphas, float), np.tile(betas, n_cycles)])
 
 
-def greedy_start(basis: ModelBasis, w: np.ndarray, y: np.ndarray, orders: Orders,
+def greedy_start(basis: ModelBasis, w: np.ndarray, blocks: Callable, y: np.ndarray, orders: Orders,
                  loading_time_s: float, residual_first: bool = False) -> np.ndarray:
     """Forward selection: add damping modes and each cycle's residual terms one at a
     time, each the candidate (decay rate / fractional order from a data-scaled grid)
@@ -74,7 +74,7 @@ def greedy_start(basis: ModelBasis, w: np.ndarray, y: np.ndarray, orders: Orders
     order of the two groups matters (the first chosen explain what they can), so
     both orders serve as starts."""
     lay = basis.layout
-    sel = GreedyBasis(w[:, None] * basis.elastic, y)
+    sel = GreedyBasis(w[:, None] * blocks(basis.elastic), y)
     alphas: list[np.ndarray] = []
     betas = np.zeros((lay.C, lay.M))
     grid = np.array([b[0] for b in beta_candidates()])
@@ -83,14 +83,14 @@ def greedy_start(basis: ModelBasis, w: np.ndarray, y: np.ndarray, orders: Orders
         for _ in range(lay.N):
             cands = [c for c in alpha_candidates(loading_time_s)
                      if not any(np.array_equal(c, a) for a in alphas)]
-            cols = [w * basis.damping_column(c[0] + 1j * c[1])[0] for c in cands]
+            cols = [w * blocks(basis.damping_column(c[0] + 1j * c[1])[0]) for c in cands]
             k = int(np.argmax([sel.gain(col) for col in cols]))
             alphas.append(cands[k])
             sel.add(cols[k])
 
     def pick_residual():
         for c in range(lay.C):
-            cols = w[:, None] * basis.residual_columns(c, grid)[0]
+            cols = w[:, None] * blocks(basis.residual_columns(c, grid)[0])
             free = np.ones(len(grid), bool)
             for m in range(lay.M):
                 gains = [sel.gain(cols[:, i]) if free[i] else -1.0 for i in range(len(grid))]
@@ -114,18 +114,18 @@ class _Slot:
     columns: Callable[[], np.ndarray]          # (rows, G) weighted columns of the grid
 
 
-def _slots(lay: Layout, basis: ModelBasis, w: np.ndarray, loading_time_s: float) -> list[_Slot]:
+def _slots(lay: Layout, basis: ModelBasis, w: np.ndarray, blocks: Callable, loading_time_s: float) -> list[_Slot]:
     out = []
     alpha_grid = np.array(alpha_candidates(loading_time_s))
     beta_grid = np.array(beta_candidates())
     for i in range(lay.N):
         out.append(_Slot(slice(2 * i, 2 * i + 2), lay.column_of_nonlinear(2 * i), alpha_grid,
-                         lambda: w[:, None] * np.column_stack(
-                             [basis.damping_column(a + 1j * b)[0] for a, b in alpha_grid])))
+                         lambda: w[:, None] * blocks(np.column_stack(
+                             [basis.damping_column(a + 1j * b)[0] for a, b in alpha_grid]))))
     for j in range(2 * lay.N, lay.n_nonlinear):
         c = (j - 2 * lay.N) // lay.M
         out.append(_Slot(slice(j, j + 1), lay.column_of_nonlinear(j), beta_grid,
-                         lambda c=c: w[:, None] * basis.residual_columns(c, beta_grid[:, 0])[0]))
+                         lambda c=c: w[:, None] * blocks(basis.residual_columns(c, beta_grid[:, 0])[0])))
     return out
 
 
@@ -222,15 +222,17 @@ def joint_fit(fd: FitData, orders: Orders, start: ModelParameters | None,
     lower, upper = nonlinear_bounds(orders, lay.C, fd.loading_time_s)
     coarse = ModelBasis(fd.t, fd.x, fd.labels, fd.fit_rows, lay, fd.x_scale_mm, fd.fit_step_s)
     w = np.sqrt(fd.fit_count)[:, None]         # block means: weight sqrt(samples)
-    problem = SeparableProblem(lambda th: w * coarse.design(th), lambda th: w * coarse.design_derivatives(th),
+    blocks = fd.block_curvature.apply              # model at the rows -> model block means
+    problem = SeparableProblem(lambda th: w * blocks(coarse.design(th)),
+                               lambda th: w * blocks(coarse.design_derivatives(th)),
                                np.array([lay.column_of_nonlinear(j) for j in range(lay.n_nonlinear)], int),
                                w[:, 0] * fd.fit_force)
     candidates: list[tuple[str, np.ndarray]] = []
     if start is not None:
         candidates.append(("paper three-step", lay.from_flat(start.to_vector())[1]))
-    slots = _slots(lay, coarse, w[:, 0], fd.loading_time_s)
+    slots = _slots(lay, coarse, w[:, 0], blocks, fd.loading_time_s)
     for name, residual_first in (("forward selection", False), ("forward selection, residual first", True)):
-        theta0 = greedy_start(coarse, w[:, 0], problem.y, orders, fd.loading_time_s, residual_first)
+        theta0 = greedy_start(coarse, w[:, 0], blocks, problem.y, orders, fd.loading_time_s, residual_first)
         candidates.append((name, theta0))
     # stop when an iteration gains less than a tenth of the noise variance (the
     # weighted SSE is ~ rows x sigma^2): further progress is below what the data resolve
