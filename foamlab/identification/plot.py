@@ -26,7 +26,7 @@ def plot_fit(result: FitResult, out: str | Path, title: str | None = None) -> Pa
     observed[result.observed] = True
     fig, axes = plt.subplots(2, n_cycles, figsize=(4.2 * n_cycles, 6.2), squeeze=False,
                              gridspec_kw={"height_ratios": [3, 1.3]}, sharex="col")
-    res_lim = 0.0
+    res_lim, res_max = 0.0, 0.0
     for k in range(n_cycles):
         top, bottom = axes[0, k], axes[1, k]
         in_cycle = (labels.cycle == k + 1) & observed
@@ -38,6 +38,7 @@ def plot_fit(result: FitResult, out: str | Path, title: str | None = None) -> Pa
             bottom.plot(np.where(m, x, np.nan), r, color=colour, lw=0.6)
             if np.any(m):
                 res_lim = max(res_lim, float(np.nanpercentile(np.abs(r), 99.5)))
+                res_max = max(res_max, float(np.nanmax(np.abs(r))))
         bottom.axhline(0.0, color="0.3", lw=0.5)
         top.set_title(f"cycle {k + 1}")
         bottom.set_xlabel("displacement [mm]")
@@ -45,8 +46,12 @@ def plot_fit(result: FitResult, out: str | Path, title: str | None = None) -> Pa
             top.set_ylabel("force [N]")
             bottom.set_ylabel("measured - fitted [N]")
             top.legend(loc="upper left", fontsize=8)
+    lim = 1.15 * res_lim or 1.0
     for ax in axes[1]:
-        ax.set_ylim(-1.15 * res_lim or -1, 1.15 * res_lim or 1)
+        ax.set_ylim(-lim, lim)
+    if res_max > lim:   # say what the axis leaves out (the largest misfits, at the turning points)
+        axes[1, 0].text(0.01, 0.03, f"axis: 99.5 % of samples; max |residual| {res_max:.3g} N",
+                        transform=axes[1, 0].transAxes, fontsize=7, color="0.3")
     fig.suptitle(title or (f"{Path(result.source).name if result.source else 'run'}: orders {result.orders}, "
                            f"RMSE {result.rmse:.3g} N, R² {result.statistics['joint'].r2:.5f}"))
     fig.tight_layout()
