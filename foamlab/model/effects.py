@@ -448,20 +448,23 @@ def frame_force(t, force, tau_s: float) -> np.ndarray:
 
 
 def specimen_displacement(x, force, compliance_mm_per_N: float, t=None,
-                          tau_frame_s: float | None = None) -> np.ndarray:
+                          tau_frame_s: float | None = None, *, frame: np.ndarray | None = None) -> np.ndarray:
     """machine_compliance's input stage: the compression the specimen sees for crosshead x.
 
     x - C frame_force(t, force, tau_frame_s), kept monotone within each crosshead
     half-cycle (see MachineCompliance); force is the measured (or contact) force on the
-    same samples t (required: the frame response is in time).
+    same samples t (required: the frame response is in time). ``frame``: that
+    frame_force already computed (diagnosis reuses it for every trial compliance).
     """
-    if t is None:
-        raise ValueError("specimen_displacement needs the sample times t (the frame responds in time)")
-    tau = MachineCompliance.parameters[1].typical if tau_frame_s is None else tau_frame_s
     x = np.asarray(x, float)
     if len(x) == 0:
         return x.copy()
-    g = frame_force(t, force, tau)
+    if frame is None:
+        if t is None:
+            raise ValueError("specimen_displacement needs the sample times t (the frame responds in time)")
+        tau = MachineCompliance.parameters[1].typical if tau_frame_s is None else tau_frame_s
+        frame = frame_force(t, force, tau)
+    g = np.asarray(frame, float)
     return _monotone_in_runs(x - compliance_mm_per_N * g, motion_direction(x), x0=min(x[0], 0.0))
 
 
