@@ -120,11 +120,19 @@ def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
         assert len(x_fit) == result.n_samples
         rows = list(csv.reader(w.export_csv(tmp_path / "results.csv").open(encoding="utf-8")))
         assert {"parameter", "statistic"} <= {r[0] for r in rows[1:]}
+        # Then the diagnosis verdict (foamlab.diagnosis), computed off the GUI thread.
+        qtbot.waitUntil(lambda: "verdict" in w.results.verdict.text() or "failed" in w.results.verdict.text(),
+                        timeout=90_000)
+        assert "Diagnosis verdict:" in w.results.verdict.text(), w.results.verdict.text()
+        assert w.results.report.verdict in (
+            "cycle_softening", "damping_cycle_change", "channel_lag", "force_zero_drift",
+            "machine_compliance", "direction_friction", "rate_dependence", "unexplained", "none")
 
     # The run is in the catalog's browser; opening it from there shows the same curves (and fit).
     w.browser.refresh()
     qtbot.waitUntil(lambda: any(r["file"] == str(result.path.resolve()) for r in w.browser.rows), timeout=10_000)
     row = next(i for i, r in enumerate(w.browser.rows) if r["file"] == str(result.path.resolve()))
+    w.auto_diagnose_action.setChecked(False)      # diagnosed above already; keep the test short
     w.shown_run = None
     w.browser._open_row(row)
     qtbot.waitUntil(lambda: w.shown_run is not None, timeout=20_000)
@@ -272,6 +280,8 @@ def test_closing_mid_run_stops_the_machine_and_keeps_the_data(qtbot, tmp_path, m
 
 def test_open_measured_file_shows_curves(qtbot, window):
     w = window
+    # Diagnosing the 18 000-sample real file takes ~25 s: left out here (the full-run test diagnoses).
+    w.auto_diagnose_action.setChecked(False)
     w.open_file(REAL_BLUEHILL)
     qtbot.waitUntil(lambda: w.shown_run is not None, timeout=20_000)
     run = w.shown_run
@@ -281,8 +291,12 @@ def test_open_measured_file_shows_curves(qtbot, window):
     assert "3 cycles" in w.run_status.text()
     rows = dict(w.results.report.run)
     assert rows["cycles"] == "3"
-    # The fit comes from the analysis thread when foamlab.identification is installed.
+    # The fit comes from the analysis thread: parameters, statistics and the fitted curve.
     qtbot.waitUntil(lambda: "fitting" not in w.results.summary.text(), timeout=30_000)
+    assert w.results.parameters.rowCount() > 0 and w.results.statistics.rowCount() > 0
+    x_fit, f_fit = w.plots.fit_fd.getData()
+    assert len(x_fit) == len(run) and np.isfinite(f_fit).all()
+    assert "not run" in w.results.verdict.text()
 
 
 def test_open_bad_file_says_why(qtbot, window, tmp_path):

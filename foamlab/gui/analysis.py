@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +38,7 @@ class Loaded:
     n_cycles: int
     method_results: Any = None
     segmentation_note: str = ""
+    stored_diagnosis: dict | None = None   # <run>.diagnosis.json beside the file, when there is one
 
     def describe(self) -> str:
         run = self.run
@@ -88,7 +90,21 @@ def load_for_display(path: str | Path) -> Loaded:
             method_results = load_method(run.method).compute_results(run)
         except FoamlabError as exc:
             log.info("method results of %s not computed: %s", path, exc)
-    return Loaded(run, cycles, phases, n_cycles, method_results, note)
+    return Loaded(run, cycles, phases, n_cycles, method_results, note, stored_diagnosis(path))
+
+
+def stored_diagnosis(path: str | Path) -> dict | None:
+    """The diagnosis kept beside a run file (catalog sidecar), if any and readable."""
+    try:
+        from foamlab.storage.catalog import sidecar_path
+
+        side = sidecar_path(path, "diagnosis")
+        if side.is_file():
+            data = json.loads(side.read_text(encoding="utf-8"))
+            return data if isinstance(data, dict) and "verdict" in data else None
+    except (ImportError, OSError, ValueError) as exc:
+        log.info("no stored diagnosis for %s: %s", path, exc)
+    return None
 
 
 def fit_for_display(loaded: Loaded) -> Any:

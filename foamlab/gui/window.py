@@ -71,7 +71,7 @@ def _big_label(text: str, name: str) -> QtWidgets.QLabel:
 
 class MainWindow(QtWidgets.QMainWindow):
     def __init__(self, speedup: float = 1.0, out_dir: str | Path = "foamlab-data",
-                 profile: str | None = None, method: str | None = None) -> None:
+                 profile: str | None = None, method: str | None = None, auto_diagnose: bool = True) -> None:
         super().__init__()
         self.setWindowTitle("foamlab — compression test")
         self.speedup = float(speedup)
@@ -84,6 +84,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._close_requested = False
         self._analysis_generation = 0
         self.progress_fraction = 0.0
+        self._auto_diagnose = auto_diagnose
 
         self.link = MachineLink(self)
         self.analysis = BackgroundQueue("foamlab-analysis", self)
@@ -249,6 +250,13 @@ class MainWindow(QtWidgets.QMainWindow):
         self.export_csv_action = menu.addAction("Export results as &CSV…")
         menu.addSeparator()
         self.quit_action = menu.addAction("&Quit", QtGui.QKeySequence.StandardKey.Quit)
+        analysis_menu = self.menuBar().addMenu("&Analysis")
+        # A diagnosis takes seconds to tens of seconds (it refits extended models); it runs in
+        # the background, and can be left for later.
+        self.auto_diagnose_action = analysis_menu.addAction("Diagnose &automatically")
+        self.auto_diagnose_action.setCheckable(True)
+        self.auto_diagnose_action.setChecked(self._auto_diagnose)
+        self.diagnose_action = analysis_menu.addAction("&Diagnose the shown run")
 
         self.frame_timer = QtCore.QTimer(self)
         self.frame_timer.setInterval(int(1000 / FRAME_HZ))
@@ -310,6 +318,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.export_png_action.triggered.connect(lambda: self.export_png())
         self.export_csv_action.triggered.connect(lambda: self.export_csv())
         self.quit_action.triggered.connect(self.close)
+        self.diagnose_action.triggered.connect(self.diagnose_shown_run)
         self.browser.open_requested.connect(self.open_file)
 
     # ================================================================ state
@@ -569,7 +578,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self._overlay_fit(result.fit, result.run)
         self.browser.refresh()
         if result.run is not None and len(result.run) and ok:
-            self._start_diagnosis(result.run, report, self._analysis_generation)
+            self._maybe_diagnose(result.run, report, self._analysis_generation)
         if self._close_requested:
             self.close()
 
@@ -604,6 +613,24 @@ class MainWindow(QtWidgets.QMainWindow):
             return
         if predicted is not None:
             self.plots.show_fit(run.time_s, run.displacement_mm, predicted)
+
+    def _maybe_diagnose(self, run, report: Report, generation: int, stored: dict | None = None) -> None:
+        """Show a stored diagnosis, else diagnose now when automatic diagnosis is on."""
+        if stored:
+            report.set_diagnosis(stored)
+            report.diagnosis_note = "stored with the run"
+            self.results.show_report(report)
+        elif self.auto_diagnose_action.isChecked():
+            self._start_diagnosis(run, report, generation)
+        else:
+            report.diagnosis_note = "not run (Analysis > Diagnose the shown run)"
+            self.results.show_report(report)
+
+    def diagnose_shown_run(self) -> None:
+        if self.running or self.shown_run is None or not len(self.shown_run):
+            self._status("no run to diagnose: finish a run or open a file first", error=True)
+            return
+        self._start_diagnosis(self.shown_run, self.results.report, self._analysis_generation)
 
     def _start_diagnosis(self, run, report: Report, generation: int) -> None:
         if not _has_module("foamlab.diagnosis"):
@@ -679,14 +706,14 @@ class MainWindow(QtWidgets.QMainWindow):
             report.set_fit(fit)
             self.results.show_report(report)
             self._overlay_fit(fit, run)
-            self._start_diagnosis(run, report, generation)
+            self._maybe_diagnose(run, report, generation, loaded.stored_diagnosis)
 
         def not_fitted(message: str) -> None:
             if generation != self._analysis_generation:
                 return
             report.fit_note = message
             self.results.show_report(report)
-            self._start_diagnosis(run, report, generation)
+            self._maybe_diagnose(run, report, generation, loaded.stored_diagnosis)
 
         self.analysis.submit(lambda: fit_for_display(loaded), fitted, not_fitted)
 
