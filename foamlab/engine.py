@@ -33,7 +33,6 @@ from __future__ import annotations
 import datetime as _dt
 import importlib
 import importlib.util
-import json
 import logging
 import math
 import os
@@ -728,6 +727,7 @@ class RunEngine:
         # subtraction (0.015000000000000568) out of the file
         t = round(self._machine_time(wall), 6)
         disp = round(position - self._contact, 6)
+        force = round(force, 6)           # float32 registers widen to 0.03999999910593033
         rtt_ms = round(rtt_ms, 3)
         index = len(self._times)
         self._times.append(t)
@@ -988,12 +988,9 @@ class RunEngine:
             log.debug("automatic fit failed", exc_info=True)
             return None, f"fit failed: {type(exc).__name__}: {exc}", None
         fit_path = None
-        to_json = getattr(fit, "to_json", None)
-        if to_json is not None and self._path is not None:
-            try:
-                fit_path = self._path.with_name(f"{self._path.stem}.fit.json")
-                text = to_json()
-                fit_path.write_text(text if isinstance(text, str) else json.dumps(text, indent=2))
+        if self._path is not None and hasattr(fit, "save"):
+            try:   # the sidecar beside the run: the catalog indexes it, the simulator loads it
+                fit_path = fit.save(self._path.with_name(f"{self._path.stem}.fit.json"))
             except Exception as exc:
                 log.warning("could not save the fit: %s", exc)
                 fit_path = None

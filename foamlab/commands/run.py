@@ -7,6 +7,7 @@ import contextlib
 import importlib
 import logging
 import importlib.util
+import json
 import math
 import sys
 import time
@@ -73,6 +74,8 @@ def register(subparsers) -> None:
                      help="inject a fault (repeatable): NAME@T, NAME@T+D, NAME:p=P (see foamlab sim --help)")
     sim.add_argument("--seed", type=int, default=0, help="seed of its noise and random faults (default 0)")
     p.add_argument("--no-fit", action="store_true", help="do not fit the model after the run")
+    p.add_argument("--no-diagnose", action="store_true",
+                   help="do not diagnose the fitted run (the diagnosis takes ~20 s; Ctrl-C skips it too)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.add_argument("--verbose", action="store_true",
                    help="also print the engine's warnings (retries, failed reads) as they happen")
@@ -226,7 +229,7 @@ def run(args) -> int:
     finally:
         if sim is not None:
             sim.stop()
-    return _report(result, method, out_dir)
+    return _report(result, method, out_dir, args.no_diagnose)
 
 
 def _start_builtin(args):
@@ -265,7 +268,7 @@ def _wait(engine):
                 engine.emergency_stop()
 
 
-def _report(result, method, out_dir: Path) -> int:
+def _report(result, method, out_dir: Path, no_diagnose: bool = False) -> int:
     if result.status != "finished":
         kept = f"; {result.n_samples} samples kept in {result.path}" if result.path else ""
         print(f"foamlab run: aborted: {result.reason}{kept}", file=sys.stderr)
@@ -288,30 +291,35 @@ def _report(result, method, out_dir: Path) -> int:
         print("  " + (summary() if callable(summary) else str(result.fit)).replace("\n", "\n  "))
     elif result.fit_error:
         print(f"fit: not available: {result.fit_error}")
-    verdict = _diagnose(result)
+    verdict, diagnosis_path = ("", None) if no_diagnose else _diagnose(result)
     if verdict:
-        print(f"diagnosis: {verdict}")
-    _register(result, out_dir)
+        print(f"diagnosis: {verdict}" + (f" ({diagnosis_path})" if diagnosis_path else ""))
+    _register(result, out_dir, diagnosis_path, verdict)
     return 0
 
 
-def _diagnose(result) -> str:
-    """The diagnosis verdict when foamlab.diagnosis exists (else nothing)."""
-    if result.run is None or importlib.util.find_spec("foamlab.diagnosis") is None:
-        return ""
+def _diagnose(result) -> tuple[str, Path | None]:
+    """The diagnosis verdict when foamlab.diagnosis exists (and its sidecar file)."""
+    if result.run is None or result.fit is None or importlib.util.find_spec("foamlab.diagnosis") is None:
+        return "", None
+    print("diagnosing the run (Ctrl-C skips it)...", flush=True)
     try:
-        diagnosis = importlib.import_module("foamlab.diagnosis")
-        report = diagnosis.diagnose([result.run])
+        from foamlab.diagnosis import diagnose
+
+        report = diagnose([result.run], params=result.fit.params)
+        path = result.path.with_name(f"{result.path.stem}.diagnosis.json")
+        path.write_text(json.dumps(report.to_dict(), indent=2), encoding="utf-8")
+    except KeyboardInterrupt:
+        return "skipped (Ctrl-C)", None
     except FoamlabError as exc:
-        return f"not available: {exc}"
+        return f"not available: {exc}", None
     except Exception as exc:   # the run is done and saved; a diagnosis bug must not hide that
-        return f"failed: {type(exc).__name__}: {exc}"
-    verdict = getattr(report, "verdict", None) or (report.get("verdict") if isinstance(report, dict) else None)
-    return str(verdict or report)
+        return f"failed: {type(exc).__name__}: {exc}", None
+    return report.verdict, path
 
 
-def _register(result, out_dir: Path) -> None:
-    """Index the run (and its fit) in the data folder's catalog."""
+def _register(result, out_dir: Path, diagnosis_path: Path | None = None, verdict: str = "") -> None:
+    """Index the run (its fit, its diagnosis) in the data folder's catalog."""
     if result.path is None:
         return
     try:
@@ -321,5 +329,7 @@ def _register(result, out_dir: Path) -> None:
             catalog.add_run(result.path, result.run)
             if result.fit_path is not None:
                 catalog.add_fit(result.path, result.fit_path)
+            if diagnosis_path is not None:
+                catalog.add_diagnosis(result.path, diagnosis_path, verdict=verdict)
     except Exception as exc:   # the run file is the record; `foamlab catalog rebuild` recovers
         print(f"foamlab run: warning: run not added to the catalog: {exc}", file=sys.stderr)
