@@ -320,3 +320,17 @@ def test_connection_failure_is_shown_and_disconnect_closes_the_simulator(qtbot, 
     qtbot.waitUntil(lambda: w.connection_label.text() == "Disconnected", timeout=10_000)
     assert not conn.simulator.running
     assert w.force_label.text() == "–" and w.profile_combo.isEnabled()
+
+
+def test_gui_command_without_a_display_says_so_in_one_line():
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM")}
+    proc = subprocess.run([sys.executable, "-m", "foamlab.cli", "gui"], env=env, capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "no display" in proc.stderr
+    bad = subprocess.run([sys.executable, "-m", "foamlab.cli", "gui", "--speedup", "0"], env=env,
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "speedup" in bad.stderr and "Traceback" not in bad.stderr

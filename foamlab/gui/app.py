@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -14,6 +15,11 @@ def run_gui(speedup: float = 1.0, out_dir: str | Path = "foamlab-data", profile:
             method: str | None = None, open_path: str | None = None) -> int:
     if not (math.isfinite(speedup) and speedup > 0):
         raise FoamlabError(f"--speedup must be a positive number, got {speedup}")
+    if (sys.platform.startswith("linux") and not os.environ.get("QT_QPA_PLATFORM")
+            and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY")):
+        # Qt would abort the process with a long plugin message; say it in one line instead.
+        raise FoamlabError("no display to open the window on (DISPLAY/WAYLAND_DISPLAY unset); run it on "
+                           "a desktop, or use 'foamlab run' for a headless test")
     try:
         from PySide6 import QtCore, QtWidgets
     except ImportError as exc:

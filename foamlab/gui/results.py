@@ -9,7 +9,6 @@ not depend on their classes' internals.
 from __future__ import annotations
 
 import csv
-import html
 import json
 import math
 from dataclasses import dataclass, field
@@ -186,7 +185,12 @@ class ResultsPanel(QtWidgets.QWidget):
             parts.append(f"<b>fit</b>: {report.fit_note}")
         text = " &nbsp;·&nbsp; ".join(parts) or "No run yet."
         if report.fit_warnings:
-            text += "<br><b>fit warnings</b>: " + "; ".join(html.escape(w) for w in report.fit_warnings)
+            # Often a dozen long lines: a count here, the list in the tooltip and the CSV.
+            text += (f"<br><b>fit warnings</b>: {len(report.fit_warnings)} (hover for the list; "
+                     f"exported with the results)")
+            self.summary.setToolTip("\n".join(report.fit_warnings))
+        else:
+            self.summary.setToolTip("")
         self.summary.setText(text)
         params = []
         for name, value, stderr in report.parameters:
