@@ -236,9 +236,12 @@ class LivePlots(QtWidgets.QWidget):
         self.ft_plot.enableAutoRange()
 
     def show_fit(self, time_s, displacement_mm, force_N) -> None:
-        """Overlay the model's predicted force (dotted, dark) on both plots."""
+        """Overlay the model's predicted force (dashed, dark) on both plots."""
         self.clear_fit()
-        pen = pg.mkPen(FIT_COLOUR, width=1.5, style=QtCore.Qt.PenStyle.DotLine)
+        # Dark, thin, dashed and a little transparent: the measured curves stay readable under it.
+        colour = QtGui.QColor(FIT_COLOUR)
+        colour.setAlpha(190)
+        pen = pg.mkPen(colour, width=1, style=QtCore.Qt.PenStyle.DashLine)
         self.fit_fd = self.fd_plot.plot(np.asarray(displacement_mm), np.asarray(force_N), pen=pen, name="fitted model")
         self.fit_ft = self.ft_plot.plot(np.asarray(time_s), np.asarray(force_N), pen=pen)
 

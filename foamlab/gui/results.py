@@ -124,6 +124,7 @@ def _table(headers: list[str], name: str) -> QtWidgets.QTableWidget:
     table.setHorizontalHeaderLabels(headers)
     table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
     table.verticalHeader().setVisible(False)
+    table.verticalHeader().setDefaultSectionSize(table.fontMetrics().height() + 6)  # compact rows
     table.horizontalHeader().setStretchLastSection(True)
     table.setAlternatingRowColors(True)
     return table
@@ -169,6 +170,7 @@ class ResultsPanel(QtWidgets.QWidget):
         bottom.addWidget(_boxed("Diagnosis findings", self.findings))
         splitter.addWidget(top)
         splitter.addWidget(bottom)
+        splitter.setSizes([3000, 2000])   # proportions: the fit tables get the larger share
         layout.addWidget(splitter, 1)
 
     def clear(self) -> None:

@@ -227,8 +227,9 @@ class MainWindow(QtWidgets.QMainWindow):
         top_layout.addWidget(self.run_status)
         splitter.addWidget(top)
         splitter.addWidget(self.results)
-        splitter.setStretchFactor(0, 3)
-        splitter.setStretchFactor(1, 2)
+        splitter.setStretchFactor(0, 1)
+        splitter.setStretchFactor(1, 1)
+        splitter.setSizes([470, 430])
         right.addWidget(splitter)
 
         from foamlab.gui.browser import RunBrowser
