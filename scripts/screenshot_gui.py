@@ -4,7 +4,7 @@ Connects the window to the built-in simulated machine, runs the paper's protocol
 a 100 x 100 x 72.5 mm block (the simulator's clock sped up), waits for the fit and
 the diagnosis, and saves a grab of the whole window.
 
-    .venv/bin/python scripts/screenshot_gui.py [--speedup 10] [--out docs/img/gui.png]
+    .venv/bin/python scripts/screenshot_gui.py [--speedup 5] [--out docs/img/gui.png]
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def wait_for(app: QtWidgets.QApplication, condition, timeout_s: float, what: str
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--speedup", type=float, default=10.0, help="simulated machine clock rate (default 10)")
+    parser.add_argument("--speedup", type=float, default=5.0, help="simulated machine clock rate (default 5)")
     parser.add_argument("--height", type=float, default=72.5, help="specimen height in mm (default 72.5)")
     parser.add_argument("--out", default=str(ROOT / "docs" / "img" / "gui.png"))
     parser.add_argument("--size", default="1400x900", help="window size WxH")

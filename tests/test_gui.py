@@ -316,6 +316,10 @@ def test_connection_failure_is_shown_and_disconnect_closes_the_simulator(qtbot, 
     w.profile_combo.setCurrentText("Built-in simulated machine")
     conn = connect(qtbot, w)
     assert not w.profile_combo.isEnabled()                 # no profile change while connected
+    # The machine goes away (cable pulled, power off): the window says so, it does not hang.
+    conn.simulator.stop()
+    qtbot.waitUntil(lambda: "does not answer" in w.connection_label.text(), timeout=15_000)
+    assert w.state_label.text() == "no answer"
     click(qtbot, w.connect_button)                         # Disconnect
     qtbot.waitUntil(lambda: w.connection_label.text() == "Disconnected", timeout=10_000)
     assert not conn.simulator.running

@@ -50,6 +50,7 @@ class MachineLink(QtCore.QObject):
     connect_failed = QtCore.Signal(str)
     disconnected = QtCore.Signal()
     readout = QtCore.Signal(object)           # Readout
+    poll_failed = QtCore.Signal(str)          # the machine did not answer an idle readout
     error = QtCore.Signal(str)                # one line for the status area
 
     def __init__(self, parent: QtCore.QObject | None = None) -> None:
@@ -141,7 +142,8 @@ class MachineLink(QtCore.QObject):
 
         def failed(message: str) -> None:
             self._poll_in_flight = False
-            self.error.emit(f"reading the machine failed: {message}")
+            if self.connection is conn:
+                self.poll_failed.emit(message)
 
         self.submit(work, done, failed)
 

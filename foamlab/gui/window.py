@@ -85,6 +85,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._analysis_generation = 0
         self.progress_fraction = 0.0
         self._auto_diagnose = auto_diagnose
+        self._link_trouble = False
 
         self.link = MachineLink(self)
         self.analysis = BackgroundQueue("foamlab-analysis", self)
@@ -297,6 +298,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.link.connect_failed.connect(self._on_connect_failed)
         self.link.disconnected.connect(self._on_disconnected)
         self.link.readout.connect(self._on_readout)
+        self.link.poll_failed.connect(self._on_poll_failed)
         self.link.error.connect(lambda msg: self._status(msg, error=True))
         self.poll_timer.timeout.connect(self.link.poll)
         self.frame_timer.timeout.connect(self._on_frame)
@@ -373,9 +375,8 @@ class MainWindow(QtWidgets.QMainWindow):
         from foamlab.engine import Limits
 
         self.connect_button.setText("Disconnect")
-        note = f", clock x{conn.speedup:g}" if conn.speedup != 1 else ""
-        self.connection_label.setText(f"● Connected: {conn.name}{note}")
-        self.connection_label.setStyleSheet("color: #1B7F3B; font-weight: bold;")
+        self._link_trouble = False
+        self._show_connected(conn)
         try:
             limits = Limits.from_profile(conn.profile)
             self.limits_form.set_profile_limits(limits)
@@ -385,6 +386,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self._status(f"connected to {conn.name}", timeout_ms=5000)
         self.poll_timer.start()
         self._update_controls()
+
+    def _show_connected(self, conn: Connection) -> None:
+        note = f", clock x{conn.speedup:g}" if conn.speedup != 1 else ""
+        self.connection_label.setText(f"● Connected: {conn.name}{note}")
+        self.connection_label.setStyleSheet("color: #1B7F3B; font-weight: bold;")
 
     def _on_connect_failed(self, message: str) -> None:
         self.connect_button.setText("Connect")
@@ -402,7 +408,17 @@ class MainWindow(QtWidgets.QMainWindow):
             label.setText("–")
         self._update_controls()
 
+    def _on_poll_failed(self, message: str) -> None:
+        self._link_trouble = True
+        self.connection_label.setText(f"⚠ Connected, but the machine does not answer: {message}")
+        self.connection_label.setStyleSheet(ERROR_STYLE)
+        self.state_label.setText("no answer")
+        self.state_label.setStyleSheet(ERROR_STYLE)
+
     def _on_readout(self, readout: Readout) -> None:
+        if self._link_trouble and self.link.connection is not None:
+            self._link_trouble = False
+            self._show_connected(self.link.connection)
         self.force_label.setText(f"{readout.force_N:.2f}")
         self.position_label.setText(f"{readout.position_mm:.3f}")
         state = readout.state + (" · OVERLOAD" if readout.overload else "")
