@@ -156,8 +156,9 @@ def test_undetermined_parameters_are_flagged_not_printed_as_estimates(default_pa
                if any(w.startswith(f"{n} ") or f" {n} " in w for w in result.warnings)]
     assert flagged, result.warnings
     d = result.to_dict()["parameters"]
-    undetermined = [n for n in result.names if d[n]["stderr"] is None]
-    assert all(any(w.startswith(f"{n} =") for w in result.warnings) for n in undetermined)
+    without_error = [n for n in result.names if d[n]["stderr"] is None]
+    # every parameter without a standard error is explained: not determined, or fixed
+    assert all(any(w.startswith(f"{n} =") for w in result.warnings + result.notes) for n in without_error)
 
 
 def test_orders_are_selectable_and_compared_by_information_criteria(default_params):

@@ -74,20 +74,23 @@ def _result(fd: FitData, orders: Orders, paper, jf: JointFit, started: float) ->
     values = params.to_vector()
     # Jacobian columns: linear (design order), nonlinear, [z0]  ->  flat name order
     lin_idx, nl_idx = lay.flat_index_of_linear(), lay.flat_index_of_nonlinear()
-    col_names = [names[i] for i in lin_idx] + [names[i] for i in nl_idx]
-    col_values = np.concatenate([jf.linear, jf.nonlinear])
+    free = ~jf.fixed_nonlinear
+    col_names = [names[i] for i in lin_idx] + [names[i] for i in nl_idx[free]]
+    col_values = np.concatenate([jf.linear, jf.nonlinear[free]])
     if jf.zero_fitted:
         col_names.append("contact_zero_N")
         col_values = np.append(col_values, jf.contact_zero_N)
     lower, upper = nonlinear_bounds(orders, lay.C, fd.loading_time_s)
-    ranges = np.concatenate([np.full(lay.n_linear, np.inf), upper - lower,
+    ranges = np.concatenate([np.full(lay.n_linear, np.inf), (upper - lower)[free],
                              [np.inf] if jf.zero_fitted else []])
     unc = parameter_uncertainty(jf.jacobian, jf.residual, col_values, col_names, ranges=ranges)
-    order = np.concatenate([lin_idx, nl_idx])             # flat index of each column
+    order = np.concatenate([lin_idx, nl_idx[free]])       # flat index of each column
     stderr = np.full(len(names), np.nan)
     stderr[order] = unc.stderr[:len(order)]
     corr = np.full((len(names), len(names)), np.nan)
     corr[np.ix_(order, order)] = unc.correlation[:len(order), :len(order)]
+    notes = [f"{names[i]} = 0 (fixed): the data do not support an oscillation of damping mode "
+             f"{names[i][5:-3]} (BIC), so it is a real mode" for i in nl_idx[jf.fixed_nonlinear]]
 
     # the model's own evaluation at every sample, what a load cell would read
     response = evaluate(params, fd.t, fd.x, fd.labels)
@@ -112,7 +115,8 @@ def _result(fd: FitData, orders: Orders, paper, jf: JointFit, started: float) ->
     return FitResult(
         params=params, orders=orders, names=names, values=values, stderr=stderr,
         stderr_autocorr=stderr * np.sqrt(tau), correlation=corr, statistics=statistics,
-        rmse=rmse, constraints=thermodynamic_checks(params), warnings=warnings, aic=aic, bic=bic,
+        rmse=rmse, constraints=thermodynamic_checks(params), warnings=warnings, notes=notes,
+        aic=aic, bic=bic,
         n_obs=joint.n, n_params=jf.n_free, autocorrelation_time=tau,
         contact_zero_N=jf.contact_zero_N, response=response, predicted_force_N=predicted,
         observed=fd.observed, paper=paper, source=fd.run.source,

@@ -25,16 +25,16 @@ from scipy.optimize import least_squares
 from foamlab.identification.basis import Layout, ModelBasis
 from foamlab.identification.data import FitData, Orders
 from foamlab.identification.paper import alpha_candidates, beta_candidates, nonlinear_bounds
-from foamlab.identification.varpro import GreedyBasis, SeparableProblem, solve_linear
+from foamlab.identification.varpro import GreedyBasis, SeparableFit, SeparableProblem, solve_linear
 from foamlab.model import ModelParameters
 
 #: Budget of the short runs that pick the better start, and of the continuation.
 PROBE_NFEV, FIT_NFEV = 6, 40
 #: Budget of the full-resolution polish (it starts next to the optimum).
 POLISH_NFEV = 3
-#: A far jump is refitted if its SSE (before refitting) is within this fraction of the
-#: current SSE; at most MAX_JUMPS of them per round, the most promising first.
-JUMP_MARGIN, MAX_JUMPS = 0.25, 2
+#: Far jumps refitted per round of the global search, the most promising (lowest SSE
+#: before refitting) first.
+MAX_JUMPS = 2
 #: Fit the unloaded reading z0 only with at least this many samples out of contact.
 MIN_CENSORED = 20
 
@@ -45,6 +45,7 @@ class JointFit:
     layout: Layout
     linear: np.ndarray
     nonlinear: np.ndarray
+    fixed_nonlinear: np.ndarray   # bool: held fixed (Im alpha of a mode made real)
     contact_zero_N: float
     zero_fitted: bool
     jacobian: np.ndarray          # full-resolution, at the solution (rows = fd.observed)
@@ -198,8 +199,7 @@ def _globalise(problem: SeparableProblem, fit, slots, lower, upper, ftol: float,
         noise_var = fit.sse / max(len(problem.y), 1)
         theta, sse, far = _scan(problem, fit.nonlinear, slots)
         starts = [theta] if sse < fit.sse - 0.1 * noise_var else []
-        jumps = sorted((f for f in far if f[1] is not None and f[0] < fit.sse * (1 + JUMP_MARGIN)),
-                       key=lambda f: f[0])
+        jumps = sorted((f for f in far if f[1] is not None), key=lambda f: f[0])
         starts += [th for _, th in jumps[:MAX_JUMPS]]
         best = fit
         for th in starts:
@@ -246,26 +246,73 @@ def joint_fit(fd: FitData, orders: Orders, start: ModelParameters | None,
     best, best_name = min(probes, key=lambda fr: fr[0].sse)
     fit = problem.fit(best.nonlinear, lower, upper, max_nfev=FIT_NFEV, ftol=ftol, xtol=1e-6)
     fit = _globalise(problem, fit, slots, lower, upper, ftol)
+    fit, fixed = _real_modes(problem, lay, fit, lower, upper, ftol)
     nfev = problem.nfev
     if progress:
         progress("joint fit: full-resolution polish", 0.8)
-    return _polish(fd, lay, fit.linear, fit.nonlinear, lower, upper,
+    return _polish(fd, lay, fit.linear, fit.nonlinear, fixed, lower, upper,
                    nfev, [f"{n}{' (chosen)' if n == best_name else ''}" for _, n in probes])
 
 
-def _polish(fd: FitData, lay: Layout, linear: np.ndarray, nonlinear: np.ndarray,
+def _restricted(problem: SeparableProblem, fixed: np.ndarray, base: np.ndarray):
+    """The same problem with the nonlinear parameters marked ``fixed`` held at ``base``."""
+    free = ~fixed
+
+    def expand(th):
+        full = base.copy()
+        full[free] = th
+        return full
+
+    sub = SeparableProblem(lambda th: problem.design(expand(th)),
+                           lambda th: problem.derivatives(expand(th))[:, free],
+                           problem.column_of[free], problem.y)
+    return sub, expand
+
+
+def _real_modes(problem: SeparableProblem, lay: Layout, fit, lower, upper, ftol: float):
+    """Make a damping mode real (Im alpha = 0, one parameter fewer) when the data do not
+    support its oscillation by BIC: fixing it costs less than ln(rows) noise variances.
+
+    A real mode's Im alpha = 0 sits on its bound, where the estimate is not regular (it
+    wanders above zero and inflates the errors of a and Re alpha); choosing the order of
+    the model there is the honest way to the efficient estimate. Modes are tried in
+    order of Im/Re, the least oscillating first."""
+    fixed = np.zeros(lay.n_nonlinear, bool)
+    penalty = fit.sse / len(problem.y) * np.log(len(problem.y))
+    al = fit.nonlinear[:2 * lay.N].reshape(lay.N, 2)
+    for i in np.argsort(al[:, 1] / al[:, 0]):
+        trial = fixed.copy()
+        trial[2 * i + 1] = True
+        base = fit.nonlinear.copy()
+        base[trial] = 0.0
+        sub, expand = _restricted(problem, trial, base)
+        free = ~trial
+        refit = sub.fit(base[free], lower[free], upper[free], max_nfev=PROBE_NFEV, ftol=ftol, xtol=1e-6)
+        if refit.sse > fit.sse + penalty:
+            break
+        fixed = trial
+        fit = SeparableFit(expand(refit.nonlinear), refit.linear, refit.residual, refit.nfev,
+                           refit.status, refit.message)
+    return fit, fixed
+
+
+def _polish(fd: FitData, lay: Layout, linear: np.ndarray, nonlinear: np.ndarray, fixed: np.ndarray,
             lower: np.ndarray, upper: np.ndarray, nfev: int, starts: list[str]) -> JointFit:
     full = ModelBasis(fd.t, fd.x, fd.labels, fd.observed, lay, fd.x_scale_mm, fd.native_step_s)
     y = fd.f[fd.observed]
-    nl_cols = np.array([lay.column_of_nonlinear(j) for j in range(lay.n_nonlinear)], int)
-    L, K = lay.n_linear, lay.n_nonlinear
+    free = ~fixed
+    nl_cols = np.array([lay.column_of_nonlinear(j) for j in range(lay.n_nonlinear)], int)[free]
+    L, K = lay.n_linear, int(free.sum())
     z0 = fd.contact_zero_N
+    base = np.clip(nonlinear, lower, upper)
     # z0 is identifiable only if the model goes out of contact on enough samples
-    censored = np.count_nonzero(full.force(linear, np.clip(nonlinear, lower, upper)) <= z0)
+    censored = np.count_nonzero(full.force(linear, base) <= z0)
     fit_zero = censored >= MIN_CENSORED
 
     def unpack(p):
-        return p[:L], p[L:L + K], (p[L + K] if fit_zero else z0)
+        nl = base.copy()
+        nl[free] = p[L:L + K]
+        return p[:L], nl, (p[L + K] if fit_zero else z0)
 
     def fun(p):
         lin, nl, zero = unpack(p)
@@ -276,24 +323,29 @@ def _polish(fd: FitData, lay: Layout, linear: np.ndarray, nonlinear: np.ndarray,
         design = full.design(nl)
         out = np.empty((len(y), L + K + int(fit_zero)))
         out[:, :L] = design
-        out[:, L:L + K] = full.design_derivatives(nl) * lin[nl_cols]
+        out[:, L:L + K] = full.design_derivatives(nl)[:, free] * lin[nl_cols]
         off = (design @ lin) <= zero
         out[off, :L + K] = 0.0
         if fit_zero:
             out[:, -1] = off.astype(float)
         return out
 
-    p0 = np.concatenate([linear, np.clip(nonlinear, lower, upper)] + ([[z0]] if fit_zero else []))
-    lo = np.concatenate([np.full(L, -np.inf), lower] + ([[-np.inf]] if fit_zero else []))
-    hi = np.concatenate([np.full(L, np.inf), upper] + ([[np.inf]] if fit_zero else []))
+    p0 = np.concatenate([linear, base[free]] + ([[z0]] if fit_zero else []))
+    lo = np.concatenate([np.full(L, -np.inf), lower[free]] + ([[-np.inf]] if fit_zero else []))
+    hi = np.concatenate([np.full(L, np.inf), upper[free]] + ([[np.inf]] if fit_zero else []))
     res = least_squares(fun, p0, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac",
                         max_nfev=POLISH_NFEV, ftol=1e-10, xtol=1e-10, gtol=1e-12)
     lin, nl, zero = unpack(res.x)
     # the canonical order (modes by decay rate, terms by order) permutes parameters;
     # the Jacobian at the solution comes from the solver, its columns permuted alike
     perm = lay.canonical_permutation(lin, nl)
-    lin, nl = lin[perm[:L]], nl[perm[L:L + K] - L]
-    jacobian = np.asarray(res.jac)[:, np.concatenate([perm, [L + K]] if fit_zero else [perm])]
+    nl_perm = perm[L:] - L
+    jac_col = np.full(L + lay.n_nonlinear, -1)           # full index -> solver column
+    jac_col[:L] = np.arange(L)
+    jac_col[L + np.flatnonzero(free)] = L + np.arange(K)
+    keep = [jac_col[f] for f in perm if jac_col[f] >= 0] + ([L + K] if fit_zero else [])
+    jacobian = np.asarray(res.jac)[:, keep]
+    lin, nl, fixed = lin[perm[:L]], nl[nl_perm], fixed[nl_perm]
     flat = lay.to_flat(lin, nl)
     template = ModelParameters(
         x_scale_mm=fd.x_scale_mm, elastic_k=np.zeros(lay.P + 1), damping_a=np.zeros(lay.N),
@@ -301,5 +353,5 @@ def _polish(fd: FitData, lay: Layout, linear: np.ndarray, nonlinear: np.ndarray,
         residual_beta=np.zeros((lay.C, lay.M)),
         description=f"identified by foamlab fit from {fd.run.source or 'a run'}")
     params = template.with_vector(flat)
-    return JointFit(params, lay, lin, nl, float(zero), fit_zero, jacobian, -np.asarray(res.fun),
+    return JointFit(params, lay, lin, nl, fixed, float(zero), fit_zero, jacobian, -np.asarray(res.fun),
                     len(res.x), nfev + int(res.nfev), starts)

@@ -46,6 +46,7 @@ class FitResult:
     predicted_force_N: np.ndarray     # what the load cell would read: max(model force, unloaded reading)
     observed: np.ndarray              # sample indices the joint fit used
     paper: PaperResult
+    notes: list[str] = field(default_factory=list)   # choices the fit made (e.g. a mode made real)
     source: str = ""
     elapsed_s: float = 0.0
     starts: list[str] = field(default_factory=list)
@@ -99,6 +100,7 @@ class FitResult:
             "autocorrelation_time": _num(self.autocorrelation_time),
             "correlation": {"names": self.names, "matrix": corr},
             "warnings": list(self.warnings),
+            "notes": list(self.notes),
             "aic": _num(self.aic), "bic": _num(self.bic),
             "n_obs": self.n_obs, "n_params": self.n_params,
             "contact_zero_N": _num(self.contact_zero_N),
@@ -137,7 +139,9 @@ class FitResult:
                      f"residual autocorrelation, tau = {self.autocorrelation_time:.1f})")
         lines.append(f"    {'name':<11}{'value':>14}{'stderr':>12}{'rel':>9}{'stderr ac':>12}")
         for n, v, s, sa in zip(self.names, self.values, self.stderr, self.stderr_autocorr):
-            if math.isfinite(s):
+            if n in self._fixed_names():
+                lines.append(f"    {n:<11}{v:>14.6g}{'(fixed: real mode)':>33}")
+            elif math.isfinite(s):
                 rel = f"{abs(s / v) * 100:8.1f}%" if v != 0 else f"{'-':>9}"
                 lines.append(f"    {n:<11}{v:>14.6g}{s:>12.3g}{rel}{sa:>12.3g}")
             else:
@@ -146,10 +150,16 @@ class FitResult:
         lines.append("[[Constraints]] (thermodynamic checks, Eqs. 23-25)")
         for k, ok in self.constraints.items():
             lines.append(f"    {k:<28}{'pass' if ok else 'FAIL'}")
+        if self.notes:
+            lines.append("[[Notes]]")
+            lines += [f"    - {w}" for w in self.notes]
         if self.warnings:
             lines.append("[[Warnings]]")
             lines += [f"    - {w}" for w in self.warnings]
         return "\n".join(lines)
+
+    def _fixed_names(self) -> set[str]:
+        return {note.split(" ", 1)[0] for note in self.notes if "(fixed)" in note}
 
     def __str__(self) -> str:
         return self.summary()
