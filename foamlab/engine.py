@@ -634,6 +634,7 @@ class RunEngine:
                     return
         expected_s = planned.duration_s
         window: list[tuple[float, float]] = []
+        previous = math.inf
         while True:
             sample = self._acquire(record=True)
             if sample is None:
@@ -641,12 +642,16 @@ class RunEngine:
             position = sample[0]
             now_s = self._times[-1]
             if abs(position - target) <= NEAR_TARGET_MM:
-                # done once the drive is at rest there: reversing a crosshead that is still
-                # decelerating would overshoot the target (a drive may fault on that)
+                # Done once the drive is at rest there (reversing a crosshead that is still
+                # decelerating would overshoot; a drive may fault on that) AND a recorded
+                # sample shows where it stopped: on the target, or - for a drive that settles
+                # within its in-position window - twice at the same place.
                 status = self._read_status()
                 if status is not None and not status.moving and (
-                        status.in_position or abs(position - target) <= AT_TARGET_MM):
+                        abs(position - target) <= AT_TARGET_MM
+                        or (status.in_position and abs(position - previous) <= AT_TARGET_MM)):
                     return
+            previous = position
             window.append((now_s, position))
             while window and window[0][0] < now_s - STALL_WINDOW_S:
                 window.pop(0)

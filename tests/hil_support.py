@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import time
+
+import pytest
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -87,6 +89,17 @@ def wait_at_rest(sim, timeout_s: float = 5.0) -> dict:
     return status
 
 
-def deadlines_elapsed(result) -> int:
-    """Deadlines of the run's schedule: every one is a sample or a counted miss."""
-    return result.n_samples + result.missed
+def assert_no_miss_unless_overloaded(result):
+    """Zero missed deadlines - unless the machine's replies themselves came too late.
+
+    A miss means a loop took longer than a period. When the device's round trips (measured
+    per sample, engine excluded) stay well inside the period, any miss is the engine's and
+    fails the test. When other jobs load the computer so much that replies take longer than
+    half a period at p99, the misses are the transport's: reported, not failed.
+    """
+    timing = result.timing
+    period_ms = timing.period_s * 1e3
+    if result.missed and timing.rtt_p99_ms > period_ms / 2:
+        pytest.skip(f"computer overloaded: reply p99 {timing.rtt_p99_ms:.1f} ms > half the "
+                    f"{period_ms:.1f} ms period; {result.missed} deadlines missed")
+    assert result.missed == 0, timing
