@@ -278,6 +278,11 @@ def _report(result, method, out_dir: Path, no_diagnose: bool = False) -> int:
     print(f"foamlab run: finished: {result.n_samples} samples, {result.missed} missed "
           f"({method.sampling_hz:g} Hz; deadline lateness p99 {timing.lateness_p99_ms:.2f} ms, "
           f"request p99 {timing.rtt_p99_ms:.2f} ms)")
+    deadlines = result.n_samples + result.missed
+    if deadlines and result.missed > 0.01 * deadlines:
+        print(f"  note: {100 * result.missed / deadlines:.0f} % of the deadlines were missed: the machine "
+              f"answered in {timing.rtt_p99_ms:.1f} ms (p99) for a {timing.period_s * 1e3:.2f} ms period; "
+              f"a lower --speedup keeps every sample")
     print(f"  run file: {result.path}")
     if result.fit_path:
         print(f"  fit file: {result.fit_path}")
