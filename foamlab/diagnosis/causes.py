@@ -61,6 +61,12 @@ class Cause:
         return np.array(vals)[:, None]
 
     @classmethod
+    def joint_start(cls, series: list[Series]) -> float:
+        """Where the joint fit starts when the screening saw nothing: a visible size."""
+        lo, hi = cls.effect.bounds()
+        return float(np.clip(0.3 * cls.scale(series), lo[0], hi[0]))
+
+    @classmethod
     def describe(cls, values: dict[str, float], stderr: dict[str, float]) -> str:
         p = cls.effect.parameters[0]
         v, se = values[p.name], stderr.get(p.name, float("nan"))

@@ -34,6 +34,7 @@ from scipy.optimize import least_squares
 from scipy.stats import chi2
 from threadpoolctl import threadpool_limits
 
+from foamlab import FoamlabError
 from foamlab.diagnosis.causes import CAUSES, Cause
 from foamlab.diagnosis.design import ExtendedModel, Series, Solution, layout_of
 from foamlab.identification.data import Orders
@@ -41,6 +42,7 @@ from foamlab.identification.paper import nonlinear_bounds
 from foamlab.diagnosis.noise import ArWhitener, Whiteness, series_noise_sigma, whiteness
 from foamlab.diagnosis.residuals import ResidualAnalysis, analyse
 from foamlab.model import ModelParameters
+from foamlab.rundata import RunData
 
 #: A candidate must improve BIC (prewhitened residuals) by more than this ("very strong" evidence).
 DELTA_BIC_MIN = 10.0
@@ -50,18 +52,29 @@ WHITE_P = 1e-3
 #: when its residuals are still not white.
 EXPLAINED_SHARE_MIN = 0.5
 #: Contiguous blocks of each run in the held-out check.
-HELDOUT_FOLDS = 8
+HELDOUT_FOLDS = 6
 #: ...each made of this many blocks spread over the run.
-HELDOUT_BLOCKS_PER_FOLD = 6
+HELDOUT_BLOCKS_PER_FOLD = 8
 #: Iterations of the refit without the held-out blocks.
 HELDOUT_NFEV = 3
 #: Candidates (by Delta BIC) that get the held-out check in each round.
 HELDOUT_CANDIDATES = 3
 MAX_FINDINGS = 3
+#: After a finding, residual variance within this fraction of the noise variance is not
+#: searched further (what is left is the fit's own imperfection, not a second cause).
+NEAR_NOISE = 0.1
 #: Candidates (by the screening's gain) refitted with the base model's alpha/beta free.
 JOINT_CANDIDATES = 2
+#: ...and of those, this many carried to full resolution (the others are judged on the search's samples).
+FULL_CANDIDATES = 2
 #: Iteration budgets of the screening (effect parameters only) and of the joint fits.
-SCREEN_NFEV, JOINT_NFEV = 15, 25
+SCREEN_NFEV, PROBE_NFEV, JOINT_NFEV = 10, 4, 20
+#: Samples per run in the parameter search (decimated; the decision is made at full resolution).
+SEARCH_SAMPLES = 3000
+#: Iterations of the full-resolution polish of the base and of the best candidates.
+POLISH_NFEV = 6
+#: Iterations of the joint fit restarted from identification on corrected data.
+RESTART_NFEV = 12
 
 
 @dataclass
@@ -116,6 +129,7 @@ class Candidate:
     cause: type[Cause]
     fit: Fit
     before: Fit
+    coarse_fit: Fit | None = None      # the same model on the decimated search samples
     delta_bic: float = float("nan")
     lr_p: float = float("nan")
     passed: bool = False
@@ -210,7 +224,7 @@ def _settings(causes: list[type[Cause]], series: list[Series]) -> dict:
 
 def loading_time_s(series: list[Series]) -> float:
     """Median duration of the reference run's loading half-cycles."""
-    s = series[0]
+    s = series[0].source
     d = [s.t[p] - s.t[a] for a, p in zip(s.labels.starts, s.labels.peaks) if p > a]
     return float(np.median(d)) if d else float(s.t[-1] - s.t[0])
 
@@ -249,6 +263,31 @@ def _least_squares(model: ExtendedModel, nu0: np.ndarray, keep: list[np.ndarray]
     return res.x, stderr, sol
 
 
+def decimation(series: list[Series]) -> int:
+    """Decimation factor of the parameter search (about SEARCH_SAMPLES samples per run)."""
+    return max(1, int(round(max(len(x) for x in series) / SEARCH_SAMPLES)))
+
+
+def _model_like(fit: Fit, series: list[Series], free_base: bool | None = None) -> ExtendedModel:
+    m = fit.model
+    free = m.free_base if free_base is None else free_base
+    return ExtendedModel(series, fit.params, m.effect_types, m.settings, free_base=free,
+                         base_bounds=base_bounds(series, fit.params) if free else None)
+
+
+def at_full_resolution(fit: Fit, full: list[Series], polish_nfev: int = 0) -> Fit:
+    """A fit found on decimated series, carried to the full ones (and polished there)."""
+    if len(fit.model.series) == len(full) and all(a is b for a, b in zip(fit.model.series, full)):
+        return fit
+    model = _model_like(fit, full)
+    nu = np.concatenate([fit.model.split(fit.nu)[0] if model.free_base else [], fit.eta])
+    if polish_nfev:
+        nu, stderr, sol = _least_squares(model, nu, max_nfev=polish_nfev)
+    else:
+        sol, stderr = model.solve(nu), fit.stderr
+    return Fit(list(fit.causes), model, nu, stderr, sol)
+
+
 def fit_base(series: list[Series], params: ModelParameters) -> Fit:
     """The base model on all runs: identification's alpha/beta polished with the rest."""
     model = ExtendedModel(series, params, [], free_base=True, base_bounds=base_bounds(series, params))
@@ -259,8 +298,7 @@ def fit_base(series: list[Series], params: ModelParameters) -> Fit:
 def screen(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
     """Fit base + causes with the base's alpha/beta held: the last cause's parameter scanned,
     then the effect parameters refined (cheap: only the linear parameters move with them)."""
-    params = current.params
-    model = ExtendedModel(series, params, [c.effect for c in causes], _settings(causes, series))
+    model = ExtendedModel(series, current.params, [c.effect for c in causes], _settings(causes, series))
     prev = current.eta
     trials = [np.concatenate([prev, row]) for row in causes[-1].starts(series)]
     rss = [model.solve(eta).rss() for eta in trials]
@@ -268,13 +306,55 @@ def screen(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit
     return Fit(list(causes), model, nu, stderr, sol)
 
 
-def fit_joint(series: list[Series], screened: Fit) -> Fit:
-    """Fit base + causes with everything free (alpha, beta, effect and linear parameters)."""
-    params = screened.params
-    model = ExtendedModel(series, params, screened.model.effect_types, screened.model.settings,
-                          free_base=True, base_bounds=base_bounds(series, params))
-    nu, stderr, sol = _least_squares(model, model.start(screened.eta), max_nfev=JOINT_NFEV)
-    return Fit(list(screened.causes), model, nu, stderr, sol)
+def fit_joint(series: list[Series], start: Fit, current: Fit, max_nfev: int = None) -> Fit:
+    """Fit base + causes with everything free (alpha, beta, effect and linear parameters).
+
+    The base model can mimic an effect by bending its own alpha/beta (a fast damping
+    mode and an order-near-1 residual term together act like friction at one speed);
+    then the screening, with alpha/beta held, sees little, and a joint fit started
+    at the screening's near-zero value stays there. So a cause the screening did not
+    see starts from a visible size of its effect, and alpha/beta unbend as it grows.
+    """
+    model = _model_like(start, series, free_base=True)
+    if start.model.free_base:                 # continue a joint fit
+        nu0 = start.nu
+    else:
+        eta0 = start.eta.copy()
+        seen = current.n * np.log(current.rss / start.rss) > np.log(current.n)
+        if not seen:
+            eta0[-1] = start.causes[-1].joint_start(series)
+        nu0 = model.start(eta0)
+    nu, stderr, sol = _least_squares(model, nu0, max_nfev=max_nfev or JOINT_NFEV)
+    return Fit(list(start.causes), model, nu, stderr, sol)
+
+
+def reidentify(series: list[Series], fit: Fit) -> Fit:
+    """The fit restarted from identification run on the data with its effects taken out.
+
+    A base model that has bent its alpha/beta to mimic an effect sits in a local
+    minimum the joint fit cannot leave; identification's own multi-start search on
+    the corrected data (measured minus what the fitted effects add) finds the base
+    the effect leaves behind, and the joint fit continues from there.
+    """
+    from foamlab.identification.fit import fit_run
+
+    model = fit.model
+    theta = fit.solution.theta
+    phi = model.split(fit.nu)[0]
+    with_effects = model.predict(theta, fit.nu)
+    without = model.predict(theta, np.concatenate([phi if model.free_base else [], np.zeros(model.n_eta)]))
+    ref = series[0]
+    corrected = RunData(ref.t, ref.x, ref.y - (with_effects[0] - without[0]), source=ref.name)
+    lay = layout_of(fit.params)
+    try:
+        params = fit_run(corrected, orders=(lay.N, lay.M, lay.P), x_scale_mm=fit.params.x_scale_mm).params
+    except FoamlabError:
+        return fit
+    restart = ExtendedModel(series, params, model.effect_types, model.settings, free_base=True,
+                            base_bounds=base_bounds(series, params))
+    nu, stderr, sol = _least_squares(restart, restart.start(fit.eta), max_nfev=RESTART_NFEV)
+    out = Fit(list(fit.causes), restart, nu, stderr, sol)
+    return out if out.rss < fit.rss else fit
 
 
 def folds(series: list[Series], n_folds: int = HELDOUT_FOLDS,
@@ -296,13 +376,18 @@ def folds(series: list[Series], n_folds: int = HELDOUT_FOLDS,
     return out
 
 
-def heldout_rmse(fit: Fit, n_folds: int = HELDOUT_FOLDS) -> float:
-    """RMSE of every block predicted by the model fitted (all its free parameters) without it."""
+def heldout_rmse(fit: Fit, on: Fit | None = None, n_folds: int = HELDOUT_FOLDS) -> float:
+    """RMSE of every block predicted by the model refitted (all its parameters) without it.
+
+    on: the same model on other (decimated) samples to do it on; the result is stored
+    in ``fit``.
+    """
     if fit.heldout_rmse is not None:
         return fit.heldout_rmse
+    work = on or fit
     sq, count = 0.0, 0
-    for keep in folds(fit.model.series, n_folds):
-        sol = _refit_without(fit, keep)
+    for keep in folds(work.model.series, n_folds):
+        sol = _refit_without(work, keep)
         out = ~np.concatenate(keep)
         r = sol.residual[out]
         sq += float(r @ r)
@@ -312,13 +397,17 @@ def heldout_rmse(fit: Fit, n_folds: int = HELDOUT_FOLDS) -> float:
 
 
 def _refit_without(fit: Fit, keep: list[np.ndarray]) -> Solution:
-    """The fit redone without the held-out samples: the linear parameters exactly, the
-    nonlinear ones (alpha, beta, effect parameters) by a few trust-region steps from
-    the full-data optimum (they move by about a standard error)."""
+    """The fit redone without the held-out samples: the linear parameters exactly and the
+    effect parameters by a few trust-region steps from the full-data optimum. The base
+    model's alpha/beta stay at their full-data values, for both models alike (refitting
+    them per block would cost most of the diagnosis and moves them by a fraction of
+    their standard error)."""
     model = fit.model
-    if not model.n_nonlinear:
+    if model.free_base:
+        model = ExtendedModel(model.series, fit.params, model.effect_types, model.settings)
+    if not model.n_eta:
         return model.solve((), keep)
-    _, _, sol = _least_squares(model, fit.nu, keep, max_nfev=HELDOUT_NFEV)
+    _, _, sol = _least_squares(model, fit.eta, keep, max_nfev=HELDOUT_NFEV)
     return sol
 
 
@@ -350,7 +439,9 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
     t0 = time.perf_counter()
     names = list(CAUSES) if causes is None else list(causes)
     sigma = series_noise_sigma([s.y for s in series])
-    base = fit_base(series, params)
+    k = decimation(series)
+    coarse = [x.decimated(k) for x in series]
+    base = at_full_resolution(fit_base(coarse, params), series, POLISH_NFEV if k > 1 else 0)
     base_analysis = analyse(series, base.solution.residuals, sigma)
     skipped = {}
     remaining: list[type[Cause]] = []
@@ -367,37 +458,82 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
     for _ in range(MAX_FINDINGS):
         if not remaining:
             break
+        if findings and (whiteness(current.solution.residual).min_p >= WHITE_P
+                         or current.rss / current.n < (1 + NEAR_NOISE) * sigma ** 2):
+            break        # the extended model leaves (nearly) white noise: nothing left to explain
         accepted = [c.cause for c in findings]
-        screened = sorted((screen(series, current, accepted + [cause]) for cause in remaining),
-                          key=lambda f: f.rss)
-        fits = []
-        for i, f in enumerate(screened):
-            # the most promising ones (a raw gain above one BIC penalty) are refitted
-            # with the base model free as well
-            promising = current.n * np.log(current.rss / f.rss) > np.log(current.n)
-            fits.append(fit_joint(series, f) if i < JOINT_CANDIDATES and promising else f)
-        cands = [Candidate(f.causes[-1], f, current) for f in fits]
-        _compare(cands, current)
+        current_coarse = at_full_resolution(current, coarse) if k > 1 else current
+        # search on the decimated runs: every cause fitted with the base's alpha/beta held
+        # (screen), then a short joint probe; the best probes are fitted to convergence
+        probes = sorted((fit_joint(coarse, screen(coarse, current_coarse, accepted + [cause]),
+                                   current_coarse, PROBE_NFEV) for cause in remaining),
+                        key=lambda f: f.rss)
+        coarse_fits = [fit_joint(coarse, f, current_coarse) if i < JOINT_CANDIDATES else f
+                       for i, f in enumerate(probes)]
+        coarse_cands = [Candidate(f.causes[-1], f, current_coarse) for f in coarse_fits]
+        _compare(coarse_cands, current_coarse)
+        coarse_cands.sort(key=lambda c: -c.delta_bic)
+        # decide at full resolution: the best candidates polished there (the others keep
+        # their decimated-scale evidence, which is weaker than it would be at full scale)
+        cands = []
+        for i, c in enumerate(coarse_cands):
+            if i < FULL_CANDIDATES and c.delta_bic > 0:
+                full_fit = at_full_resolution(c.fit, series, POLISH_NFEV if k > 1 else 0)
+                cands.append(Candidate(c.cause, full_fit, current, coarse_fit=c.fit))
+            else:
+                c.coarse_fit = c.fit
+                cands.append(c)
+        polished = [c for c in cands if c.before is current]
+        if polished:
+            _compare(polished, current)
+        # an extension that leaves structure may be stuck where the base model bent itself:
+        # restart it from identification on the corrected data, best first, until one
+        # leaves white residuals
+        for c in sorted(polished, key=lambda c: -c.delta_bic):
+            if c.delta_bic <= 0 or whiteness(c.fit.solution.residual).min_p >= WHITE_P:
+                break
+            c.fit = reidentify(series, c.fit)
+            _compare([c], current)
+            if whiteness(c.fit.solution.residual).min_p >= WHITE_P:
+                break
         tested.append(cands)
-        strong = sorted((c for c in cands if c.delta_bic > DELTA_BIC_MIN), key=lambda c: -c.delta_bic)
-        for c in cands:
+        chosen = None
+        checked = 0
+        left = current.rss - current.n * sigma ** 2     # what the current model leaves above the noise
+        for c in sorted(cands, key=lambda c: -c.delta_bic):
+            if chosen is not None:
+                c.reason = "not checked: a stronger candidate passed"
+                continue
+            if c.delta_bic > DELTA_BIC_MIN and c.before is not current:
+                # strong on the search's samples: judge it at full resolution
+                c.fit = at_full_resolution(c.coarse_fit, series, POLISH_NFEV if k > 1 else 0)
+                c.before = current
+                _compare([c], current)
             if c.delta_bic <= DELTA_BIC_MIN:
                 c.reason = f"delta BIC {c.delta_bic:.1f} <= {DELTA_BIC_MIN:g}"
-        chosen = None
-        for c in strong[:HELDOUT_CANDIDATES]:
-            before = heldout_rmse(current)
-            after = heldout_rmse(c.fit)
+                continue
+            if checked >= HELDOUT_CANDIDATES:
+                c.reason = "weaker than the candidates checked on held-out data"
+                continue
+            # a cause must explain the structure (leave white residuals, or explain most of
+            # what the model leaves above the noise), not a sliver of something else
+            share = 1.0 if left <= 0 else min((current.rss - c.fit.rss) / left, 1.0)
+            if share < EXPLAINED_SHARE_MIN and whiteness(c.fit.solution.residual).min_p < WHITE_P:
+                c.reason = f"explains {share:.0%} of the structure left (< {EXPLAINED_SHARE_MIN:.0%})"
+                continue
+            checked += 1
+            # held out on the search's samples (every k-th): the same prediction error, cheaper
+            before = heldout_rmse(current, current_coarse)
+            after = heldout_rmse(c.fit, c.coarse_fit)
             c.passed = after < before
             c.reason = "" if c.passed else f"held-out RMSE not lower ({after:.4g} >= {before:.4g})"
-            if c.passed and chosen is None:
+            if c.passed:
                 chosen = c
-        for c in strong[HELDOUT_CANDIDATES:]:
-            c.reason = "weaker than the candidates checked on held-out data"
         if chosen is None:
             break
         findings.append(chosen)
         current = chosen.fit
-        remaining = [c.cause for c in strong if c is not chosen]
+        remaining = [c.cause for c in cands if c is not chosen and c.delta_bic > DELTA_BIC_MIN]
 
     final = current
     final_analysis = analyse(series, final.solution.residuals, sigma) if findings else base_analysis
@@ -405,14 +541,12 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
     excess = base.rss - base.n * sigma ** 2
     removed = base.rss - final.rss
     share = 1.0 if removed >= excess else max(removed, 0.0) / excess
-    if not findings:
-        verdict = "unexplained" if base_analysis.whiteness.min_p < WHITE_P else "none"
-        if verdict == "unexplained":
-            heldout_rmse(base)
-    elif white_final.min_p >= WHITE_P or share >= EXPLAINED_SHARE_MIN:
+    if findings:
         verdict = findings[0].name
     else:
-        verdict = "unexplained"
+        verdict = "unexplained" if base_analysis.whiteness.min_p < WHITE_P else "none"
+        if verdict == "unexplained":
+            heldout_rmse(base, at_full_resolution(base, coarse) if k > 1 else base)
     return Diagnosis(
         verdict=verdict, findings=findings, tested=tested, skipped=skipped, base=base, final=final,
         base_analysis=base_analysis, final_analysis=final_analysis, final_whiteness=white_final,

@@ -88,44 +88,85 @@ def least_squares_normal(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- runs
 
-@dataclass
+@dataclass(eq=False)
 class Series:
-    """One run as diagnosis sees it: samples, half-cycle labels, crosshead velocity."""
+    """One run as diagnosis sees it: samples, half-cycle labels, crosshead velocity.
+
+    A decimated series (``decimated``) holds every k-th sample (and every turning
+    point) of its full series; its model columns are the full model's at those
+    samples (operators on a k-times coarser grid), its sensor stage runs on its own
+    samples: a cheaper, slightly approximate copy for the parameter search.
+    """
 
     name: str
     t: np.ndarray
     x: np.ndarray
     y: np.ndarray                    # measured force
-    labels: HistoryLabels
+    labels: HistoryLabels            # of the full series
     velocity: np.ndarray             # crosshead, mm/s, positive compressing
     rate: np.ndarray                 # mean crosshead speed since the cycle started, mm/s
     speed_mm_min: float              # typical crosshead speed while moving
+    full: "Series | None" = None     # the full series if this one is decimated
+    obs: np.ndarray | None = None    # its samples in the full series
     _bases: dict = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
         return len(self.t)
 
     @property
+    def source(self) -> "Series":
+        return self.full if self.full is not None else self
+
+    @property
+    def samples(self) -> np.ndarray:
+        return self.obs if self.obs is not None else np.arange(len(self.t))
+
+    @property
     def cycle(self) -> np.ndarray:
-        return self.labels.cycle
+        return self.source.labels.cycle[self.samples]
 
     @property
     def direction(self) -> np.ndarray:
-        return self.labels.direction
+        return self.source.labels.direction[self.samples]
 
     @property
     def step_s(self) -> float:
         return float(np.median(np.diff(self.t))) if len(self.t) > 1 else 1.0
+
+    def frame_force(self, frame_tau_s: float) -> np.ndarray:
+        """The force the frame deflects under (machine_compliance), on the full series."""
+        key = ("frame", frame_tau_s)
+        if key not in self._bases:
+            f = self.source
+            self._bases[key] = frame_force(f.t, f.y, frame_tau_s)
+        return self._bases[key]
 
     def basis(self, layout: Layout, x_scale_mm: float, frame_tau_s: float | None = None) -> ModelBasis:
         """Design of the displacement history, or (frame_tau_s given) of the force the frame
         deflects under (machine_compliance subtracts C times its memory columns)."""
         key = (layout, x_scale_mm, frame_tau_s)
         if key not in self._bases:
-            src = self.x if frame_tau_s is None else frame_force(self.t, self.y, frame_tau_s)
-            self._bases[key] = ModelBasis(self.t, src, self.labels, np.arange(len(self.t)), layout,
-                                          x_scale_mm, self.step_s)
+            f = self.source
+            src = f.x if frame_tau_s is None else f.frame_force(frame_tau_s)
+            self._bases[key] = ModelBasis(f.t, src, f.labels, self.samples, layout, x_scale_mm, self.step_s)
         return self._bases[key]
+
+    def specimen_x(self, compliance: float, frame_tau_s: float) -> np.ndarray:
+        """machine_compliance's specimen displacement (computed on the full series)."""
+        f = self.source
+        return specimen_displacement(f.x, f.y, compliance, f.t, frame_tau_s,
+                                     frame=f.frame_force(frame_tau_s))[self.samples]
+
+    def decimated(self, k: int) -> "Series":
+        """Every k-th sample plus the turning points and their neighbours (k <= 1: self)."""
+        if k <= 1 or self.full is not None:
+            return self
+        n = len(self.t)
+        turning = np.concatenate([np.asarray(self.labels.starts, int), np.asarray(self.labels.peaks, int)])
+        keep = np.unique(np.concatenate([np.arange(0, n, k), turning, turning + 1, [n - 1]]))
+        keep = keep[(keep >= 0) & (keep < n)]
+        return Series(self.name, self.t[keep], self.x[keep], self.y[keep], self.labels,
+                      self.velocity[keep], self.rate[keep], self.speed_mm_min, full=self, obs=keep)
 
 
 def layout_of(params: ModelParameters) -> Layout:
@@ -155,12 +196,19 @@ def specimen_gains(chain: EffectChain, cycle, velocity, rate) -> tuple[tuple[np.
 
     offset = total(0.0, 0.0, 0.0).copy()
     gains = tuple(total(*unit) - offset for unit in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)))
-    probe = np.random.default_rng(0).normal(size=(3, n))
-    expected = offset + sum(g * p for g, p in zip(gains, probe))
-    if not np.allclose(total(*probe), expected, rtol=1e-9, atol=1e-9 * (1 + np.abs(expected).max())):
-        raise ValueError("a specimen-stage effect is not an elementwise affine map of the model's "
-                         "components; diagnosis cannot project it")
+    kinds = tuple(type(e) for e in effects)
+    if kinds not in _AFFINE_CHECKED:
+        probe = np.random.default_rng(0).normal(size=(3, n))
+        expected = offset + sum(g * p for g, p in zip(gains, probe))
+        if not np.allclose(total(*probe), expected, rtol=1e-9, atol=1e-9 * (1 + np.abs(expected).max())):
+            raise ValueError("a specimen-stage effect is not an elementwise affine map of the model's "
+                             "components; diagnosis cannot project it")
+        _AFFINE_CHECKED.add(kinds)
     return gains, offset
+
+
+#: Chains of specimen-effect classes already checked to be elementwise affine.
+_AFFINE_CHECKED: set[tuple[type, ...]] = set()
 
 
 # ----------------------------------------------------------------------------- the model
@@ -267,11 +315,17 @@ class ExtendedModel:
         derivative the phi-derivative columns (n, K) (each of its own design column)."""
         lay, xs_mm = self.layout, self.params.x_scale_mm
         basis = s.basis(lay, xs_mm)
+        if self.free_base and not derivative:
+            # a free base's Jacobian follows almost every solve: computing the columns with
+            # their derivatives fills identification's column cache for both at once
+            basis.design_derivatives(phi)
         cols = basis.design(phi)
         deriv = basis.design_derivatives(phi) if derivative else None
         if chain.compliance:
-            x_s = specimen_displacement(s.x, s.y, chain.compliance, s.t, chain.frame_tau_s)
+            x_s = s.specimen_x(chain.compliance, chain.frame_tau_s)
             frame = s.basis(lay, xs_mm, chain.frame_tau_s)
+            if self.free_base and not derivative:
+                frame.design_derivatives(phi)
             cols = cols - chain.compliance * frame.design(phi)
             cols[:, :lay.P + 1] = np.vander(x_s / xs_mm, lay.P + 1, increasing=True)
             if derivative:
