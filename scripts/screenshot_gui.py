@@ -57,6 +57,10 @@ def main() -> int:
             wait_for(app, lambda: window.last_result is not None, 600, "the end of the run")
             result = window.last_result
             print(f"run {result.status} {result.reason}: {result.n_samples} samples, {result.missed} missed")
+            if result.status != "finished":
+                # The README shows a finished, fitted run; a busy computer can make the sped-up
+                # simulated machine abort (watchdog, timeouts): run again, or lower --speedup.
+                raise SystemExit(f"screenshot_gui: the run did not finish ({result.reason}); not written")
             # Fit and diagnosis results arrive after the run; give the diagnosis its time.
             wait_for(app, lambda: "running" not in window.results.verdict.text(), 300, "the diagnosis")
             app.processEvents()
