@@ -40,7 +40,7 @@ from foamlab.model.operators import _phi  # the model's exact step coefficients 
 
 #: Relative step for the derivative of the damping step coefficients in alpha.
 ALPHA_FD_STEP = 1e-6
-#: Samples on each side of a turning point kept as exact nodes of the fractional operator.
+#: Samples on each side of a corner of x kept as exact nodes of the fractional operator.
 CORNER_SAMPLES = 1
 #: Cached operator outputs kept before the cache is cleared (memory bound).
 CACHE_LIMIT = 512
@@ -299,11 +299,12 @@ class ModelBasis:
     """Design matrix of the model at the observed samples ``obs`` of a run.
 
     step_s: the operators' grid step (the run's own step for full resolution, a
-    multiple of it for the decimated fit).
+    multiple of it for the decimated fit). corners: sample indices where x has a
+    corner other than the labels' turning points (the start of a dwell).
     """
 
     def __init__(self, t: np.ndarray, x: np.ndarray, labels: HistoryLabels, obs: np.ndarray,
-                 layout: Layout, x_scale_mm: float, step_s: float):
+                 layout: Layout, x_scale_mm: float, step_s: float, corners=()):
         self.t = np.asarray(t, float)
         self.x = np.asarray(x, float)
         self.obs = np.asarray(obs, dtype=int)
@@ -316,10 +317,11 @@ class ModelBasis:
         n_grid = int(np.ceil((t_end - t0) / step_s - 1e-9)) + 1
         grid_t = t0 + step_s * np.arange(max(n_grid, 2))
         grid_x = np.interp(grid_t, self.t, self.x)
-        # the samples around each turning point are nodes too: the fractional
-        # derivative near a corner depends on how the samples there cut it
+        # the samples around each corner of x (turning points, and where a dwell
+        # begins) are nodes too: the fractional derivative near a corner depends on
+        # how the samples there cut it
         turning = np.unique(np.concatenate(
-            [np.arange(i - CORNER_SAMPLES, i + CORNER_SAMPLES + 1) for i in starts + peaks]
+            [np.arange(i - CORNER_SAMPLES, i + CORNER_SAMPLES + 1) for i in starts + peaks + list(corners)]
             or [np.zeros(0, int)]))
         turning = turning[(turning >= 0) & (turning < len(self.t))]
         self.damping_parts = [_Damping(self.t, self.x, s, p, self.obs, step_s)

@@ -70,6 +70,7 @@ class FitData:
     observed: np.ndarray          # sample indices of the half-cycles (objective rows)
     contact: np.ndarray           # bool per observed row: in contact (not the recovery region)
     fit_rows: np.ndarray          # sample indices of the decimated fit (in contact)
+    corners: np.ndarray           # samples where x has a corner: turning points, dwell starts
     fit_force: np.ndarray         # force there: mean of the block of samples centred on it
     fit_count: np.ndarray         # samples in each block (the mean's weight)
     block_curvature: "BlockCurvature"  # model value at a row -> its block mean
@@ -113,11 +114,8 @@ class BlockCurvature:
     coef: np.ndarray
 
     @classmethod
-    def of(cls, fit_rows: np.ndarray, count: np.ndarray, q: int, seg: Segmentation) -> "BlockCurvature":
+    def of(cls, fit_rows: np.ndarray, count: np.ndarray, q: int, half: np.ndarray) -> "BlockCurvature":
         n = len(fit_rows)
-        half = np.full(int(fit_rows.max()) + 1 if n else 0, -1)
-        for i, h in enumerate(seg.half_cycles):
-            half[h.start:min(h.stop, len(half))] = i
         r = (count - 1) // 2
         idx = np.arange(1, n - 1)
         ok = ((fit_rows[idx] - fit_rows[idx - 1] == q) & (fit_rows[idx + 1] - fit_rows[idx] == q)
@@ -134,8 +132,8 @@ class BlockCurvature:
         return out
 
 
-def _block_means(f: np.ndarray, rows: np.ndarray, turning: np.ndarray, seg: Segmentation,
-                 q: int) -> tuple[np.ndarray, np.ndarray]:
+def _block_means(f: np.ndarray, rows: np.ndarray, turning: np.ndarray, segment_id: np.ndarray,
+                 usable: np.ndarray, q: int) -> tuple[np.ndarray, np.ndarray]:
     """Mean force over a block of about q samples centred on each row, inside one
     half-cycle and in contact (symmetric, so its mean time is the row's time and the
     mean of a smooth curve is its value there to O(step^2)); turning points alone.
@@ -143,10 +141,6 @@ def _block_means(f: np.ndarray, rows: np.ndarray, turning: np.ndarray, seg: Segm
     The decimated fit then keeps nearly all the information of the full signal
     (block means have variance sigma^2 / count) at a fraction of the cost."""
     n = len(f)
-    usable = ~seg.contact_lost
-    segment_id = np.full(n, -1)
-    for i, h in enumerate(seg.half_cycles):
-        segment_id[h.start:h.stop] = i
     csum = np.concatenate([[0.0], np.cumsum(f)])
     half = (q - 1) // 2
     # samples since the last turning point: the memory terms have a cusp there
@@ -168,6 +162,38 @@ def _block_means(f: np.ndarray, rows: np.ndarray, turning: np.ndarray, seg: Segm
         out[j] = (csum[i + r + 1] - csum[i - r]) / (2 * r + 1)
         count[j] = 2 * r + 1
     return out, count
+
+
+def _turning_points(x: np.ndarray, seg: Segmentation) -> tuple[list[int], list[int], list[int]]:
+    """Cycle starts (minima) and loading ends (maxima) as the model switches at them:
+    the LAST sample at the extreme before the plate moves the other way (so a dwell at a
+    turning point belongs to the half-cycle it ends, as in model.label_history); and the
+    FIRST sample at each extreme (where a dwell begins: a corner of x as well).
+
+    The segmentation places turning points on its smoothed displacement and trims holds
+    by its smoothing window; here each is moved, within a few percent of a half-cycle
+    around it, to the raw samples within 3 noise sigmas of the extreme."""
+    noise = force_noise(x)
+    tol = max(3.0 * noise, 1e-9 * max(seg.stroke_mm, 1.0))
+    n = len(x)
+    minima, maxima, dwell_starts = [], [], []
+
+    def extreme(lo: int, hi: int, top: bool) -> tuple[int, int]:
+        win = x[lo:hi]
+        at = np.flatnonzero(win >= win.max() - tol) if top else np.flatnonzero(win <= win.min() + tol)
+        return lo + int(at[0]), lo + int(at[-1])
+
+    for c in seg.cycles:
+        load = c.loading
+        w = max(5, len(load) // 20)
+        first, last = extreme(max(0, load.start - w), min(n, load.start + w + 1), top=False)
+        minima.append(last)
+        dwell_starts.append(first)
+        peak = c.unloading.start if c.unloading is not None else load.stop - 1
+        first, last = extreme(max(0, load.stop - 1 - w), min(n, peak + w + 1), top=True)
+        maxima.append(last)
+        dwell_starts.append(first)
+    return minima, maxima, dwell_starts
 
 
 def prepare(run: RunData, x_scale_mm: float | None = None) -> FitData:
@@ -193,14 +219,15 @@ def prepare(run: RunData, x_scale_mm: float | None = None) -> FitData:
         have = ", ".join(h.label for h in halves) or "none"
         raise FoamlabError(f"too few cycles: identification needs at least two (the paper's Eq. 15 "
                            f"subtracts the first unloading from the second loading); found {have}")
-    minima = [c.loading.start for c in cycles]
-    maxima = [(c.unloading.start if c.unloading is not None else c.loading.stop - 1) for c in cycles]
+    minima, maxima, dwell_starts = _turning_points(run.displacement_mm, seg)
     labels = labels_from_extrema(n, minima, maxima)
 
+    # every sample from the first cycle's start to the end of the last half-cycle,
+    # dwells at turning points included: the causal model covers them, and a dwell
+    # (relaxation, or the damping creep of Eq. 9) is information, not a gap
     own_halves: list[HalfCycle] = [h for h in halves if h.cycle >= 1]
     mask = np.zeros(n, dtype=bool)
-    for h in own_halves:
-        mask[h.slice] = True
+    mask[minima[0]:own_halves[-1].stop] = True
     observed = np.flatnonzero(mask)
     contact = ~seg.contact_lost[observed]
     if contact.sum() < 50:
@@ -220,9 +247,12 @@ def prepare(run: RunData, x_scale_mm: float | None = None) -> FitData:
     nearest = np.clip(np.searchsorted(run.time_s, grid_t), 1, n - 1)
     nearest -= (grid_t - run.time_s[nearest - 1]) < (run.time_s[nearest] - grid_t)
     turning = np.asarray(maxima + minima)
-    fit_rows = np.intersect1d(np.union1d(nearest, turning), in_contact)
-    fit_force, fit_count = _block_means(run.force_N, fit_rows, turning, seg, q)
-    curvature = BlockCurvature.of(fit_rows, fit_count, q, seg)
+    corners = np.unique(np.asarray(maxima + minima + dwell_starts))
+    fit_rows = np.intersect1d(np.union1d(nearest, corners), in_contact)
+    # half-cycles as the model switches them: (cycle, direction) of the labels
+    half_id = np.where(mask, labels.cycle * 2 + (labels.direction < 0), -1)
+    fit_force, fit_count = _block_means(run.force_N, fit_rows, corners, half_id, ~seg.contact_lost, q)
+    curvature = BlockCurvature.of(fit_rows, fit_count, q, half_id)
 
     xs = run.displacement_mm[observed]
     x_scale = float(x_scale_mm) if x_scale_mm else float(np.max(np.abs(xs)))
@@ -235,7 +265,7 @@ def prepare(run: RunData, x_scale_mm: float | None = None) -> FitData:
     loading_times = [run.time_s[c.loading.stop - 1] - run.time_s[c.loading.start] for c in cycles]
     return FitData(
         run=run, seg=seg, labels=labels, observed=observed, contact=contact,
-        fit_rows=fit_rows, fit_force=fit_force, fit_count=fit_count,
+        fit_rows=fit_rows, corners=corners, fit_force=fit_force, fit_count=fit_count,
         block_curvature=curvature, fit_step_s=fit_step, native_step_s=native,
         x_scale_mm=x_scale, n_residual_cycles=n_res,
         loading_time_s=float(np.median(loading_times)), noise_N=noise, warnings=warnings,
