@@ -1,0 +1,127 @@
+"""`foamlab diagnose PATH...`: what the simulation gets wrong, the likely cause, the gain."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from foamlab import FoamlabError
+
+HELP = "find what the model gets wrong on measured data, name the likely cause, measure the gain"
+
+EXAMPLES = """\
+examples:
+  foamlab diagnose run.csv                          # verdict, findings with their gains, where the model misses
+  foamlab diagnose Specimen_RawData_6.csv --json    # {"verdict": ..., "findings": [{"effect", "gain": {...}}, ...]}
+  foamlab diagnose slow.csv fast.csv                # runs of one specimen at two speeds (rate_dependence)
+  foamlab diagnose run.csv --report out/            # out/index.html with the figures
+
+verdict: a cause of the catalogue (cycle_softening, damping_cycle_change, channel_lag,
+force_zero_drift, machine_compliance, direction_friction, rate_dependence), 'none' (the
+model explains the data down to the noise) or 'unexplained' (structure no cause explains).
+gain: RMSE before/after the extension, on all data and on held-out blocks, and delta BIC.
+"""
+
+
+def register(subparsers) -> None:
+    from foamlab.diagnosis.causes import CAUSES  # noqa: PLC0415 (a light module)
+
+    p = subparsers.add_parser(
+        "diagnose", help=HELP,
+        description=("Fit the paper's model to the run(s), simulate them, study the residuals (by "
+                     "cycle, half-cycle, displacement and time, against the noise level of the data "
+                     "itself), fit each candidate cause as an extension of the model, and name the "
+                     "one that explains the residuals -- only if it passes a nested-model test "
+                     "(prewhitened delta BIC) and predicts held-out blocks of the run better. "
+                     "PATH is a foamlab run file, a plain CSV (time_s,displacement_mm,force_N), an "
+                     "Instron Bluehill or a ZwickRoell testXpert export; several PATHs are runs of "
+                     "one specimen (e.g. at different speeds, the first is the reference)."),
+        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("paths", nargs="+", metavar="PATH", help="data file(s) of the run(s)")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object: verdict and findings (best first; effect, gain)")
+    p.add_argument("--report", metavar="DIR", help="write an HTML report with figures into DIR")
+    p.add_argument("--causes", metavar="NAME[,NAME...]",
+                   help=f"test only these causes (default: all: {', '.join(CAUSES)})")
+    p.add_argument("--no-store", action="store_true",
+                   help="do not write <run>.diagnosis.json beside a foamlab run file or index it")
+    p.error = _one_line_error(p)
+    p.set_defaults(func=run)
+
+
+def _one_line_error(parser: argparse.ArgumentParser):
+    def error(message: str):
+        print(f"{parser.prog}: error: {message}", file=sys.stderr)
+        raise SystemExit(2)
+    return error
+
+
+def _causes(text: str | None) -> list[str] | None:
+    from foamlab.diagnosis.causes import CAUSES  # noqa: PLC0415
+
+    if not text:
+        return None
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in CAUSES]
+    if unknown or not names:
+        raise FoamlabError(f"--causes: unknown cause(s) {', '.join(unknown) or '(none given)'} "
+                           f"(known: {', '.join(CAUSES)})")
+    return names
+
+
+def run(args: argparse.Namespace) -> int:
+    from foamlab.diagnosis import diagnose  # noqa: PLC0415 (keep `foamlab --help` fast)
+    from foamlab.importers import load_run  # noqa: PLC0415
+
+    causes = _causes(args.causes)
+    runs = [load_run(p) for p in args.paths]
+    result = diagnose(runs, causes=causes)
+    obj = result.to_dict()
+    notes: list[str] = []
+    if args.report:
+        from foamlab.diagnosis.report import write_report  # noqa: PLC0415
+        page = write_report(result, args.report, title=", ".join(args.paths))
+        notes.append(f"report: {page}")
+    if not args.no_store and len(args.paths) == 1:
+        from foamlab.diagnosis.store import store_diagnosis  # noqa: PLC0415
+        try:
+            stored = store_diagnosis(obj, args.paths[0])
+            if stored.path is not None:
+                notes.append(f"stored: {stored.path}" + (f" (catalog {stored.catalog})" if stored.catalog
+                                                          else f" ({stored.note})"))
+        except FoamlabError as exc:        # the diagnosis itself is fine: say so, do not fail
+            notes.append(f"not stored: {exc}")
+    if args.json:
+        print(json.dumps(obj, indent=1))
+        for note in notes:
+            print(f"foamlab diagnose: {note}", file=sys.stderr)
+    else:
+        print(summary(result))
+        for note in notes:
+            print(note)
+    return 0
+
+
+def summary(d) -> str:
+    lines = [f"verdict: {d.verdict}",
+             f"noise level (from the data): {d.noise_sigma:.4g} N; base model RMSE {d.base.rmse:.4g} N"]
+    if d.findings:
+        lines.append("findings (best first):")
+        lines.append(f"  {'effect':<22}{'RMSE':>17}{'held-out RMSE':>21}{'dBIC':>10}  fitted")
+        for c in d.findings:
+            g = c.gain()
+            lines.append(f"  {c.name:<22}{g['rmse_before']:>8.4g} ->{g['rmse_after']:>7.4g}"
+                         f"{g['heldout_rmse_before']:>11.4g} ->{g['heldout_rmse_after']:>7.4g}"
+                         f"{g['delta_bic']:>10.1f}  {c.description()}")
+        lines.append(f"  {d.findings[0].name}: {d.findings[0].cause.meaning}")
+    elif d.verdict == "none":
+        lines.append("the model explains the data down to the noise (white residuals, no cause passes)")
+    if d.verdict == "unexplained" or (d.findings and d.final_analysis.where()):
+        where = d.final_analysis.where()
+        if where:
+            lines.append("structure left:" if d.findings else "structure no cause explains:")
+            lines += [f"  {w}" for w in where]
+    if d.skipped:
+        lines += [f"not tested: {name} ({why})" for name, why in d.skipped.items()]
+    return "\n".join(lines)
