@@ -490,6 +490,8 @@ class RunEngine:
             end, reason = END_FAULT, f"device error: {exc}"
         except FoamlabError as exc:
             end, reason = END_ERROR, str(exc)
+        except ValueError as exc:  # a driver refusing a command's parameters (speed, target)
+            end, reason = END_ERROR, f"command refused: {exc}"
         except Exception as exc:   # any bug still ends in a stopped machine and a kept run
             log.error("run engine failure: %s: %s", type(exc).__name__, exc)
             log.debug("run engine failure", exc_info=True)
