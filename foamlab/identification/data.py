@@ -54,7 +54,7 @@ class Orders:
         return f"N={self.N}, M={self.M}, P={self.P}"
 
 
-def force_noise(f: np.ndarray) -> float:
+def noise_sigma(f: np.ndarray) -> float:
     """White-noise sigma from second differences (robust to the curve itself)."""
     if len(f) < 4:
         return 0.0
@@ -173,7 +173,7 @@ def _turning_points(x: np.ndarray, seg: Segmentation) -> tuple[list[int], list[i
     The segmentation places turning points on its smoothed displacement and trims holds
     by its smoothing window; here each is moved, within a few percent of a half-cycle
     around it, to the raw samples within 3 noise sigmas of the extreme."""
-    noise = force_noise(x)
+    noise = noise_sigma(x)
     tol = max(3.0 * noise, 1e-9 * max(seg.stroke_mm, 1.0))
     n = len(x)
     minima, maxima, dwell_starts = [], [], []
@@ -204,7 +204,7 @@ def prepare(run: RunData, x_scale_mm: float | None = None) -> FitData:
     f = run.force_N
     if not np.all(np.isfinite(f)):
         raise FoamlabError("run has NaN or infinite force values")
-    noise = force_noise(f)
+    noise = noise_sigma(f)
     lo, hi = np.percentile(f, [0.5, 99.5])
     if hi - lo <= max(FLAT_FORCE_NOISE_MULTIPLE * noise, 1e-9 * max(1.0, abs(hi))):
         raise FoamlabError(f"force is flat: it spans {hi - lo:.3g} N, within its noise ({noise:.2g} N); "
@@ -246,7 +246,6 @@ def prepare(run: RunData, x_scale_mm: float | None = None) -> FitData:
     grid_t = t0 + fit_step * np.arange(int((run.time_s[-1] - t0) / fit_step) + 1)
     nearest = np.clip(np.searchsorted(run.time_s, grid_t), 1, n - 1)
     nearest -= (grid_t - run.time_s[nearest - 1]) < (run.time_s[nearest] - grid_t)
-    turning = np.asarray(maxima + minima)
     corners = np.unique(np.asarray(maxima + minima + dwell_starts))
     fit_rows = np.intersect1d(np.union1d(nearest, corners), in_contact)
     # half-cycles as the model switches them: (cycle, direction) of the labels
