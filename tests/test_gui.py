@@ -124,13 +124,20 @@ def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
         qtbot.waitUntil(lambda: "verdict" in w.results.verdict.text() or "failed" in w.results.verdict.text(),
                         timeout=90_000)
         assert "Diagnosis verdict:" in w.results.verdict.text(), w.results.verdict.text()
+        side = result.path.with_name(result.path.stem + ".diagnosis.json")
+        assert side.exists()                       # kept with the run, so the browser shows it
         assert w.results.report.verdict in (
             "cycle_softening", "damping_cycle_change", "channel_lag", "force_zero_drift",
             "machine_compliance", "direction_friction", "rate_dependence", "unexplained", "none")
 
     # The run is in the catalog's browser; opening it from there shows the same curves (and fit).
     w.browser.refresh()
-    qtbot.waitUntil(lambda: any(r["file"] == str(result.path.resolve()) for r in w.browser.rows), timeout=10_000)
+    verdict = w.results.report.verdict if fitted else ""
+
+    def listed() -> bool:
+        return any(r["file"] == str(result.path.resolve()) and r["verdict"] == verdict for r in w.browser.rows)
+
+    qtbot.waitUntil(listed, timeout=10_000)
     row = next(i for i, r in enumerate(w.browser.rows) if r["file"] == str(result.path.resolve()))
     w.auto_diagnose_action.setChecked(False)      # diagnosed above already; keep the test short
     w.shown_run = None
@@ -138,6 +145,8 @@ def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
     qtbot.waitUntil(lambda: w.shown_run is not None, timeout=20_000)
     assert w.plots.sample_count == result.n_samples
     assert {(s.cycle, s.phase) for s in w.plots.segments} >= {(3, "unloading")}
+    if fitted:   # the stored diagnosis is shown at once, not recomputed
+        assert w.results.report.verdict == verdict and "stored with the run" in w.results.report.diagnosis_note
     if not fitted:
         pytest.skip(f"no fit to show: {result.fit_error or 'foamlab.identification not installed'}")
     qtbot.waitUntil(lambda: w.results.parameters.rowCount() > 0, timeout=30_000)

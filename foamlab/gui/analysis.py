@@ -113,8 +113,19 @@ def fit_for_display(loaded: Loaded) -> Any:
 
 
 def diagnose_run(run: RunData) -> Any:
+    """Diagnose one run and keep the result beside its file (and in the catalog), as
+    `foamlab diagnose` does, so the run browser shows the verdict next time."""
     diagnosis = _module("foamlab.diagnosis", "diagnosis")
-    return diagnosis.diagnose([run])
+    result = diagnosis.diagnose([run])
+    if run.source:
+        try:
+            from foamlab.diagnosis.store import store_diagnosis
+
+            stored = store_diagnosis(result.to_dict(), run.source)
+            log.info("diagnosis of %s: %s", run.source, stored.path or stored.note)
+        except (ImportError, FoamlabError, OSError) as exc:
+            log.warning("diagnosis of %s not stored: %s", run.source, exc)
+    return result
 
 
 def predicted_force(fit: Any, run: RunData) -> np.ndarray | None:

@@ -663,7 +663,9 @@ class MainWindow(QtWidgets.QMainWindow):
             if generation != self._analysis_generation:
                 return
             report.set_diagnosis(diagnosis)
+            report.diagnosis_note = ""
             self.results.show_report(report)
+            self.browser.refresh()      # the verdict is in the catalog now
 
         def failed(message: str) -> None:
             if generation != self._analysis_generation:
@@ -712,6 +714,9 @@ class MainWindow(QtWidgets.QMainWindow):
         if loaded.method_results is not None:
             report.set_method_results(loaded.method_results)
         report.fit_note = "fitting…"
+        if loaded.stored_diagnosis:
+            report.set_diagnosis(loaded.stored_diagnosis)
+            report.diagnosis_note = "stored with the run"
         self.results.show_report(report)
         self._status(f"opened {run.source}", timeout_ms=5000)
         from foamlab.gui.analysis import fit_for_display
