@@ -225,24 +225,27 @@ def real_file() -> list[str]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer repeats and seeds, no baseline")
-    ap.add_argument("--speed-only", action="store_true", help="only the timing (printed, not published)")
+    ap.add_argument("--speed-only", action="store_true",
+                    help="only the speed section (timing and baseline; rerun it when the machine is quiet)")
     args = ap.parse_args()
     repeats, seeds = (3, 10) if args.quick else (9, 60)
-    lines = ["Script: benchmarks/bench_identification.py", ""]
+    lines = ["Script: benchmarks/bench_identification.py --speed-only", ""]
     speed_lines, median_s, run = speed(repeats)
-    if args.speed_only:
-        print("\n".join(speed_lines))
-        return
     lines += speed_lines
     if not args.quick:
         lines += baseline(run, median_s)
+    publish("Identification speed (benchmarks/bench_identification.py)", lines)
+    if args.speed_only:
+        return
     default = ModelParameters.default()
+    lines = ["Script: benchmarks/bench_identification.py", ""]
     lines += coverage(reduced(default), Orders(1, 1, 7), seeds,
                       "Identifiable reduction of the default specimen")
     lines += coverage(default, Orders(2, 3, 7), max(seeds // 2, 10) if not args.quick else 5,
                       "Full default specimen")
     lines += real_file()
-    publish("Identification (benchmarks/bench_identification.py)", lines)
+    publish("Identification: recovery, coverage, efficiency, real data (benchmarks/bench_identification.py)",
+            lines)
 
 
 if __name__ == "__main__":
