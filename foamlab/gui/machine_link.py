@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
+import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -170,8 +171,31 @@ class MachineLink(QtCore.QObject):
         self.queue.shutdown(wait=False)
 
 
+#: Closing the window: how long a moving crosshead gets to come to rest before an e-stop (wall s).
+REST_TIMEOUT_S = 3.0
+
+
+def _bring_to_rest(machine, timeout_s: float = REST_TIMEOUT_S) -> None:
+    """Leave the crosshead at rest before letting go of the link: stop it if it moves (a
+    jog, a park cut short), wait for it to stand still, e-stop it if it does not in time."""
+    try:
+        if not machine.crosshead.status().moving:
+            return
+        machine.crosshead.stop()
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if not machine.crosshead.status().moving:
+                return
+            time.sleep(0.02)   # polling a drive's status flag: nothing to wait on but the wire
+        log.error("crosshead still moving %.0f s after stop: emergency stop", timeout_s)
+        machine.crosshead.emergency_stop()
+    except Exception as exc:  # a dead link cannot be told anything; the drive's watchdog stops it
+        log.warning("could not confirm the crosshead at rest before closing: %s", exc)
+
+
 def _close(conn: Connection) -> None:
     try:
+        _bring_to_rest(conn.machine)
         conn.machine.close()
     finally:
         if conn.simulator is not None:
