@@ -995,10 +995,11 @@ class RunEngine:
             log.debug("automatic fit failed", exc_info=True)
             return None, f"fit failed: {type(exc).__name__}: {exc}", None
         fit_path = None
-        if self._path is not None and hasattr(fit, "save"):
-            try:   # the sidecar beside the run: the catalog indexes it, the simulator loads it
-                fit_path = fit.save(self._path.with_name(f"{self._path.stem}.fit.json"))
+        if self._path is not None:
+            try:   # the sidecar beside the run (the catalog indexes it, the simulator loads it)
+                from foamlab.identification.store import store_fit
+
+                fit_path = store_fit(fit, self._path).path
             except Exception as exc:
                 log.warning("could not save the fit: %s", exc)
-                fit_path = None
         return fit, "", fit_path

@@ -136,3 +136,35 @@ def test_full_paper_protocol_through_each_transport(tmp_path, transport):
         assert result.fit is not None, result.fit_error
         assert result.fit.rmse < 0.05 * result.run.force_N.max()
     assert_no_miss_unless_overloaded(result)
+
+
+@pytest.mark.skipif(not (FULL and HAVE_FIT), reason="round trip: set FOAMLAB_FULL_HIL=1 (~3 min)")
+@pytest.mark.timeout(900)
+def test_round_trip_fit_simulate_run_fit(tmp_path):
+    """fit a run -> simulate that fit -> run the paper's protocol through the drivers -> fit again:
+    the parameters the data determine agree within their (autocorrelation-corrected) errors."""
+    speedup = FULL_SPEEDUP["modbus-tcp"]
+    method = load_method("paper-3cycle")
+    fits = []
+    specimen = None
+    for leg in ("first", "second"):
+        out = tmp_path / leg
+        with simulated("modbus-tcp", speedup=speedup, specimen=specimen) as sim:
+            approach(machine_for(sim))
+            engine = make_engine(sim, method, out, speedup=speedup, fit=True)
+            result = engine.wait(600) if engine.start() is None else None
+            assert result is not None and result.status == "finished", result and result.reason
+            wait_at_rest(sim)
+        assert result.fit is not None, result.fit_error
+        fits.append(result.fit)
+        specimen = str(result.fit_path)          # the fitted specimen drives the next leg
+    first, second = fits
+    assert first.names == second.names
+    se1, se2 = np.asarray(first.stderr_autocorr), np.asarray(second.stderr_autocorr)
+    determined = np.isfinite(se1) & np.isfinite(se2)
+    assert determined.sum() >= 10
+    z = np.abs(first.values - second.values)[determined] / np.hypot(se1, se2)[determined]
+    disagree = [n for n, zi in zip(np.asarray(first.names)[determined], z) if zi > 3]
+    assert len(disagree) <= 0.1 * determined.sum(), f"outside 3 standard errors: {disagree}"
+    # and the two fitted models describe the same specimen
+    assert abs(second.rmse - first.rmse) < 0.5 * first.rmse + 0.05

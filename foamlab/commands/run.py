@@ -7,7 +7,6 @@ import contextlib
 import importlib
 import logging
 import importlib.util
-import json
 import math
 import sys
 import time
@@ -310,10 +309,10 @@ def _diagnose(result) -> tuple[str, Path | None]:
     print("diagnosing the run (Ctrl-C skips it)...", flush=True)
     try:
         from foamlab.diagnosis import diagnose
+        from foamlab.diagnosis.store import store_diagnosis
 
         report = diagnose([result.run], params=result.fit.params)
-        path = result.path.with_name(f"{result.path.stem}.diagnosis.json")
-        path.write_text(json.dumps(report.to_dict(), indent=2), encoding="utf-8")
+        path = store_diagnosis(report.to_dict(), result.path).path
     except KeyboardInterrupt:
         return "skipped (Ctrl-C)", None
     except FoamlabError as exc:
