@@ -125,7 +125,7 @@ class DampingCycleChange(Cause):
 
     @classmethod
     def scale(cls, series):
-        return 0.5
+        return 1.0
 
     @classmethod
     def describe(cls, values, stderr):

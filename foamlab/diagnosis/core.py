@@ -306,26 +306,36 @@ def screen(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit
     return Fit(list(causes), model, nu, stderr, sol)
 
 
-def fit_joint(series: list[Series], start: Fit, current: Fit, max_nfev: int = None) -> Fit:
+def fit_joint(series: list[Series], start: Fit, current: Fit, max_nfev: int | None = None) -> Fit:
     """Fit base + causes with everything free (alpha, beta, effect and linear parameters).
 
     The base model can mimic an effect by bending its own alpha/beta (a fast damping
     mode and an order-near-1 residual term together act like friction at one speed);
     then the screening, with alpha/beta held, sees little, and a joint fit started
     at the screening's near-zero value stays there. So a cause the screening did not
-    see starts from a visible size of its effect, and alpha/beta unbend as it grows.
+    see starts from a visible size of its effect (both signs if it has two), and
+    alpha/beta unbend as it grows.
     """
     model = _model_like(start, series, free_base=True)
     if start.model.free_base:                 # continue a joint fit
-        nu0 = start.nu
+        starts = [start.nu]
     else:
         eta0 = start.eta.copy()
+        starts = [model.start(eta0)]
         seen = current.n * np.log(current.rss / start.rss) > np.log(current.n)
         if not seen:
-            eta0[-1] = start.causes[-1].joint_start(series)
-        nu0 = model.start(eta0)
-    nu, stderr, sol = _least_squares(model, nu0, max_nfev=max_nfev or JOINT_NFEV)
-    return Fit(list(start.causes), model, nu, stderr, sol)
+            size = abs(start.causes[-1].joint_start(series))
+            lo, hi = start.causes[-1].effect.bounds()
+            starts = []
+            for side in ((1.0, -1.0) if lo[0] < 0 < hi[0] else (1.0,)):
+                eta0[-1] = float(np.clip(side * size, lo[0], hi[0]))
+                starts.append(model.start(eta0))
+    best = None
+    for nu0 in starts:
+        nu, stderr, sol = _least_squares(model, nu0, max_nfev=max_nfev or JOINT_NFEV)
+        if best is None or sol.rss() < best[2].rss():
+            best = (nu, stderr, sol)
+    return Fit(list(start.causes), model, *best)
 
 
 def without_last(series: list[Series], fit: Fit) -> Fit:
