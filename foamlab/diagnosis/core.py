@@ -51,6 +51,8 @@ WHITE_P = 1e-3
 #: Share of the base model's excess over the noise an extension must explain to be named
 #: when its residuals are still not white.
 EXPLAINED_SHARE_MIN = 0.5
+#: ...a cause explaining at least this share (and passing the tests) is reported as partial.
+PARTIAL_SHARE_MIN = 0.1
 #: Contiguous blocks of each run in the held-out check.
 HELDOUT_FOLDS = 6
 #: ...each made of this many blocks spread over the run.
@@ -130,6 +132,7 @@ class Candidate:
     fit: Fit
     before: Fit
     coarse_fit: Fit | None = None      # the same model on the decimated search samples
+    share: float = float("nan")        # of the structure left above the noise it explains
     delta_bic: float = float("nan")
     lr_p: float = float("nan")
     passed: bool = False
@@ -161,6 +164,7 @@ class Candidate:
 class Diagnosis:
     verdict: str
     findings: list[Candidate]
+    partial: list[Candidate]               # pass the tests but explain only part of the structure
     tested: list[list[Candidate]]          # every candidate of every round
     skipped: dict[str, str]                # cause -> why it was not tested
     base: Fit
@@ -188,7 +192,7 @@ class Diagnosis:
                 "residuals": self.final_analysis.to_dict(),
                 "explained_share": self.explained_share,
             })
-        for i, c in enumerate(self.findings):
+        for i, c in enumerate(self.findings + self.partial):
             findings.append({
                 "effect": c.name,
                 "gain": c.gain(),
@@ -199,6 +203,7 @@ class Diagnosis:
                 "p_value": c.lr_p,
                 "rank": i + 1,
                 "named": self.verdict == c.name,
+                "explained_share": c.share,
             })
         return {"verdict": self.verdict, "findings": _jsonable(findings)}
 
@@ -473,6 +478,7 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
             remaining.append(CAUSES[name])
 
     findings: list[Candidate] = []
+    partial: list[Candidate] = []
     tested: list[list[Candidate]] = []
     current = base
     for _ in range(MAX_FINDINGS):
@@ -557,20 +563,29 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
                 continue
             # a cause must explain the structure (leave white residuals, or explain most of
             # what the model leaves above the noise), not a sliver of something else
-            share = 1.0 if left <= 0 else min((current.rss - c.fit.rss) / left, 1.0)
-            if share < EXPLAINED_SHARE_MIN and whiteness(c.fit.solution.residual).min_p < WHITE_P:
+            c.share = share = 1.0 if left <= 0 else min((current.rss - c.fit.rss) / left, 1.0)
+            explains = share >= EXPLAINED_SHARE_MIN or whiteness(c.fit.solution.residual).min_p >= WHITE_P
+            if not explains and (findings or share < PARTIAL_SHARE_MIN):
                 c.reason = f"explains {share:.0%} of the structure left (< {EXPLAINED_SHARE_MIN:.0%})"
                 continue
             checked += 1
             # held out on the search's samples (every k-th): the same prediction error, cheaper
             before = heldout_rmse(current, current_coarse)
             after = heldout_rmse(c.fit, c.coarse_fit)
-            c.passed = after < before
-            c.reason = "" if c.passed else f"held-out RMSE not lower ({after:.4g} >= {before:.4g})"
+            better = after < before
+            c.reason = "" if better else f"held-out RMSE not lower ({after:.4g} >= {before:.4g})"
+            if better and not explains:
+                # real but partial: a part of the structure, reported, never the verdict
+                c.reason = (f"partial: explains {share:.0%} of the structure left "
+                            f"(< {EXPLAINED_SHARE_MIN:.0%}); held-out RMSE lower")
+                partial.append(c)
+                continue
+            c.passed = better
             if c.passed:
                 chosen = c
         if chosen is None:
             break
+        partial = []
         findings.append(chosen)
         current = chosen.fit
         remaining = [c.cause for c in cands if c is not chosen and c.delta_bic > DELTA_BIC_MIN]
@@ -589,7 +604,7 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
         if verdict == "unexplained":
             heldout_rmse(base, at_full_resolution(base, coarse) if k > 1 else base)
     return Diagnosis(
-        verdict=verdict, findings=findings, tested=tested, skipped=skipped, base=base, final=final,
+        verdict=verdict, findings=findings, partial=partial if not findings else [], tested=tested, skipped=skipped, base=base, final=final,
         base_analysis=base_analysis, final_analysis=final_analysis, final_whiteness=white_final,
         explained_share=float(share), noise_sigma=sigma, series=series, params=params,
         seconds=time.perf_counter() - t0,

@@ -68,6 +68,7 @@ class ResidualAnalysis:
     time_bins: list[tuple[str, float, float, float]]   # (run, t_mid, mean, score)
     periodicity: Periodicity | None
     by_half_cycle: list[tuple[str, int, int, float, float]] = field(default_factory=list)
+    turning: tuple[float, float, float] = (0.0, 0.0, 0.0)   # (power share, sample share, window s)
 
     @property
     def excess_ratio(self) -> float:
@@ -78,7 +79,12 @@ class ResidualAnalysis:
         return sorted(hot, key=lambda r: -abs(r.score))[:limit]
 
     def where(self, limit: int = 5) -> list[str]:
-        out = [r.text() for r in self.structured_regions(limit)]
+        out = []
+        power, samples, window = self.turning
+        if power > 0.2 and power > 3 * samples:
+            out.append(f"turning points: {power:.0%} of the residual power in the {window:.2g} s after "
+                       f"each reversal ({samples:.1%} of the samples)")
+        out += [r.text() for r in self.structured_regions(limit)]
         if self.periodicity is not None and self.periodicity.power_share > 0.25:
             out.append(f"periodic: {self.periodicity.power_share:.0%} of the residual power near "
                        f"a period of {self.periodicity.period_s:.3g} s")
@@ -93,6 +99,8 @@ class ResidualAnalysis:
             "where": self.where(),
             "regions": [r.to_dict() for r in self.structured_regions(10)],
             "periodicity": self.periodicity.to_dict() if self.periodicity else None,
+            "turning_points": {"power_share": self.turning[0], "sample_share": self.turning[1],
+                               "window_s": self.turning[2]},
         }
 
 
@@ -134,6 +142,7 @@ def analyse(series: list[Series], residuals: list[np.ndarray], noise_sigma: floa
             m = float(np.mean(r[ix]))
             time_bins.append((s.name, float(np.mean(s.t[ix])), m, m / se if se > 0 else 0.0))
     return ResidualAnalysis(
+        turning=_turning_share(series, residuals),
         rmse=float(np.sqrt(np.mean(all_r ** 2))),
         noise_sigma=noise_sigma,
         whiteness=white,
@@ -164,3 +173,24 @@ def _periodicity(series: list[Series], residuals: list[np.ndarray]) -> Periodici
     df = f[1] - f[0]
     near = np.abs(f - f[i]) <= 3 * df
     return Periodicity(period_s=float(1.0 / f[i]), power_share=float(np.sum(p[near]) / total))
+
+
+def _turning_share(series: list[Series], residuals: list[np.ndarray]) -> tuple[float, float, float]:
+    """Share of the residual power just after the reversals (and the first loading's start),
+    against their share of the samples: the model switches damping and residual terms
+    there, so a specimen that relaxes or releases differently shows up here."""
+    power = total = 0.0
+    n_near = n = 0
+    window = 0.0
+    for s, r in zip(series, residuals):
+        f = s.source
+        half = np.median([f.t[p] - f.t[a] for a, p in zip(f.labels.starts, f.labels.peaks) if p > a] or [1.0])
+        window = max(window, 0.01 * float(half))
+        near = np.zeros(len(s), dtype=bool)
+        for i in list(f.labels.peaks) + list(f.labels.starts[:1]):
+            near |= (s.t >= f.t[i]) & (s.t <= f.t[i] + 0.01 * half)
+        power += float(r[near] @ r[near])
+        total += float(r @ r)
+        n_near += int(near.sum())
+        n += len(r)
+    return (power / total if total > 0 else 0.0, n_near / max(n, 1), window)
