@@ -1,0 +1,138 @@
+"""Diagnosis benchmark: speed on the paper's protocol, detection table, false-alarm rate.
+
+1. Speed: `diagnose` (identification included) of three-cycle 16 Hz runs (~14 000
+   samples), clean and with a hidden effect; median over the runs.
+2. Detection: for each cause, hidden at a ladder of sizes measured in units of the
+   load cell's noise (RMS change of the measured force the effect causes /
+   noise sigma, foamlab.model.effects.magnitude_for_ratio), over seeds: the share of
+   runs whose verdict names it, and of runs that name another cause. The table
+   gives the smallest size detected in >= 90 % of the seeds.
+3. False alarms: clean runs (no effect), the share whose verdict is not `none`.
+
+Detection and false alarms run on the test protocol (the paper's three cycles at
+--hz, default 2 Hz) to keep the table affordable; speed on the full 16 Hz.
+
+    python benchmarks/bench_diagnosis.py                # full tables (~30-60 min on 2 busy cores)
+    python benchmarks/bench_diagnosis.py --quick        # fewer seeds and sizes
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+
+from _table import publish  # noqa: E402
+from foamlab.diagnosis import diagnose  # noqa: E402
+from foamlab.diagnosis.synthetic import NOISE_N, hidden_effect_run  # noqa: E402
+from foamlab.model import ModelParameters, label_history, triangular_history  # noqa: E402
+from foamlab.model.effects import EFFECTS, magnitude_for_ratio  # noqa: E402
+
+RATIOS = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
+#: The side each cause is hidden on (damping_cycle_change: increasing, see docs/findings.md).
+SIGN = {"damping_cycle_change": 1.0}
+REF_SPEED, OTHER_SPEED = 23.6, 47.2
+
+
+def speed(repeats: int) -> list[str]:
+    cases = [None, None, {"cycle_softening": 0.03}, {"channel_lag": 0.3}, {"force_zero_drift": 0.003},
+             {"direction_friction": 4.0}, {"machine_compliance": 0.005}][:max(repeats, 1)]
+    times, rows = [], []
+    for i, eff in enumerate(cases):
+        run = hidden_effect_run(eff, sampling_hz=16.0, seed=40 + i)
+        t0 = time.perf_counter()
+        d = diagnose([run])
+        sec = time.perf_counter() - t0
+        times.append(sec)
+        rows.append(f"| {len(run):,d} | {eff or 'clean'} | {d.verdict} | {sec:.2f} |")
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    return (["Three-cycle 16 Hz runs, `diagnose([run])` including identification of the base model; "
+             f"1-minute load average {load:.1f} at the end (2 cores shared).", "",
+             "| samples | hidden effect | verdict | seconds |", "|---:|---|---|---:|"] + rows +
+            ["", f"**median {statistics.median(times):.2f} s**, max {max(times):.2f} s over {len(times)} runs "
+                 "(target: median <= 10 s)."])
+
+
+def _size(name: str, ratio: float, hz: float) -> float:
+    params = ModelParameters.default()
+    v = OTHER_SPEED if name == "rate_dependence" else REF_SPEED
+    t, x = triangular_history(params.x_scale_mm, v / 60.0, 3, hz)
+    return magnitude_for_ratio(name, ratio, params, t, x, NOISE_N, sign=SIGN.get(name, 1.0),
+                               labels=label_history(x))
+
+
+def _runs(name: str, magnitude: float, seed: int, hz: float):
+    if name == "rate_dependence":
+        return [hidden_effect_run({name: magnitude}, sampling_hz=hz, seed=seed, speed_mm_min=v)
+                for v in (REF_SPEED, OTHER_SPEED)]
+    return [hidden_effect_run({name: magnitude}, sampling_hz=hz, seed=seed)]
+
+
+def detection(seeds: int, hz: float, ratios) -> list[str]:
+    rows = []
+    for name in EFFECTS:
+        found = None
+        ladder = []
+        for ratio in ratios:
+            try:
+                mag = _size(name, ratio, hz)
+            except ValueError:          # beyond the parameter's bound
+                break
+            verdicts = [diagnose(_runs(name, mag, 1000 + s, hz)).verdict for s in range(seeds)]
+            hit = verdicts.count(name) / seeds
+            wrong = sum(v not in (name, "none", "unexplained") for v in verdicts) / seeds
+            ladder.append(f"{ratio:g}: {hit:.0%}" + (f" ({wrong:.0%} other)" if wrong else ""))
+            print(f"  {name} ratio {ratio:g} (magnitude {mag:.4g}): named {hit:.0%}, other cause {wrong:.0%}",
+                  file=sys.stderr, flush=True)
+            if hit >= 0.9:
+                found = (ratio, mag)
+                break
+        unit = EFFECTS[name].parameters[0].unit
+        rows.append(f"| {name} | {found[0]:g} | {found[1]:.4g} {unit} | {'; '.join(ladder)} |" if found else
+                    f"| {name} | > {ratios[len(ladder) - 1] if ladder else '?'} | - | {'; '.join(ladder)} |")
+    return (["Smallest hidden effect named in >= 90 % of "
+             f"{seeds} seeds, in units of the noise level (RMS change of the measured force / noise sigma "
+             f"{NOISE_N} N), on the paper's three cycles at {hz:g} Hz (rate_dependence: runs at "
+             f"{REF_SPEED} and {OTHER_SPEED} mm/min). Ladder: named share at each size (and the share "
+             "that named another cause).", "",
+             "| cause | size (x noise) | magnitude | ladder |", "|---|---:|---:|---|"] + rows)
+
+
+def false_alarms(seeds: int, hz: float) -> list[str]:
+    verdicts = [diagnose([hidden_effect_run(None, sampling_hz=hz, seed=5000 + s)]).verdict
+                for s in range(seeds)]
+    bad = [v for v in verdicts if v != "none"]
+    named = [v for v in bad if v != "unexplained"]
+    return [f"Clean runs (no effect), {seeds} seeds at {hz:g} Hz: verdict `none` in "
+            f"{1 - len(bad) / seeds:.1%}; a cause named in {len(named) / seeds:.1%}, "
+            f"`unexplained` in {(len(bad) - len(named)) / seeds:.1%} (false-alarm rate "
+            f"**{len(bad) / seeds:.1%}**)." + (f" Named: {', '.join(sorted(set(named)))}." if named else "")]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="5 seeds, fewer sizes, 3 speed runs")
+    ap.add_argument("--seeds", type=int, default=None, help="seeds per size (default 10; quick 5)")
+    ap.add_argument("--clean-seeds", type=int, default=None, help="clean runs (default 50; quick 20)")
+    ap.add_argument("--hz", type=float, default=2.0, help="sampling rate of the detection runs")
+    args = ap.parse_args()
+    seeds = args.seeds or (5 if args.quick else 10)
+    clean = args.clean_seeds or (20 if args.quick else 50)
+    ratios = RATIOS[::2] + RATIOS[-1:] if args.quick else RATIOS
+    lines = ["### Speed", ""] + speed(3 if args.quick else 7)
+    lines += ["", "### False alarms", ""] + false_alarms(clean, args.hz)
+    lines += ["", "### Detection", ""] + detection(seeds, args.hz, ratios)
+    publish("Diagnosis (benchmarks/bench_diagnosis.py)", lines)
+
+
+if __name__ == "__main__":
+    main()
