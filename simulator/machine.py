@@ -299,7 +299,7 @@ class SimulatedMachine:
         self._zero = 0.0
         self._upper, self._lower = st.travel_upper_mm, st.travel_lower_mm   # user coordinates
         self._acc = st.acceleration_mm_s2
-        self._watchdog_s = st.watchdog_ms / 1000.0
+        self._watchdog_s = self._watchdog_machine_s(st.watchdog_ms)
         self._last_activity = self._t
         self._motion: _Motion | None = None
         self._target: float | None = None     # physical target of the last completed move
@@ -690,8 +690,15 @@ class SimulatedMachine:
             raise ValueError(f"watchdog must be >= 0 ms, got {ms!r}")
         with self._lock:
             self._sync(exact=True)
-            self._watchdog_s = float(ms) / 1000.0
+            self._watchdog_s = self._watchdog_machine_s(ms)
             self._last_activity = self._t
+
+    def _watchdog_machine_s(self, ms: float) -> float:
+        """The watchdog guards against a silent host, and a host's silences happen in wall
+        time (it cannot think faster because the machine's clock runs S times faster):
+        at speedup S the timeout is ms of wall time, i.e. S x ms of machine time."""
+        speedup = float(getattr(self.clock, "speedup", 1.0))
+        return float(ms) / 1000.0 * (speedup if math.isfinite(speedup) else 1.0)
 
     def host_activity(self) -> None:
         """The host said something (any request): feeds the watchdog."""

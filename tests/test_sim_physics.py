@@ -355,8 +355,9 @@ def test_ticker_advances_physics_without_requests():
     m = SimulatedMachine(speedup=100, noise_sigma_N=0.0)
     try:
         m.set_watchdog_ms(200)
-        m.move_to(3.0, 300.0)
-        # nobody talks: the watchdog must still fire (from the ticker thread) within ~2 ms real
+        m.move_to(60.0, 60.0)   # 60 s of machine time = 0.6 s of wall time
+        # nobody talks: the watchdog (200 ms of wall time = 20 s of machine time at 100x)
+        # must still fire, from the ticker thread, before the move ends
         deadline = time.monotonic() + 5.0
         while time.monotonic() < deadline:
             if any(e.startswith("watchdog") for _, e in list(m.events)):
@@ -366,6 +367,8 @@ def test_ticker_advances_physics_without_requests():
     finally:
         m.close()
     assert not m._ticker.is_alive()
+    fired = [t for t, e in m.events if e.startswith("watchdog")]
+    assert fired[0] == pytest.approx(20.0, abs=2.0)   # virtual seconds after the command
 
 
 # ----------------------------------------------------------------------------- load cell

@@ -29,7 +29,7 @@ def register(subparsers) -> None:
                         "a real machine always runs in real time")
     p.add_argument("--machine", metavar="PROFILE", help="machine profile preselected in the window")
     p.add_argument("--method", metavar="METHOD", help="test method preselected (configs/methods/)")
-    p.add_argument("--out", metavar="DIR", help="data folder (default $FOAMLAB_DATA or ./foamlab-data)")
+    p.add_argument("--out", metavar="DIR", help="data folder (default $FOAMLAB_DATA or ~/foamlab-data)")
     p.add_argument("--open", metavar="FILE", dest="open_path", help="measured file to show at start")
     p.set_defaults(func=run)
 
