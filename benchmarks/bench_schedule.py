@@ -40,6 +40,7 @@ SECTION = "Run engine: 16 Hz schedule (benchmarks/bench_schedule.py)"
 TRANSPORTS = {"modbus-tcp": "Modbus TCP", "modbus-rtu-pty": "Modbus RTU on a pty", "serial": "ASCII serial on a pty"}
 SPECIMEN = Specimen("bench", 72.5, 100.0, 100.0)
 APPROACH_MM = 4.7          # just above the simulated specimen's top (5 mm)
+ABORTED: list[str] = []    # reasons of the runs that did not finish
 
 
 def method(seconds: float, speed: float = 35.0) -> object:
@@ -78,7 +79,8 @@ def one_run(transport: str, speedup: float, seconds: float, out: Path, realtime:
                            realtime=realtime)
         result = engine.run()
     if result.status != "finished":
-        print(f"  {transport} at speedup {speedup:g}: run aborted: {result.reason}", flush=True)
+        ABORTED.append(f"{TRANSPORTS[transport]}, speedup {speedup:g}: {result.reason}")
+        print(f"  {ABORTED[-1]}", flush=True)
     return result, engine.scheduling
 
 
@@ -145,9 +147,12 @@ def main() -> None:
         if not args.no_sweep:
             lines += sweep_table(out, transports)
     lines += ["", f"Load average at the start: {load:.1f} on {os.cpu_count()} cores (other jobs share them). "
-              "SCHED_FIFO is asked for the engine's worker thread and the simulator process "
-              "(granted here as root; on a lab PC it needs CAP_SYS_NICE or an rtprio limit); the rows "
-              "'normal' show the same runs without it."]
+              "The engine asks SCHED_FIFO for its worker thread (granted here as root; on a lab PC it needs "
+              "CAP_SYS_NICE or an rtprio limit); the rows 'normal' are the same runs without it. The "
+              "simulator runs in its own process at nice -15 (not real-time: see simulator/process.py). "
+              "Missed: median over the runs (max). Aborted runs are listed below the tables."]
+    if ABORTED:
+        lines += ["", "Aborted runs (repeated):"] + [f"- {a}" for a in ABORTED]
     publish(SECTION, lines)
 
 
