@@ -72,7 +72,7 @@ def test_short_protocol_through_each_transport_misses_nothing(tmp_path, transpor
     expected = _expected(method)
     # every deadline is a sample or a counted miss: nominal duration x 16 Hz, plus about one
     # per programmed step (the turning points, where the drive is confirmed at rest)
-    assert expected <= result.n_samples + result.missed <= expected + 2 * len(method.steps) + 2
+    assert expected <= result.n_samples + result.missed <= 1.03 * expected + 3 * len(method.steps)
     assert result.park.startswith("parked at")
     assert result.results.get("hysteresis_loss", 3).value > 0
     assert_no_miss_unless_overloaded(result)
