@@ -583,9 +583,13 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
             c.passed = better
             if c.passed:
                 chosen = c
+        if chosen is None and partial and not findings:
+            # no single cause explains the structure, but some explain a real part of it:
+            # take the strongest provisionally and look for what explains the rest on top
+            # (two effects at once); the set is named only if together they explain it
+            chosen = max(partial, key=lambda c: c.delta_bic)
         if chosen is None:
             break
-        partial = []
         findings.append(chosen)
         current = chosen.fit
         remaining = [c.cause for c in cands if c is not chosen and c.delta_bic > DELTA_BIC_MIN]
@@ -597,14 +601,20 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
     excess = base.rss - base.n * sigma ** 2
     removed = base.rss - final.rss
     share = 1.0 if removed >= excess else max(removed, 0.0) / excess
+    if findings and final_analysis.whiteness.min_p < WHITE_P and share < EXPLAINED_SHARE_MIN:
+        # provisional findings that together still leave most of the structure: partial only
+        partial, findings, final = findings, [], base
+        final_analysis = base_analysis
+    white_final = final_analysis.whiteness
     if findings:
         verdict = findings[0].name
+        partial = []
     else:
         verdict = "unexplained" if base_analysis.whiteness.min_p < WHITE_P else "none"
         if verdict == "unexplained":
             heldout_rmse(base, at_full_resolution(base, coarse) if k > 1 else base)
     return Diagnosis(
-        verdict=verdict, findings=findings, partial=partial if not findings else [], tested=tested, skipped=skipped, base=base, final=final,
+        verdict=verdict, findings=findings, partial=partial, tested=tested, skipped=skipped, base=base, final=final,
         base_analysis=base_analysis, final_analysis=final_analysis, final_whiteness=white_final,
         explained_share=float(share), noise_sigma=sigma, series=series, params=params,
         seconds=time.perf_counter() - t0,
