@@ -479,6 +479,7 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
 
     findings: list[Candidate] = []
     partial: list[Candidate] = []
+    first_partial: list[Candidate] = []
     tested: list[list[Candidate]] = []
     current = base
     for _ in range(MAX_FINDINGS):
@@ -587,7 +588,8 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
             # no single cause explains the structure, but some explain a real part of it:
             # take the strongest provisionally and look for what explains the rest on top
             # (two effects at once); the set is named only if together they explain it
-            chosen = max(partial, key=lambda c: c.delta_bic)
+            chosen = max(partial, key=lambda c: c.share)
+            first_partial = sorted(partial, key=lambda c: -c.share)
         if chosen is None:
             break
         findings.append(chosen)
@@ -603,7 +605,7 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
     share = 1.0 if removed >= excess else max(removed, 0.0) / excess
     if findings and final_analysis.whiteness.min_p < WHITE_P and share < EXPLAINED_SHARE_MIN:
         # provisional findings that together still leave most of the structure: partial only
-        partial, findings, final = findings, [], base
+        partial, findings, final = first_partial or findings, [], base
         final_analysis = base_analysis
     white_final = final_analysis.whiteness
     if findings:
