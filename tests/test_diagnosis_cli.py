@@ -1,0 +1,64 @@
+"""`foamlab diagnose`: the JSON object, the report, several files, bad input."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from foamlab import cli
+from foamlab.diagnosis.synthetic import hidden_effect_run
+
+
+def _write_csv(path, run):
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write("# synthetic run\ntime_s,displacement_mm,force_N\n")
+        for t, x, f in zip(run.time_s, run.displacement_mm, run.force_N):
+            fh.write(f"{t:.5f},{x:.6f},{f:.5f}\n")
+    return path
+
+
+@pytest.fixture(scope="module")
+def softened(tmp_path_factory):
+    return _write_csv(tmp_path_factory.mktemp("d") / "soft.csv",
+                      hidden_effect_run({"cycle_softening": 0.05}, sampling_hz=1.0, seed=3))
+
+
+def test_json_is_the_design_object_and_the_report_has_its_figures(softened, tmp_path, capsys):
+    assert cli.main(["diagnose", str(softened), "--json", "--report", str(tmp_path / "rep")]) == 0
+    obj = json.loads(capsys.readouterr().out)
+    assert set(obj) == {"verdict", "findings"}
+    assert obj["verdict"] == "cycle_softening"
+    first = obj["findings"][0]
+    assert first["effect"] == "cycle_softening"
+    assert set(first["gain"]) == {"rmse_before", "rmse_after", "heldout_rmse_before",
+                                  "heldout_rmse_after", "delta_bic"}
+    assert first["gain"]["heldout_rmse_after"] < first["gain"]["heldout_rmse_before"]
+    for name in ("index.html", "measurement.png", "base_simulation.png", "residual_map.png",
+                 "cause.png", "extended_simulation.png"):
+        assert (tmp_path / "rep" / name).stat().st_size > 0
+
+
+def test_table_output_and_causes_subset(softened, capsys):
+    assert cli.main(["diagnose", str(softened), "--causes", "channel_lag,force_zero_drift"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("verdict: ")
+    assert "cycle_softening" not in out.splitlines()[0]
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["diagnose", "/no/such/file.csv"], "not found"),
+    (["diagnose", "{x}", "--causes", "bogus"], "unknown cause"),
+])
+def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, message, softened):
+    argv = [a.replace("{x}", str(softened)) for a in argv]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+
+
+def test_garbage_file_is_refused(tmp_path, capsys):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("hello,world\n1,2\n", encoding="utf-8")
+    assert cli.main(["diagnose", str(bad)]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
