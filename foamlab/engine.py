@@ -508,8 +508,8 @@ class RunEngine:
         crosshead = self.machine.crosshead
         status = crosshead.status()
         if status.emergency_stopped or status.fault:
-            raise RunAborted(END_FAULT, f"the crosshead has a latched {'emergency stop' if status.emergency_stopped else 'fault'}"
-                                        f" ({self._fault_name()}): reset it before starting a run")
+            what = "emergency stop" if status.emergency_stopped else f"fault ({self._fault_name()})"
+            raise RunAborted(END_FAULT, f"the crosshead has a latched {what}: reset it before starting a run")
         if status.moving:
             crosshead.stop()
             self._wait_at_rest()
@@ -676,13 +676,14 @@ class RunEngine:
                                     f"in {over_s:.1f} s{detail}")
 
     def _fault_name(self) -> str:
+        """The drive's fault, named when the driver can tell (Modbus fault code), else generic."""
         reason = getattr(self.machine.crosshead, "fault_reason", None)
-        if reason is None:
-            return "fault"
-        try:
-            return reason()
-        except Exception:
-            return "fault"
+        if reason is not None:
+            try:
+                return reason()
+            except Exception:
+                pass
+        return "latched by the drive"
 
     # -- sampling ----------------------------------------------------------------------
     def _acquire(self, record: bool) -> tuple[float, float] | None:
