@@ -42,6 +42,11 @@ class Cause:
         return None
 
     @classmethod
+    def bounds(cls) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds of the fitted parameters: the effect's own unless physics narrows them."""
+        return cls.effect.bounds()
+
+    @classmethod
     def settings(cls, series: list[Series]) -> dict[str, float]:
         """Fixed (not fitted) values of the effect for these runs."""
         return {}
@@ -54,7 +59,7 @@ class Cause:
     @classmethod
     def starts(cls, series: list[Series]) -> np.ndarray:
         """Starting values of the fitted parameter (one per row), inside the bounds."""
-        lo, hi = cls.effect.bounds()
+        lo, hi = cls.bounds()
         scale = cls.scale(series)
         vals = [0.0] + [s * m * scale for m in SCAN_MULTIPLES for s in (1.0, -1.0)]
         vals = sorted({float(np.clip(v, lo[0], hi[0])) for v in vals})
@@ -63,7 +68,7 @@ class Cause:
     @classmethod
     def joint_start(cls, series: list[Series]) -> float:
         """Where the joint fit starts when the screening saw nothing: a visible size."""
-        lo, hi = cls.effect.bounds()
+        lo, hi = cls.bounds()
         return float(np.clip(0.3 * cls.scale(series), lo[0], hi[0]))
 
     @classmethod
@@ -148,7 +153,7 @@ class ChannelLag(Cause):
     @classmethod
     def starts(cls, series):
         h = min(float(np.median(np.diff(s.t))) for s in series)
-        lo, hi = cls.effect.bounds()
+        lo, hi = cls.bounds()
         vals = [0.0] + [sg * m * h for m in (0.3, 1.0, 3.0, 10.0, 30.0) for sg in (1.0, -1.0)]
         return np.array(sorted({float(np.clip(v, lo[0], hi[0])) for v in vals}))[:, None]
 
@@ -206,6 +211,12 @@ class DirectionFriction(Cause):
     @classmethod
     def scale(cls, series):
         return 0.03 * force_scale(series)
+
+    @classmethod
+    def bounds(cls):
+        # a force that opposes the motion: a negative one would drive it (not friction)
+        lo, hi = cls.effect.bounds()
+        return np.maximum(lo, 0.0), hi
 
     @classmethod
     def settings(cls, series):

@@ -276,7 +276,8 @@ def decimation(series: list[Series]) -> int:
 def _model_like(fit: Fit, series: list[Series], free_base: bool | None = None) -> ExtendedModel:
     m = fit.model
     free = m.free_base if free_base is None else free_base
-    return ExtendedModel(series, fit.params, m.effect_types, m.settings, free_base=free,
+    return ExtendedModel(series, fit.params, m.effect_types, m.settings, effect_bounds=m.effect_bounds,
+                         free_base=free,
                          base_bounds=base_bounds(series, fit.params) if free else None)
 
 
@@ -303,7 +304,8 @@ def fit_base(series: list[Series], params: ModelParameters) -> Fit:
 def screen(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
     """Fit base + causes with the base's alpha/beta held: the last cause's parameter scanned,
     then the effect parameters refined (cheap: only the linear parameters move with them)."""
-    model = ExtendedModel(series, current.params, [c.effect for c in causes], _settings(causes, series))
+    model = ExtendedModel(series, current.params, [c.effect for c in causes], _settings(causes, series),
+                          effect_bounds={c.effect.name: c.bounds() for c in causes})
     prev = current.eta
     trials = [np.concatenate([prev, row]) for row in causes[-1].starts(series)]
     rss = [model.solve(eta).rss() for eta in trials]
@@ -330,7 +332,7 @@ def fit_joint(series: list[Series], start: Fit, current: Fit, max_nfev: int | No
         seen = current.n * np.log(current.rss / start.rss) > np.log(current.n)
         if not seen:
             size = abs(start.causes[-1].joint_start(series))
-            lo, hi = start.causes[-1].effect.bounds()
+            lo, hi = start.causes[-1].bounds()
             starts = []
             for side in ((1.0, -1.0) if lo[0] < 0 < hi[0] else (1.0,)):
                 eta0[-1] = float(np.clip(side * size, lo[0], hi[0]))
@@ -346,7 +348,8 @@ def fit_joint(series: list[Series], start: Fit, current: Fit, max_nfev: int | No
 def without_last(series: list[Series], fit: Fit) -> Fit:
     """The fit's model without its last effect, refitted from the fit's alpha/beta."""
     m = fit.model
-    model = ExtendedModel(series, fit.params, m.effect_types[:-1], m.settings, free_base=True,
+    model = ExtendedModel(series, fit.params, m.effect_types[:-1], m.settings, effect_bounds=m.effect_bounds,
+                          free_base=True,
                           base_bounds=base_bounds(series, fit.params))
     k = len(m.effect_types[-1].fitted_parameters())
     eta = fit.eta[:len(fit.eta) - k]
@@ -377,6 +380,7 @@ def reidentify(series: list[Series], fit: Fit) -> Fit:
     except FoamlabError:
         return fit
     restart = ExtendedModel(series, params, model.effect_types, model.settings, free_base=True,
+                            effect_bounds=model.effect_bounds,
                             base_bounds=base_bounds(series, params))
     nu, stderr, sol = _least_squares(restart, restart.start(fit.eta), max_nfev=RESTART_NFEV)
     out = Fit(list(fit.causes), restart, nu, stderr, sol)
@@ -430,7 +434,8 @@ def _refit_without(fit: Fit, keep: list[np.ndarray]) -> Solution:
     their standard error)."""
     model = fit.model
     if model.free_base:
-        model = ExtendedModel(model.series, fit.params, model.effect_types, model.settings)
+        model = ExtendedModel(model.series, fit.params, model.effect_types, model.settings,
+                              effect_bounds=model.effect_bounds)
     if not model.n_eta:
         return model.solve((), keep)
     _, _, sol = _least_squares(model, fit.eta, keep, max_nfev=HELDOUT_NFEV)

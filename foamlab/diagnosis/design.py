@@ -241,7 +241,8 @@ class ExtendedModel:
 
     def __init__(self, series: list[Series], params: ModelParameters,
                  effects: list[type[Effect]] = (), settings: dict[str, dict[str, float]] | None = None,
-                 free_base: bool = False, base_bounds: tuple[np.ndarray, np.ndarray] | None = None):
+                 free_base: bool = False, base_bounds: tuple[np.ndarray, np.ndarray] | None = None,
+                 effect_bounds: dict[str, tuple[np.ndarray, np.ndarray]] | None = None):
         self.series = series
         self.params = params
         self.layout = layout_of(params)
@@ -250,6 +251,7 @@ class ExtendedModel:
         self.settings = settings or {}
         self.free_base = free_base
         self.base_bounds = base_bounds
+        self.effect_bounds = effect_bounds or {}   # narrower than the effect's own (physics)
         self.n_model = self.layout.n_linear
         self.n_linear = self.n_model + 1          # + the load cell's zero offset
         lay = self.layout
@@ -288,7 +290,7 @@ class ExtendedModel:
             lo += list(self.base_bounds[0])
             hi += list(self.base_bounds[1])
         for e in self.effect_types:
-            b = e.bounds()
+            b = self.effect_bounds.get(e.name) or e.bounds()
             lo += list(b[0])
             hi += list(b[1])
         return np.array(lo, float), np.array(hi, float)
