@@ -69,6 +69,8 @@ AT_TARGET_MM = 0.003
 NEAR_TARGET_MM = 0.05
 #: Consecutive failed reads (after the driver's own retries) tolerated before aborting.
 MAX_FAILED_READS = 3
+#: Attempts for an idempotent command whose reply was lost (after the driver's retries).
+COMMAND_ATTEMPTS = 3
 #: Crosshead status is read between samples when there is slack, at most this often (wall s)...
 STATUS_INTERVAL_S = 0.1
 #: ...and at least this often even without slack (wall s; may cost a sample, counted as missed).
@@ -504,6 +506,24 @@ class RunEngine:
         if self._stop.is_set():
             raise RunAborted(END_STOP, self._stop_reason or "stopped by the operator")
 
+    def _command(self, action: Callable, *args) -> None:
+        """Send an idempotent command (move, jog, stop, tare, limits), retried on a lost reply.
+
+        The driver already retried the request itself; a command whose reply went missing
+        may still have been done, and sending it again does the same thing. A lost link is
+        not retried here (cleanup reconnects).
+        """
+        for attempt in range(COMMAND_ATTEMPTS):
+            try:
+                action(*args)
+                return
+            except DeviceConnectionLost:
+                raise
+            except DeviceError as exc:
+                if attempt == COMMAND_ATTEMPTS - 1:
+                    raise
+                log.warning("%s failed (%s); sending it again", getattr(action, "__name__", "command"), exc)
+
     def _prepare(self) -> None:
         crosshead = self.machine.crosshead
         status = crosshead.status()
@@ -511,16 +531,16 @@ class RunEngine:
             what = "emergency stop" if status.emergency_stopped else f"fault ({self._fault_name()})"
             raise RunAborted(END_FAULT, f"the crosshead has a latched {what}: reset it before starting a run")
         if status.moving:
-            crosshead.stop()
+            self._command(crosshead.stop)
             self._wait_at_rest()
         self._start_position = crosshead.read_position()
         lim = self.limits
         if not lim.travel_upper_mm <= self._start_position <= lim.travel_lower_mm:
             raise RunAborted(END_LIMIT, f"the crosshead is at {self._start_position:.3f} mm, outside the travel "
                                         f"limits [{lim.travel_upper_mm:g}, {lim.travel_lower_mm:g}] mm")
-        crosshead.set_travel_limits(lim.travel_upper_mm, lim.travel_lower_mm)
+        self._command(crosshead.set_travel_limits, lim.travel_upper_mm, lim.travel_lower_mm)
         self._set_state(TARING)
-        self.machine.load_cell.tare()
+        self._command(self.machine.load_cell.tare)
 
     def _new_schedule(self) -> SampleSchedule:
         self._wake.clear()
@@ -537,7 +557,7 @@ class RunEngine:
         self._t0 = self._schedule.t0
         self._emit_progress(0.0, 0.0, immediate=True)
         reach = min(self._start_position + contact.max_search_mm, self.limits.travel_lower_mm)
-        crosshead.jog(+1, contact.search_speed_mm_min)
+        self._command(crosshead.jog, +1, contact.search_speed_mm_min)
         previous = None
         while True:
             sample = self._acquire(record=False)
@@ -545,7 +565,7 @@ class RunEngine:
                 continue
             position, force = sample
             if force >= contact.preload_N:
-                crosshead.stop()
+                self._command(crosshead.stop)
                 # the preload was crossed between the previous sample and this one
                 if previous is not None and force > previous[1]:
                     frac = (contact.preload_N - previous[1]) / (force - previous[1])
@@ -554,7 +574,7 @@ class RunEngine:
                     self._contact = position
                 break
             if position >= reach - AT_TARGET_MM:
-                crosshead.stop()
+                self._command(crosshead.stop)
                 raise RunAborted(END_LIMIT, f"no contact: the force stayed below the {contact.preload_N:g} N "
                                             f"preload down to {position:.2f} mm")
             previous = sample
@@ -620,7 +640,7 @@ class RunEngine:
         crosshead = self.machine.crosshead
         target = self._contact + planned.end_mm
         if step.action != "dwell":
-            crosshead.move_to(target, step.speed_mm_min)
+            self._command(crosshead.move_to, target, step.speed_mm_min)
         # the run's own schedule (and machine clock) starts when the first step is under way;
         # the contact search had its own, whose samples are not part of the run
         if planned.index == 0:
@@ -712,7 +732,9 @@ class RunEngine:
         position, force = reading.position_mm, reading.force_N
         # the sample goes to disk first (also the one that crosses a limit), then the limits
         # are checked (an abort stops the crosshead at once), then the listeners hear of it
-        sample = self._store((t_request + t_done) / 2, position, force, (t_done - t_request) * 1e3,
+        # stamped with the instant the driver says both values describe (drivers.base.Machine.read_sample)
+        instant = getattr(reading, "time", None) or (t_request + t_done) / 2
+        sample = self._store(instant, position, force, (t_done - t_request) * 1e3,
                              lateness * 1e3) if record else None
         self._check_limits(position, force, reading.load_cell_status)
         if sample is not None:
