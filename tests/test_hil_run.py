@@ -83,7 +83,9 @@ def test_paper_protocol_through_foamlab_run(tmp_path, capsys):
     """The README's main job: `foamlab run --speedup S` on the built-in machine, to the fit."""
     out = tmp_path / "data"
     # (the diagnosis, ~20 s, is foamlab.diagnosis' own tests' business)
-    code = cli.main(["run", "--speedup", "40", "--out", str(out), "--quiet", "--specimen-label", "hil",
+    # (speedup 30: the simulated drive's 2 s watchdog is 67 ms of wall time, which a loaded
+    # computer's scheduling still clears; at 40+ it sometimes does not)
+    code = cli.main(["run", "--speedup", "30", "--out", str(out), "--quiet", "--specimen-label", "hil",
                      "--no-diagnose"])
     printed = capsys.readouterr()
     assert code == 0, printed.err
@@ -98,7 +100,7 @@ def test_paper_protocol_through_foamlab_run(tmp_path, capsys):
     summary_line = next(line for line in printed.out.splitlines() if line.startswith("foamlab run: finished"))
     n_samples, missed = (int(w) for w in summary_line.replace(",", "").split()[3:6:2])
     assert n_samples == len(run)
-    # Every deadline is a sample or a counted miss. At 640 samples/s Modbus TCP is near its
+    # Every deadline is a sample or a counted miss. At 480 samples/s Modbus TCP is near its
     # limit on a busy machine and misses some (the short-protocol tests show zero at a rate it
     # sustains); the run must still hold the three cycles densely enough to fit.
     expected = _expected(method)
