@@ -21,9 +21,9 @@ pytestmark = [pytest.mark.hil]
 #: (the diagnosis finds it as `channel_lag`, force early); the hidden effects are sized
 #: to stand above it.
 CASES = {
-    "modbus-tcp": ("force_zero_drift", 0.3, 8.0),
-    "serial": ("force_zero_drift", 0.1, 4.0),
-    "modbus-rtu-pty": ("force_zero_drift", 0.3, 2.0),
+    "modbus-tcp": ("force_zero_drift", 0.5, 8.0),
+    "serial": ("force_zero_drift", 0.5, 4.0),
+    "modbus-rtu-pty": ("force_zero_drift", 0.5, 2.0),
 }
 
 
