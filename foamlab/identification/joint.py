@@ -37,6 +37,8 @@ POLISH_NFEV = 3
 MAX_JUMPS = 2
 #: Fit the unloaded reading z0 only with at least this many samples out of contact.
 MIN_CENSORED = 20
+#: Residual orders of one cycle closer than this fraction of their range are one term.
+COINCIDENT_ORDER = 1e-6
 
 
 @dataclass
@@ -296,10 +298,33 @@ def _real_modes(problem: SeparableProblem, lay: Layout, fit, lower, upper, ftol:
     return fit, fixed
 
 
+def _merge_coincident_orders(lay: Layout, nonlinear: np.ndarray, fixed: np.ndarray, lower: np.ndarray,
+                             upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two residual terms of one cycle with the same order (both at a bound, typically)
+    have the same column: the data see one term. Freed in the polish, the second would
+    move a hair away and the pair would model the derivative of the column in beta with
+    two huge amplitudes of opposite sign (seen: r = +-1.1 at beta = -3, cancelling to
+    1e-8) - a difference the model's own operators (and the simulator) cannot evaluate.
+    So a duplicate order is held on its twin: one term, its amplitude split between the
+    two (reported as a combination)."""
+    nonlinear, fixed = nonlinear.copy(), fixed.copy()
+    base = 2 * lay.N
+    for c in range(lay.C):
+        for m in range(1, lay.M):
+            j = base + c * lay.M + m
+            for i in range(base + c * lay.M, j):
+                if abs(nonlinear[j] - nonlinear[i]) <= COINCIDENT_ORDER * (upper[j] - lower[j]):
+                    nonlinear[j] = nonlinear[i]
+                    fixed[j] = True
+                    break
+    return nonlinear, fixed
+
+
 def _polish(fd: FitData, lay: Layout, linear: np.ndarray, nonlinear: np.ndarray, fixed: np.ndarray,
             lower: np.ndarray, upper: np.ndarray, nfev: int, starts: list[str]) -> JointFit:
     full = ModelBasis(fd.t, fd.x, fd.labels, fd.observed, lay, fd.x_scale_mm, fd.native_step_s, fd.corners)
     y = fd.f[fd.observed]
+    nonlinear, fixed = _merge_coincident_orders(lay, nonlinear, fixed, lower, upper)
     free = ~fixed
     nl_cols = np.array([lay.column_of_nonlinear(j) for j in range(lay.n_nonlinear)], int)[free]
     L, K = lay.n_linear, int(free.sum())
