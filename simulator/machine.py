@@ -27,7 +27,7 @@ Physics, in the units of drivers/base.py (mm positive down, N compression positi
   motion_window_s). Fault `overload` forces the reading to the ADC full scale.
 
 Timing: the physics advances lazily to clock.now() whenever anything reads or
-commands (reads only when at least one step is due, commands exactly to now), and
+commands (reads to within READ_STALENESS_S of now, commands exactly to now), and
 from a background ticker thread, so motion, watchdog and faults progress when
 nobody asks. One lock guards everything; every public method is thread-safe.
 """
@@ -66,6 +66,7 @@ TICK_CHUNK_STEPS = 8            # physics steps per lock hold in the ticker
 MAX_STEPS_PER_ADVANCE = 200     # beyond this backlog, steps grow (bounded lock time, no runaway)
 RANDOM_OVERLOAD_S = 1.0         # duration of one random overload event (virtual s)
 MIN_STEP_S = 1e-6               # shorter steps would differentiate rounding errors (rates ~ dx/h)
+READ_STALENESS_S = 1e-3         # a read sees the machine at most this long ago (virtual s; a 1 kHz indicator)
 SPECIMEN_T_MAX_S = 1e6          # memory operators stay accurate over this much virtual time
 
 
@@ -375,8 +376,13 @@ class SimulatedMachine:
             self._advance(self.clock.now(), exact=True)
 
     def _sync(self, exact: bool = False) -> None:
+        # Reads need not step for every request (the ticker keeps the physics within a step
+        # of now), but a value older than READ_STALENESS_S is brought to now: the step grows
+        # with the speedup (S/1000 s), and a stale reading S times faster is a wrong instant
+        # for the host, whose samples the model then sees at the wrong time.
         self._check_error()
-        self._advance(self.clock.now(), exact=exact)
+        now = self.clock.now()
+        self._advance(now, exact=exact or now - self._t > READ_STALENESS_S)
 
     def _breakpoints(self, t: float) -> list[float]:
         out = list(self._faults_breaks)
