@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import re
 import threading
+import time
 from dataclasses import dataclass
 
 import serial
@@ -334,9 +335,11 @@ class AsciiMachine(Machine):
             self._configured = True
 
     def read_sample(self) -> MachineSample:
+        start = time.monotonic()
         travel, force = self.line.query("read_both").groups()
+        instant = 0.5 * (start + time.monotonic())          # one reply holds both values
         force_N = self.load_cell.force_sign * float(force)
-        return MachineSample(force_N, float(travel), self.load_cell.status_for(force_N))
+        return MachineSample(force_N, float(travel), self.load_cell.status_for(force_N), instant)
 
     def close(self) -> None:
         self.line.close()
