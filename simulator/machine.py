@@ -486,8 +486,17 @@ class SimulatedMachine:
         # reaching a soft limit while still heading past it (limits moved in front of the
         # crosshead, or a reversal overshooting): immediate stop (the limit crossing is a step)
         # (a move that ends at the limit arrives there at rest, in the branch above)
+        # Only a motion whose end lies beyond the limit overtravels: one that ends AT the
+        # limit (the ASCII stand moves to a target by setting that limit) may come within
+        # the tolerance of it a step before it arrives.
         pos = self._p - self._zero
-        if (self._v > 0 and pos >= self._lower - _POS_TOL_MM) or (self._v < 0 and pos <= self._upper + _POS_TOL_MM):
+        end = m.target - self._zero
+        # at rest within the tolerance band: arriving, not crossing
+        arriving = self._v * self._v <= 2.0 * self._acc * 2.0 * _POS_TOL_MM
+        beyond_lower = end > self._lower + _POS_TOL_MM or not arriving
+        beyond_upper = end < self._upper - _POS_TOL_MM or not arriving
+        if ((self._v > 0 and pos >= self._lower - _POS_TOL_MM and beyond_lower)
+                or (self._v < 0 and pos <= self._upper + _POS_TOL_MM and beyond_upper)):
             self._v = 0.0
             self._motion = None
             self._latch_fault(FAULT_LIMIT, t1, f"overtravel at {pos:.4f} mm")

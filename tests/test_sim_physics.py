@@ -143,6 +143,25 @@ def test_travel_limits_stop_at_the_limit(clock):
     m.close()
 
 
+def test_move_ending_at_the_limit_is_not_overtravel(clock):
+    # the ASCII stand reaches a target by setting the limit there and moving on; a physics
+    # step that lands within the tolerance just before arrival must not latch overtravel
+    m = SimulatedMachine(clock=clock, noise_sigma_N=0.0, specimen_top_mm=80.0)
+    for target in (4.0, 0.0, 4.0, 0.0):
+        if target > 0:
+            m.set_travel_limits(-1.0, target)
+        else:
+            m.set_travel_limits(target, 10.0)
+        assert m.move_to(target, 300.0)
+        eta = m.motion_eta()
+        for dt in (1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 5e-7):        # approach the arrival closely
+            run_to(m, clock, eta - dt)
+        run_to(m, clock, eta)
+        s = m.crosshead_status()
+        assert not s.moving and not s.fault and m.position_mm() == target, list(m.events)[-3:]
+    m.close()
+
+
 def test_set_zero_and_limits_in_user_coordinates(machine, clock):
     machine.move_to(3.0, 300.0)
     finish_motion(machine, clock)
