@@ -151,6 +151,26 @@ class SerialLine:
             self.close()
             raise DeviceConnectionLost(f"{self.where}: {exc}") from None
 
+    def _read_line(self) -> str | None:
+        """One more reply line within the timeout (None on silence or garbage)."""
+        try:
+            raw = self._port.read_until(self.commands.reply_terminator)
+        except (serial.SerialException, OSError):
+            return None
+        terminator = self.commands.reply_terminator
+        if not raw.endswith(terminator):
+            return None
+        try:
+            return raw[:-len(terminator)].decode("ascii")
+        except UnicodeDecodeError:
+            return None
+
+    @staticmethod
+    def _is_stale(line: str, name: str) -> bool:
+        """The line is a well-formed reply to some OTHER command."""
+        return any(other != name and (line == "" if g is None else bool(g.fullmatch(line)))
+                   for other, g in REPLIES.items())
+
     def query(self, name: str, **params) -> re.Match | None:
         """Send command `name`, return the parsed reply (a match; None for an acknowledge)."""
         text = self.commands.format(name, **params)
@@ -181,6 +201,16 @@ class SerialLine:
                 match = grammar.fullmatch(line) if grammar is not None else None
                 if match:
                     return match
+                if self._is_stale(line, name):
+                    # a reply to an earlier command that timed out arrived after the
+                    # input flush: this command's own reply is still on its way
+                    late = self._read_line()
+                    if late is not None:
+                        if grammar is None and late == "":
+                            return None
+                        match = grammar.fullmatch(late) if grammar is not None else None
+                        if match:
+                            return match
                 expected = "an empty acknowledge" if grammar is None else f"/{grammar.pattern}/"
                 error = DeviceProtocolError(f"{self.where}: unexpected reply to {text!r}: {line!r} (expected {expected})")
             assert error is not None

@@ -202,6 +202,14 @@ def test_a_stale_extra_line_is_flushed_before_the_next_command():
             assert machine.read_sample() == MachineSample(3.0, 2.0, machine.load_cell.status_for(3.0))
 
 
+def test_a_late_reply_arriving_after_the_flush_is_skipped_without_resending():
+    # the reply to an earlier, timed-out `n` arrives just after this command was sent:
+    # it is a well-formed reply to another command, so the driver reads on for its own
+    with stand([(cmd("w"), line("12.302,48.080") + line("M1 U0 L0 F0 E0 O0"))]) as peer:
+        with machine_on(peer) as machine:
+            assert machine.crosshead.status().moving
+
+
 @pytest.mark.parametrize("transport", ["pty", "socket"])
 def test_dropped_line_is_connection_lost(transport):
     with stand([(cmd("w"), CLOSE)], transport) as peer:
