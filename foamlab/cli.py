@@ -32,7 +32,17 @@ def build_parser() -> argparse.ArgumentParser:
                 continue  # command not built yet
             raise
         module.register(sub)
+    for subparser in sub.choices.values():
+        subparser.error = _one_line_error(subparser)
     return parser
+
+
+def _one_line_error(parser: argparse.ArgumentParser):
+    """Bad arguments: one line and exit 2, not a usage block (every subcommand)."""
+    def error(message: str):
+        print(f"{parser.prog}: error: {message}", file=sys.stderr)
+        raise SystemExit(2)
+    return error
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -46,15 +46,8 @@ def register(subparsers) -> None:
                    help=f"test only these causes (default: all: {', '.join(CAUSES)})")
     p.add_argument("--no-store", action="store_true",
                    help="do not write <run>.diagnosis.json beside a foamlab run file or index it")
-    p.error = _one_line_error(p)
     p.set_defaults(func=run)
 
-
-def _one_line_error(parser: argparse.ArgumentParser):
-    def error(message: str):
-        print(f"{parser.prog}: error: {message}", file=sys.stderr)
-        raise SystemExit(2)
-    return error
 
 
 def _causes(text: str | None) -> list[str] | None:

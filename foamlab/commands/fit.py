@@ -45,15 +45,8 @@ def register(subparsers) -> None:
                    help="fit each of these orders too and print their AIC/BIC (lower is better)")
     p.add_argument("--no-store", action="store_true",
                    help="do not write <run>.fit.json beside the run or index it in the catalog")
-    p.error = _one_line_error(p)
     p.set_defaults(func=run)
 
-
-def _one_line_error(parser: argparse.ArgumentParser):
-    def error(message: str):
-        print(f"{parser.prog}: error: {message}", file=sys.stderr)
-        raise SystemExit(2)
-    return error
 
 
 def run(args: argparse.Namespace) -> int:

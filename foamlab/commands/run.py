@@ -9,7 +9,6 @@ import logging
 import importlib.util
 import math
 import sys
-import time
 import tomllib
 from pathlib import Path
 
@@ -78,15 +77,8 @@ def register(subparsers) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.add_argument("--verbose", action="store_true",
                    help="also print the engine's warnings (retries, failed reads) as they happen")
-    p.error = _one_line_error(p)
     p.set_defaults(func=run)
 
-
-def _one_line_error(parser: argparse.ArgumentParser):
-    def error(message: str):
-        print(f"{parser.prog}: error: {message}", file=sys.stderr)
-        raise SystemExit(2)
-    return error
 
 
 @contextlib.contextmanager

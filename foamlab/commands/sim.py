@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import math
 import signal
-import sys
 import threading
 
 from foamlab import FoamlabError
@@ -51,15 +50,8 @@ def register(subparsers) -> None:
     p.add_argument("--fault", action="append", default=[], metavar="SPEC",
                    help="inject a fault (repeatable), see below")
     p.add_argument("--seed", type=int, default=0, help="seed for noise and random faults (default 0)")
-    p.error = _one_line_error(p)  # bad arguments: one line and exit 2, not a usage block
     p.set_defaults(func=run)
 
-
-def _one_line_error(parser: argparse.ArgumentParser):
-    def error(message: str):
-        print(f"{parser.prog}: error: {message}", file=sys.stderr)
-        raise SystemExit(2)
-    return error
 
 
 def parse_effects(items: list[str]) -> dict[str, float]:
