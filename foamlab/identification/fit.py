@@ -90,10 +90,7 @@ def _result(fd: FitData, orders: Orders, paper, jf: JointFit, started: float) ->
     corr = np.full((len(names), len(names)), np.nan)
     corr[np.ix_(order, order)] = unc.correlation[:len(order), :len(order)]
     notes = [f"{names[i]} = 0 (fixed): the data do not support an oscillation of damping mode "
-             f"{names[i][5:-3]} (BIC), so it is a real mode" if names[i].startswith("alpha") else
-             f"{names[i]} = {values[i]:.4g} (fixed): the same order as another term of cycle "
-             f"{names[i][4:].split('_')[0]}, so the data see one term (its amplitude is shared)"
-             for i in nl_idx[jf.fixed_nonlinear]]
+             f"{names[i][5:-3]} (BIC), so it is a real mode" for i in nl_idx[jf.fixed_nonlinear]]
 
     # the model's own evaluation at every sample, what a load cell would read
     response = evaluate(params, fd.t, fd.x, fd.labels)

@@ -140,8 +140,7 @@ class FitResult:
         lines.append(f"    {'name':<11}{'value':>14}{'stderr':>12}{'rel':>9}{'stderr ac':>12}")
         for n, v, s, sa in zip(self.names, self.values, self.stderr, self.stderr_autocorr):
             if n in self._fixed_names():
-                why = "(fixed: real mode)" if n.startswith("alpha") else "(fixed: shared order)"
-                lines.append(f"    {n:<11}{v:>14.6g}{why:>33}")
+                lines.append(f"    {n:<11}{v:>14.6g}{'(fixed: real mode)':>33}")
             elif math.isfinite(s):
                 rel = f"{abs(s / v) * 100:8.1f}%" if v != 0 else f"{'-':>9}"
                 lines.append(f"    {n:<11}{v:>14.6g}{s:>12.3g}{rel}{sa:>12.3g}")
