@@ -13,7 +13,7 @@ from typing import Callable
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from foamlab.identification.data import FitData, Orders, prepare
+from foamlab.identification.data import FitData, Orders, model_response, prepare
 from foamlab.identification.joint import JointFit, joint_fit
 from foamlab.identification.paper import BETA_HI, BETA_LO, nonlinear_bounds, paper_steps
 from foamlab.identification.result import FitResult
@@ -23,7 +23,7 @@ from foamlab.identification.statistics import (
     information_criteria,
     parameter_uncertainty,
 )
-from foamlab.model import evaluate, thermodynamic_checks
+from foamlab.model import thermodynamic_checks
 from foamlab.rundata import RunData
 
 Progress = Callable[[str, float], None]
@@ -93,7 +93,7 @@ def _result(fd: FitData, orders: Orders, paper, jf: JointFit, started: float) ->
              f"{names[i][5:-3]} (BIC), so it is a real mode" for i in nl_idx[jf.fixed_nonlinear]]
 
     # the model's own evaluation at every sample, what a load cell would read
-    response = evaluate(params, fd.t, fd.x, fd.labels)
+    response = model_response(params, fd)
     predicted = np.maximum(response.force, jf.contact_zero_N)
     y = fd.f[fd.observed]
     joint = GoodnessOfFit.of(y, predicted[fd.observed], jf.n_free)

@@ -23,10 +23,10 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from foamlab.identification.basis import Layout, ModelBasis
-from foamlab.identification.data import FitData, Orders
+from foamlab.identification.data import FitData, Orders, model_response
 from foamlab.identification.paper import alpha_candidates, beta_candidates, nonlinear_bounds
 from foamlab.identification.varpro import GreedyBasis, SeparableFit, SeparableProblem, solve_linear
-from foamlab.model import ModelParameters, evaluate
+from foamlab.model import ModelParameters
 
 #: Budget of the short runs that pick the better start, and of the continuation.
 PROBE_NFEV, FIT_NFEV = 6, 40
@@ -220,7 +220,9 @@ def joint_fit(fd: FitData, orders: Orders, start: ModelParameters | None,
               progress: Callable[[str, float], None] | None = None) -> JointFit:
     lay = _layout(fd, orders)
     lower, upper = nonlinear_bounds(orders, lay.C, fd.loading_time_s)
-    coarse = ModelBasis(fd.t, fd.x, fd.labels, fd.fit_rows, lay, fd.x_scale_mm, fd.fit_step_s, fd.corners)
+    nodes = fd.nodes
+    coarse = ModelBasis(nodes.t, nodes.x, nodes.labels, nodes.of_sample[fd.fit_rows], lay, fd.x_scale_mm,
+                        fd.fit_step_s, nodes.corners)
     w = np.sqrt(fd.fit_count)[:, None]         # block means: weight sqrt(samples)
     blocks = fd.block_curvature.apply              # model at the rows -> model block means
     problem = SeparableProblem(lambda th: w * blocks(coarse.design(th)),
@@ -268,7 +270,7 @@ def _evaluable(fd: FitData, jf: "JointFit") -> bool:
     one cycle at nearly the same order (near beta = -3 the columns grow like t^4) with
     amplitudes +-1e5 whose difference is the force. No evaluation in finite precision
     reproduces such a model, and the simulator cannot run it."""
-    response = evaluate(jf.params, fd.t, fd.x, fd.labels)
+    response = model_response(jf.params, fd)
     predicted = np.maximum(response.force, jf.contact_zero_N)[fd.observed]
     fitted = fd.f[fd.observed] - jf.residual
     tolerance = 0.1 * max(fd.noise_N, 1e-4 * float(np.ptp(fd.f)))
@@ -319,7 +321,9 @@ def _real_modes(problem: SeparableProblem, lay: Layout, fit, lower, upper, ftol:
 
 def _polish(fd: FitData, lay: Layout, linear: np.ndarray, nonlinear: np.ndarray, fixed: np.ndarray,
             lower: np.ndarray, upper: np.ndarray, nfev: int, starts: list[str]) -> JointFit:
-    full = ModelBasis(fd.t, fd.x, fd.labels, fd.observed, lay, fd.x_scale_mm, fd.native_step_s, fd.corners)
+    nodes = fd.nodes
+    full = ModelBasis(nodes.t, nodes.x, nodes.labels, nodes.of_sample[fd.observed], lay, fd.x_scale_mm,
+                      fd.native_step_s, nodes.corners)
     y = fd.f[fd.observed]
     free = ~fixed
     nl_cols = np.array([lay.column_of_nonlinear(j) for j in range(lay.n_nonlinear)], int)[free]
