@@ -17,7 +17,8 @@ Physics, in the units of drivers/base.py (mm positive down, N compression positi
 - Specimen: top surface at specimen_top_mm (machine coordinates at start, default
   5 mm below zero, so a contact search is needed). The crosshead compression
   x = max(position - top, 0), through the hidden effects (foamlab.model.effects),
-  drives foamlab.model.SpecimenState; the plate cannot pull: force = max(total, 0)
+  drives foamlab.model.SpecimenState (a fitted specimen from where its elastic force
+  is zero: surface_offset_mm); the plate cannot pull: force = max(total, 0)
   while x > 0, else 0. Steps are cut at every corner of the motion plan and at the
   contact instant, so the specimen sees the crosshead's piecewise-linear path
   exactly (the model's operators are exact for it) and large steps cost no accuracy.
@@ -251,6 +252,25 @@ def plan_stop(t0: float, p: float, v: float, acc: float) -> list[_Segment]:
 
 # ----------------------------------------------------------------------------- the machine
 
+def surface_offset_mm(params: ModelParameters) -> float:
+    """Where the specimen's elastic force is zero, in its model's displacement (<= 0).
+
+    A fitted specimen measures displacement from where the run's contact search reached
+    its preload, so its elastic force at 0 is k0 ~ the preload: its top lies before 0.
+    The plate touching the top is therefore at this displacement of the model (the largest
+    root of the elastic polynomial below 0); 0 for a specimen whose force starts at zero
+    (the default). Without it a fitted specimen would push back with k0 the instant it is
+    touched, and every fit -> simulate -> fit would move the zero by the preload's travel.
+    """
+    k = np.asarray(params.elastic_k, float)
+    if not k[0] > 0:
+        return 0.0
+    roots = np.roots(k[::-1]) * params.x_scale_mm          # in x / x_scale, highest power first
+    real = roots[np.abs(roots.imag) <= 1e-9 * params.x_scale_mm].real
+    below = real[(real < 0) & (real > -params.x_scale_mm)]
+    return float(below.max()) if len(below) else 0.0
+
+
 def _load_specimen(specimen) -> ModelParameters:
     if specimen is None:
         return ModelParameters.default()
@@ -312,6 +332,7 @@ class SimulatedMachine:
 
         # specimen and load cell
         self._specimen = SpecimenState(self.params, t_max=SPECIMEN_T_MAX_S)
+        self._surface_mm = surface_offset_mm(self.params)
         self._online = self.effects.online()
         self._x_cross = 0.0
         self._x_spec = 0.0
@@ -434,7 +455,7 @@ class SimulatedMachine:
         st = self.settings
         x_cross = max(self._p - st.specimen_top_mm, 0.0)
         x_s = self._online.specimen_x(t, x_cross)
-        comps = self._specimen.step(t, x_s)
+        comps = self._specimen.step(t, x_s + self._surface_mm)
         contact = self._online.contact_force(t, x_cross, x_s, comps, self._v)
         sensor = self._online.sensor(t, contact)
         self._x_cross, self._x_spec, self._contact, self._sensor, self._comps = x_cross, x_s, contact, sensor, comps
