@@ -12,11 +12,10 @@ What fits the CI budget, and why:
   S = 4. The full paper protocol (72.5 mm specimen, 885 s of machine time) would take
   3.7 min there, so the specimen is 8 mm high: the paper's protocol (3 cycles to 80 %,
   23.6 mm/min, 16 Hz, back to zero between cycles) on a shorter block, 98 s of machine
-  time, ~25 s of wall time. The full protocol's round trip is FOAMLAB_FULL_HIL's business
-  (tests/test_hil_run.py);
+  time, ~25 s of wall time;
 - orders: the paper's (3, 3, 7) are not identifiable term by term from one run of this
-  protocol - two fits of the same data at the noise level differ by many of their own
-  standard errors (|z| up to ~200 measured on the full protocol), because equivalent sets
+  protocol - fits of two runs of the same specimen, both at the noise level, differ by
+  many of their own standard errors (|z| up to ~200 measured on the full protocol), because equivalent sets
   of memory terms exist, which local standard errors cannot see. A parameter-by-parameter
   round trip is meaningful for orders whose every parameter the data determine: one
   damping mode, one residual term per cycle and the order-7 elastic polynomial (N, M, P) =
