@@ -137,6 +137,8 @@ def test_fit_simulate_run_fit_agrees(tmp_path):
         assert result is not None, "the run did not end"
         wait_at_rest(sim)
     assert result.status == "finished", result.reason
+    # zero misses, as on a quiet machine (an overloaded computer skips the test: a request
+    # stalled for S x its wall time leaves its sample's instant, and the fit there, unsure)
     assert_no_miss_unless_overloaded(result)
     second = fit_run(result.run, ORDERS)
 
