@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import platform
 import re
+import statistics
+import time
 from datetime import date
 from pathlib import Path
 
@@ -21,3 +23,13 @@ def publish(section: str, lines: list[str]) -> None:
     pattern = re.compile(rf"^## {re.escape(section)}\n.*?(?=^## |\Z)", re.S | re.M)
     new = pattern.sub(body + "\n", old) if pattern.search(old) else old.rstrip() + "\n\n" + body
     DOC.write_text(new, encoding="utf-8")
+
+
+def median_seconds(fn, repeats: int) -> float:
+    """Median wall time of fn() over repeats (machine noise: medians, not single runs)."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)

@@ -8,7 +8,6 @@ Run: .venv/bin/python benchmarks/bench_model.py
 
 from __future__ import annotations
 
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -16,21 +15,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _table import publish  # noqa: E402
+from _table import median_seconds, publish  # noqa: E402
 
 from foamlab.model import ModelParameters, SpecimenState, evaluate, triangular_history  # noqa: E402
 
 A, RATE, CYCLES = 58.0, 23.6 / 60.0, 3
 DURATION = CYCLES * 2 * A / RATE
 
-
-def median_time(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def main() -> None:
@@ -40,7 +31,7 @@ def main() -> None:
     for n_target in (10_000, 30_000, 100_000, 300_000, 1_000_000):
         t, x = triangular_history(A, RATE, CYCLES, n_target / DURATION)
         repeats = 7 if n_target <= 100_000 else 3
-        sec = median_time(lambda: evaluate(params, t, x), repeats)
+        sec = median_seconds(lambda: evaluate(params, t, x), repeats)
         ns.append(len(t))
         ts.append(sec)
         rows.append(f"| {len(t):>9,d} | {sec * 1e3:9.1f} | {sec / len(t) * 1e6:7.2f} |")

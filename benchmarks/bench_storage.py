@@ -10,10 +10,8 @@ below any sampling period a testing machine uses.
 
 from __future__ import annotations
 
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _table import publish  # noqa: E402
+from _table import median_seconds, publish  # noqa: E402
 
 from foamlab.importers import load_run  # noqa: E402
 from foamlab.segmentation import segment  # noqa: E402
@@ -32,14 +30,6 @@ from tests.synthetic import triangle_run  # noqa: E402
 REAL = ROOT / "tests" / "data" / "real" / "Specimen_RawData_6.csv"
 
 
-def median_s(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
 
 def main() -> None:
     lines = ["| what | samples | median | per sample |", "|---|---:|---:|---:|"]
@@ -48,8 +38,8 @@ def main() -> None:
         lines.append(f"| {what} | {n:,} | {seconds * 1e3:.1f} ms | {seconds / n * 1e6:.2f} µs |")
 
     run = load_run(REAL)
-    row("load_run, real Bluehill file", len(run), median_s(lambda: load_run(REAL), 5))
-    row("segment, real Bluehill file", len(run), median_s(lambda: segment(run), 5))
+    row("load_run, real Bluehill file", len(run), median_seconds(lambda: load_run(REAL), 5))
+    row("segment, real Bluehill file", len(run), median_seconds(lambda: segment(run), 5))
 
     sizes, load_times, seg_times = [], [], []
     with tempfile.TemporaryDirectory() as tmp:
@@ -57,8 +47,8 @@ def main() -> None:
             synthetic, _ = triangle_run(rate_hz=rate)
             path = write_run_file(Path(tmp) / f"run{len(synthetic)}.csv", synthetic)
             repeats = 5 if len(synthetic) < 500_000 else 3
-            t_load = median_s(lambda: load_run(path), repeats)
-            t_seg = median_s(lambda: segment(synthetic), repeats)
+            t_load = median_seconds(lambda: load_run(path), repeats)
+            t_seg = median_seconds(lambda: segment(synthetic), repeats)
             row("load_run, run file", len(synthetic), t_load)
             row("segment, 3 cycles", len(synthetic), t_seg)
             sizes.append(len(synthetic))
@@ -75,7 +65,7 @@ def main() -> None:
                 writer.write_sample(i * 0.02, 0.001 * i, 0.5 * i, 1.2)
             writer.finish()
 
-        row("RunWriter.write_sample (flush each, fsync <= 2/s)", n_write, median_s(write, 3))
+        row("RunWriter.write_sample (flush each, fsync <= 2/s)", n_write, median_seconds(write, 3))
 
     slope = lambda t: float(np.polyfit(np.log(sizes), np.log(t), 1)[0])  # noqa: E731
     lines.append("")

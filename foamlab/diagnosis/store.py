@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from foamlab import FoamlabError
-from foamlab.storage.catalog import CATALOG_NAME, Catalog, data_dir, sidecar_path
+from foamlab.storage.catalog import Catalog, catalog_for_run, sidecar_path
 from foamlab.storage.runfile import is_run_file, now_iso
 
 
@@ -36,12 +36,8 @@ def store_diagnosis(result: dict, run_path: str | Path) -> Stored:
                         encoding="utf-8")
     except OSError as exc:
         raise FoamlabError(f"{side}: cannot write the diagnosis ({exc.strerror or exc})") from None
-    folder_catalog = run_path.resolve().parent / CATALOG_NAME
-    if folder_catalog.exists():
-        catalog_path = folder_catalog
-    elif run_path.resolve().is_relative_to(data_dir().resolve()):
-        catalog_path = data_dir() / CATALOG_NAME
-    else:
+    catalog_path = catalog_for_run(run_path)
+    if catalog_path is None:
         return Stored(side, None, "no catalog for this folder ('foamlab catalog' indexes it later)")
     with Catalog(catalog_path) as catalog:
         catalog.add_diagnosis(run_path, side, verdict=result["verdict"])

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from foamlab import FoamlabError
 from foamlab.identification.result import FitResult
-from foamlab.storage.catalog import CATALOG_NAME, Catalog, data_dir, sidecar_path
+from foamlab.storage.catalog import Catalog, catalog_for_run, sidecar_path
 from foamlab.storage.runfile import is_run_file
 
 
@@ -44,12 +44,8 @@ def store_fit(result: FitResult, run_path: str | Path) -> Stored:
         ours = False
     if not ours:
         return Stored(side, None, "not a foamlab run file: sidecar written, not catalogued")
-    folder_catalog = run_path.resolve().parent / CATALOG_NAME
-    if folder_catalog.exists():
-        catalog_path = folder_catalog
-    elif run_path.resolve().is_relative_to(data_dir().resolve()):
-        catalog_path = data_dir() / CATALOG_NAME
-    else:
+    catalog_path = catalog_for_run(run_path)
+    if catalog_path is None:
         return Stored(side, None, "no catalog for this folder ('foamlab catalog' indexes it later)")
     with Catalog(catalog_path) as catalog:
         catalog.add_fit(run_path, side, rmse=result.rmse)

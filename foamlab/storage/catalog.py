@@ -69,6 +69,17 @@ def data_dir() -> Path:
     return Path(env).expanduser() if env else Path.home() / "foamlab-data"
 
 
+def catalog_for_run(run_path: Path) -> Path | None:
+    """The catalog that indexes a run file: its folder's own, else the data folder's when
+    the run lies inside it, else None (``foamlab catalog`` can index that folder later)."""
+    folder_catalog = run_path.resolve().parent / CATALOG_NAME
+    if folder_catalog.exists():
+        return folder_catalog
+    if run_path.resolve().is_relative_to(data_dir().resolve()):
+        return data_dir() / CATALOG_NAME
+    return None
+
+
 def default_catalog_path() -> Path:
     return data_dir() / CATALOG_NAME
 
