@@ -21,6 +21,7 @@ update per sample, any step) are the same discretisation.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -42,15 +43,20 @@ def _phi(lam: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     """Exact step coefficients of z' = -lam z + x for x linear over a step h.
 
     Returns (E, w_prev, w_new): z_n = E z_{n-1} + w_prev x_{n-1} + w_new x_n.
-    Series for small |lam h| avoid the cancellation in 1 - exp(-lam h).
+    Series for small |lam h| avoid the cancellation in 1 - exp(-lam h) (computed only
+    where needed: this runs once per simulator step, so numpy calls are counted).
     """
     lam = np.asarray(lam)
     lh = lam * h
     E = np.exp(-lh)
     small = np.abs(lh) < 1e-4
-    safe = np.where(small, 1.0, lam)
-    phi0 = np.where(small, h * (1 - lh / 2 + lh**2 / 6), -np.expm1(-lh) / safe)
-    phi1_h = np.where(small, h * (0.5 - lh / 6 + lh**2 / 24), (1.0 - phi0 / h) / safe)
+    if small.any():
+        safe = np.where(small, 1.0, lam)
+        phi0 = np.where(small, h * (1 - lh / 2 + lh**2 / 6), -np.expm1(-lh) / safe)
+        phi1_h = np.where(small, h * (0.5 - lh / 6 + lh**2 / 24), (1.0 - phi0 / h) / safe)
+    else:
+        phi0 = -np.expm1(-lh) / lam
+        phi1_h = (1.0 - phi0 / h) / lam
     return E, phi0 - phi1_h, phi1_h
 
 
@@ -59,8 +65,11 @@ def _phi_const(lam: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
     lh = lam * h
     E = np.exp(-lh)
     small = np.abs(lh) < 1e-4
-    safe = np.where(small, 1.0, lam)
-    b = np.where(small, h * (1 - lh / 2 + lh**2 / 6), -np.expm1(-lh) / safe)
+    if small.any():
+        safe = np.where(small, 1.0, lam)
+        b = np.where(small, h * (1 - lh / 2 + lh**2 / 6), -np.expm1(-lh) / safe)
+    else:
+        b = -np.expm1(-lh) / lam
     return E, b
 
 
@@ -109,10 +118,35 @@ class HereditaryOperator:
 
 
 class SumOfExponentials:
-    """k(s) = s^(f-1)/Gamma(f) ~ sum_l c_l exp(-lam_l s) for h_min <= s <= t_max."""
+    """k(s) = s^(f-1)/Gamma(f) ~ sum_l c_l exp(-lam_l s) for h_min <= s <= t_max.
+
+    Instances are shared (`shared`) by all operators of one order, so the step
+    coefficients of a step h - the costly part of an online step, and the same for
+    every operator stepped with that h - are computed once per step (`coefficients`).
+    """
+
+    @classmethod
+    @functools.lru_cache(maxsize=64)
+    def shared(cls, f: float, h_min: float, t_max: float) -> "SumOfExponentials":
+        return cls(f, h_min, t_max)
+
+    def coefficients(self, h: float, linear_input: bool):
+        """(E, w_prev or b, w_new or None, c*E, h^f) of a step h, cached for the last h."""
+        key = (h, linear_input)
+        cached = self._cached          # one reference: threads sharing this SOE see a consistent pair
+        if cached[0] == key:
+            return cached[1]
+        if linear_input:
+            E, wp, wn = _phi(self.lam, h)
+        else:
+            (E, wp), wn = _phi_const(self.lam, h), None
+        coef = (E, wp, wn, self.c * E, h**self.f)
+        self._cached = (key, coef)
+        return coef
 
     def __init__(self, f: float, h_min: float, t_max: float):
         self.f = f
+        self._cached = (None, None)
         if f >= 1.0:  # plain integral: a single exact integrator
             self.lam = np.array([0.0])
             self.c = np.array([1.0])
@@ -153,7 +187,7 @@ class FractionalOperator:
             j = math.ceil(nu - 1.0 - 1e-12) - 1       # integer integrations of x before I^f
             self.linear_input, self.j, f = True, j, nu - 1.0 - j
         self.beta, self.f = beta, f
-        self.soe = SumOfExponentials(f, h_min, t_max)
+        self.soe = SumOfExponentials.shared(f, float(h_min), float(t_max))
         self.local = 1.0 / gamma(f + 1.0)
         # exact last-step weight of the linear part of a piecewise-linear input
         self.local_slope = 1.0 / ((f + 1.0) * gamma(f)) if f < 1.0 else 0.5
@@ -165,18 +199,9 @@ class FractionalOperator:
         self._ints = np.zeros(self.j)        # running integrals I^1..I^j of x
         self._w_prev = 0.0
         self._last = 0.0
-        self._coef_h, self._coef = None, None
 
     def _coefficients(self, h: float):
-        if h != self._coef_h:  # a simulator steps with a fixed h: compute once
-            if self.linear_input:
-                E, wp, wn = _phi(self.soe.lam, h)
-                self._coef = (E, wp, wn, self.soe.c * E, h**self.f)
-            else:
-                E, b = _phi_const(self.soe.lam, h)
-                self._coef = (E, b, None, self.soe.c * E, h**self.f)
-            self._coef_h = h
-        return self._coef
+        return self.soe.coefficients(h, self.linear_input)
 
     def step(self, h: float, x: float) -> float:
         if h <= 0:
