@@ -342,6 +342,10 @@ def fit_joint(series: list[Series], start: Fit, current: Fit, max_nfev: int | No
         nu, stderr, sol = _least_squares(model, nu0, max_nfev=max_nfev or JOINT_NFEV)
         if best is None or sol.rss() < best[2].rss():
             best = (nu, stderr, sol)
+    if best[2].rss() > start.rss:
+        # every start from a visible size ended in a worse local minimum than the screening
+        # (a lag of seconds): the screening's fit is the extension's best, keep it
+        return start
     return Fit(list(start.causes), model, *best)
 
 
@@ -373,7 +377,8 @@ def reidentify(series: list[Series], fit: Fit) -> Fit:
     with_effects = model.predict(theta, fit.nu)
     without = model.predict(theta, np.concatenate([phi if model.free_base else [], np.zeros(model.n_eta)]))
     ref = series[0]
-    corrected = RunData(ref.t, ref.x, ref.y - (with_effects[0] - without[0]), source=ref.name)
+    x = ref.x if ref.x_measured is None else ref.x_measured
+    corrected = RunData(ref.t, x, ref.y - (with_effects[0] - without[0]), source=ref.name)
     lay = layout_of(fit.params)
     try:
         params = fit_run(corrected, orders=(lay.N, lay.M, lay.P), x_scale_mm=fit.params.x_scale_mm).params
@@ -418,8 +423,8 @@ def heldout_rmse(fit: Fit, on: Fit | None = None, n_folds: int = HELDOUT_FOLDS) 
     sq, count = 0.0, 0
     for keep in folds(work.model.series, n_folds):
         sol = _refit_without(work, keep)
-        out = ~np.concatenate(keep)
-        r = sol.residual[out]
+        out = ~np.concatenate(keep) & np.concatenate(sol.used)
+        r = np.concatenate(sol.residuals)[out]
         sq += float(r @ r)
         count += len(r)
     fit.heldout_rmse = float(np.sqrt(sq / max(count, 1)))
@@ -445,12 +450,12 @@ def _refit_without(fit: Fit, keep: list[np.ndarray]) -> Solution:
 def _compare(cands: list[Candidate], before: Fit) -> None:
     """Delta BIC and LR p-value of each candidate against `before`, on one prewhitened scale."""
     best = min([c.fit for c in cands] + [before], key=lambda f: f.rss)
-    whitener = ArWhitener.fit(best.solution.residuals)
-    wb = whitener.apply(before.solution.residuals)
+    whitener = ArWhitener.fit(best.solution.used_residuals)
+    wb = whitener.apply(before.solution.used_residuals)
     rss_b = float(wb @ wb)
     n = len(wb)
     for c in cands:
-        we = whitener.apply(c.fit.solution.residuals)
+        we = whitener.apply(c.fit.solution.used_residuals)
         rss_e = float(we @ we)
         q = c.fit.model.n_eta - before.model.n_eta
         lr = n * np.log(rss_b / rss_e) if rss_e > 0 and rss_b > 0 else 0.0

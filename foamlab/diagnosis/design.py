@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from foamlab.identification.basis import Layout, ModelBasis
+from foamlab.identification.data import PathNodes
 from foamlab.model import ModelParameters
 from foamlab.model.effects import Components, Effect, EffectChain, frame_force, specimen_displacement
 from foamlab.model.history import HistoryLabels
@@ -108,6 +109,9 @@ class Series:
     speed_mm_min: float              # typical crosshead speed while moving
     full: "Series | None" = None     # the full series if this one is decimated
     obs: np.ndarray | None = None    # its samples in the full series
+    nodes: PathNodes | None = None   # identification's displacement path with its corner nodes
+    x_measured: np.ndarray | None = None   # the displacement as recorded (x: the path; default x)
+    evidence: np.ndarray | None = None     # samples the model is judged on (None: all; see data.py)
     _bases: dict = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
@@ -120,6 +124,12 @@ class Series:
     @property
     def samples(self) -> np.ndarray:
         return self.obs if self.obs is not None else np.arange(len(self.t))
+
+    @property
+    def used(self) -> np.ndarray:
+        """The samples fits and statistics use: where the measured displacement determines the
+        model's force (all but the few samples around each turning point, see data.py)."""
+        return np.ones(len(self.t), dtype=bool) if self.evidence is None else self.evidence
 
     @property
     def cycle(self) -> np.ndarray:
@@ -147,8 +157,12 @@ class Series:
         key = (layout, x_scale_mm, frame_tau_s)
         if key not in self._bases:
             f = self.source
-            src = f.x if frame_tau_s is None else f.frame_force(frame_tau_s)
-            self._bases[key] = ModelBasis(f.t, src, f.labels, self.samples, layout, x_scale_mm, self.step_s)
+            src = None if frame_tau_s is None else f.frame_force(frame_tau_s)
+            if f.nodes is not None:      # identification's path: the base model is identification's
+                self._bases[key] = f.nodes.basis(self.samples, layout, x_scale_mm, self.step_s, source=src)
+            else:                        # an exact history (tests): the samples are the path
+                self._bases[key] = ModelBasis(f.t, f.x if src is None else src, f.labels, self.samples,
+                                              layout, x_scale_mm, self.step_s)
         return self._bases[key]
 
     def specimen_x(self, compliance: float, frame_tau_s: float) -> np.ndarray:
@@ -166,7 +180,8 @@ class Series:
         keep = np.unique(np.concatenate([np.arange(0, n, k), turning, turning + 1, [n - 1]]))
         keep = keep[(keep >= 0) & (keep < n)]
         return Series(self.name, self.t[keep], self.x[keep], self.y[keep], self.labels,
-                      self.velocity[keep], self.rate[keep], self.speed_mm_min, full=self, obs=keep)
+                      self.velocity[keep], self.rate[keep], self.speed_mm_min, full=self, obs=keep,
+                      evidence=self.used[keep])
 
 
 def layout_of(params: ModelParameters) -> Layout:
@@ -216,18 +231,26 @@ _AFFINE_CHECKED: set[tuple[type, ...]] = set()
 @dataclass
 class Solution:
     theta: np.ndarray                  # model linear parameters + zero offset
-    predictions: list[np.ndarray]      # per series
-    residuals: list[np.ndarray]        # measured - predicted, per series
+    predictions: list[np.ndarray]      # per series, every sample
+    residuals: list[np.ndarray]        # measured - predicted, per series, every sample
     masks: list[np.ndarray]            # contact set per series
+    used: list[np.ndarray]             # the samples the model is judged on, per series (Series.used)
     designs: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list, repr=False)
     normal: NormalSolve | None = field(default=None, repr=False)
 
     @property
+    def used_residuals(self) -> list[np.ndarray]:
+        """Residuals at the used samples, per series (what every statistic is computed on)."""
+        return [r[u] for r, u in zip(self.residuals, self.used)]
+
+    @property
     def residual(self) -> np.ndarray:
-        return np.concatenate(self.residuals)
+        """Residuals at the used samples of every series, concatenated."""
+        return np.concatenate(self.used_residuals)
 
     def rss(self, keep: np.ndarray | None = None) -> float:
-        r = self.residual if keep is None else self.residual[keep]
+        """Sum of squares over the used samples (keep: an index into every sample instead)."""
+        r = self.residual if keep is None else np.concatenate(self.residuals)[keep]
         return float(r @ r)
 
 
@@ -381,20 +404,20 @@ class ExtendedModel:
             compressed = x_s > 0
             mask = self._masks[i] if self._masks[i] is not None else compressed & (s.y > 0)
             prepared.append([s, cols, offset, compressed, mask & compressed])
-        keep_all = None if keep is None else np.concatenate(keep)
+        rows = self.rows(keep)
+        keep_all = np.concatenate(rows)
         best = None
         seen: list[list[np.ndarray]] = []
         for _ in range(MAX_CONTACT_ITERATIONS):
             designs = [self._measured_design(s, chain, cols, offset, mask)
                        for s, cols, offset, _, mask in prepared]
-            a = np.vstack([m if keep is None else m[keep[k]] for k, (m, _) in enumerate(designs)])
-            b = np.concatenate([(p[0].y - c) if keep is None else (p[0].y - c)[keep[k]]
-                                for k, (p, (_, c)) in enumerate(zip(prepared, designs))])
+            a = np.vstack([m[rows[k]] for k, (m, _) in enumerate(designs)])
+            b = np.concatenate([(p[0].y - c)[rows[k]] for k, (p, (_, c)) in enumerate(zip(prepared, designs))])
             normal = NormalSolve(a)
             theta = normal.solve(b)
             preds = [m @ theta + c for m, c in designs]
             sol = Solution(theta, preds, [p[0].y - q for p, q in zip(prepared, preds)],
-                           [p[4] for p in prepared], designs, normal)
+                           [p[4] for p in prepared], [s.used for s in self.series], designs, normal)
             if best is None or sol.rss(keep_all) < best.rss(keep_all):
                 best = sol
             new_masks = [compressed & (cols @ theta[:-1] + offset > 0)
@@ -411,10 +434,16 @@ class ExtendedModel:
             self._masks = list(best.masks)
         return best
 
+    def rows(self, keep: list[np.ndarray] | None = None) -> list[np.ndarray]:
+        """The least-squares rows per series: the used samples (Series.used), and of those
+        the kept ones if ``keep`` is given."""
+        used = [s.used for s in self.series]
+        return used if keep is None else [u & k for u, k in zip(used, keep)]
+
     def residual_fn(self, keep: list[np.ndarray] | None = None):
-        """(fun, jac) of nu for scipy.optimize.least_squares: residuals on the kept samples
-        and Kaufman's variable-projection Jacobian."""
-        keep_all = None if keep is None else np.concatenate(keep)
+        """(fun, jac) of nu for scipy.optimize.least_squares: residuals on the rows (used and
+        kept samples) and Kaufman's variable-projection Jacobian."""
+        keep_all = np.concatenate(self.rows(keep))
 
         def solved(nu):
             key = np.asarray(nu, float).tobytes()
@@ -423,14 +452,11 @@ class ExtendedModel:
             return self._cache[2]
 
         def fun(nu):
-            r = solved(nu).residual
-            return r if keep_all is None else r[keep_all]
+            return np.concatenate(solved(nu).residuals)[keep_all]
 
         def jac(nu):
             sol = solved(nu)
-            d = self.prediction_derivatives(nu, sol)
-            if keep_all is not None:
-                d = d[keep_all]
+            d = self.prediction_derivatives(nu, sol)[keep_all]
             return -sol.normal.residual_of(d)
 
         return fun, jac

@@ -104,7 +104,30 @@ class ResidualAnalysis:
         }
 
 
+@dataclass
+class _UsedSamples:
+    """A series' used samples (what analyse needs of it)."""
+
+    name: str
+    t: np.ndarray
+    x: np.ndarray
+    cycle: np.ndarray
+    direction: np.ndarray
+    source: Series
+
+    @classmethod
+    def of(cls, s: Series) -> "_UsedSamples":
+        u = s.used
+        return cls(s.name, s.t[u], s.x[u], s.cycle[u], s.direction[u], s.source)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
 def analyse(series: list[Series], residuals: list[np.ndarray], noise_sigma: float) -> ResidualAnalysis:
+    """residuals: per series, at every sample; only the used samples (Series.used) count."""
+    residuals = [np.asarray(r)[s.used] for s, r in zip(series, residuals)]
+    series = [_UsedSamples.of(s) for s in series]
     all_r = np.concatenate(residuals)
     white = whiteness(all_r)
     rho = min(max(white.lag1_correlation, 0.0), 0.99)

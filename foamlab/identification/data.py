@@ -13,6 +13,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from foamlab import FoamlabError
+from foamlab.identification.basis import Layout, ModelBasis
 from foamlab.model import HistoryLabels, ModelParameters, ModelResponse, evaluate, labels_from_extrema
 from foamlab.model.components import elastic_force
 from foamlab.rundata import RunData
@@ -75,6 +76,13 @@ def noise_sigma(f: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
 
 
+def exact_history(x: np.ndarray) -> bool:
+    """True for a displacement without measurement noise (a synthetic history): its samples
+    are the path, corners included; measured displacements are estimated (displacement_path)."""
+    x = np.asarray(x, float)
+    return len(x) < 4 or noise_sigma(x) <= 1e-9 * max(float(np.ptp(x)), 1.0)
+
+
 def displacement_path(t: np.ndarray, x: np.ndarray, corners) -> np.ndarray:
     """The displacement as the model should see it: the measured one without its noise.
 
@@ -94,7 +102,7 @@ def displacement_path(t: np.ndarray, x: np.ndarray, corners) -> np.ndarray:
     x = np.asarray(x, float)
     path = x.copy()
     n = len(x)
-    if n < 4 or noise_sigma(x) <= 1e-9 * max(float(np.ptp(x)), 1.0):
+    if exact_history(x):
         return path
     step = float(np.median(np.diff(t)))
     window = int(round(PATH_WINDOW_S / step)) | 1
@@ -127,6 +135,22 @@ class PathNodes:
     @property
     def inserted(self) -> int:
         return len(self.t) - len(self.of_sample)
+
+    @property
+    def at_samples(self) -> np.ndarray:
+        """The path at the samples (the displacement that drives the model there)."""
+        return self.x[self.of_sample]
+
+    def basis(self, samples: np.ndarray, layout: Layout, x_scale_mm: float, step_s: float,
+              source: np.ndarray | None = None) -> ModelBasis:
+        """The model's design matrix at these samples, its operators driven by the path
+        through the nodes (identification's fits and diagnosis' extensions alike).
+
+        source: another history on the samples to drive the memory operators with instead
+        of the displacement (taken piecewise linear between samples, as the path is)."""
+        drive = self.x if source is None else np.interp(self.t, self.t[self.of_sample], source)
+        return ModelBasis(self.t, drive, self.labels, self.of_sample[np.asarray(samples, dtype=int)], layout,
+                          x_scale_mm, step_s, self.corners)
 
 
 def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, bool]],

@@ -220,9 +220,7 @@ def joint_fit(fd: FitData, orders: Orders, start: ModelParameters | None,
               progress: Callable[[str, float], None] | None = None) -> JointFit:
     lay = _layout(fd, orders)
     lower, upper = nonlinear_bounds(orders, lay.C, fd.loading_time_s)
-    nodes = fd.nodes
-    coarse = ModelBasis(nodes.t, nodes.x, nodes.labels, nodes.of_sample[fd.fit_rows], lay, fd.x_scale_mm,
-                        fd.fit_step_s, nodes.corners)
+    coarse = fd.nodes.basis(fd.fit_rows, lay, fd.x_scale_mm, fd.fit_step_s)
     w = np.sqrt(fd.fit_count)[:, None]         # block means: weight sqrt(samples)
     blocks = fd.block_curvature.apply              # model at the rows -> model block means
     problem = SeparableProblem(lambda th: w * blocks(coarse.design(th)),
@@ -321,9 +319,7 @@ def _real_modes(problem: SeparableProblem, lay: Layout, fit, lower, upper, ftol:
 
 def _polish(fd: FitData, lay: Layout, linear: np.ndarray, nonlinear: np.ndarray, fixed: np.ndarray,
             lower: np.ndarray, upper: np.ndarray, nfev: int, starts: list[str]) -> JointFit:
-    nodes = fd.nodes
-    full = ModelBasis(nodes.t, nodes.x, nodes.labels, nodes.of_sample[fd.observed], lay, fd.x_scale_mm,
-                      fd.native_step_s, nodes.corners)
+    full = fd.nodes.basis(fd.observed, lay, fd.x_scale_mm, fd.native_step_s)
     y = fd.f[fd.observed]
     free = ~fixed
     nl_cols = np.array([lay.column_of_nonlinear(j) for j in range(lay.n_nonlinear)], int)[free]
