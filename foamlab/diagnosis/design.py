@@ -422,17 +422,37 @@ class ExtendedModel:
                 best = sol
             new_masks = [compressed & (cols @ theta[:-1] + offset > 0)
                          for _, cols, offset, compressed, _ in prepared]
-            old_masks = [p[4] for p in prepared]
-            if all(np.array_equal(a_, b_) for a_, b_ in zip(new_masks, old_masks)):
+            # only the fitted rows' contact set shapes the fit: iterate on them alone
+            fitted = [m[r] for m, r in zip(new_masks, rows)]
+            old = [p[4][r] for p, r in zip(prepared, rows)]
+            if all(np.array_equal(a_, b_) for a_, b_ in zip(fitted, old)):
                 break
-            seen.append(old_masks)
-            if any(all(np.array_equal(a_, b_) for a_, b_ in zip(new_masks, old)) for old in seen):
+            seen.append(old)
+            if any(all(np.array_equal(a_, b_) for a_, b_ in zip(fitted, prev)) for prev in seen):
                 break   # the active set cycles: keep the best solution seen
             for p, mk in zip(prepared, new_masks):
                 p[4] = mk
+        best = self._predict_unfitted(best, prepared, rows, chain)
         if keep is None:
             self._masks = list(best.masks)
         return best
+
+    def _predict_unfitted(self, sol: Solution, prepared, rows, chain: EffectChain) -> Solution:
+        """The samples the fit did not use (held out, or not evidence) predicted by the solution:
+        their contact set follows from it (the plate pushes where the model's force is
+        positive), as in ``predict``, not from an earlier iteration's."""
+        theta = sol.theta
+        for i, ((s, cols, offset, compressed, _), r) in enumerate(zip(prepared, rows)):
+            if r.all():
+                continue
+            mask = np.where(r, sol.masks[i], compressed & (cols @ theta[:-1] + offset > 0))
+            if np.array_equal(mask, sol.masks[i]):
+                continue
+            m, c = self._measured_design(s, chain, cols, offset, mask)
+            sol.masks[i], sol.designs[i] = mask, (m, c)
+            sol.predictions[i] = m @ theta + c
+            sol.residuals[i] = s.y - sol.predictions[i]
+        return sol
 
     def rows(self, keep: list[np.ndarray] | None = None) -> list[np.ndarray]:
         """The least-squares rows per series: the used samples (Series.used), and of those
