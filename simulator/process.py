@@ -15,6 +15,7 @@ nothing but the wire. The child runs simulator.launch.start_simulator unchanged.
 
 from __future__ import annotations
 
+import gc
 import multiprocessing as mp
 import os
 import sys
@@ -60,6 +61,10 @@ def _child(conn, transport: str, kwargs: dict, realtime: bool) -> None:
     except BaseException as exc:   # report any start failure to the parent, then exit
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
+    # the imports' objects out of the collector's way: a full collection of them takes
+    # ~20 ms, a reply that late costs the host several samples at high speedups
+    gc.collect()
+    gc.freeze()
     try:
         conn.send(("ready", {"profile": sim.profile, "overrides": sim.profile_overrides,
                              "address": sim.address}))

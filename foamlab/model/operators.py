@@ -117,12 +117,40 @@ class HereditaryOperator:
         return out
 
 
+class _ModeSteps:
+    """Exact step factors of the modes exp(-lam s) for the last step h (shared, see below).
+
+    E = exp(-lam h), phi0 = int_0^h exp(-lam s) ds, phi1_h = the weight of the step's end
+    for a linear input (see _phi). Every order's SOE uses the same decay rates lam for
+    given (h_min, t_max) - only the weights c depend on the order - so one computation
+    per step serves all the operators of a specimen.
+    """
+
+    def __init__(self, lam: np.ndarray):
+        self.lam = lam
+        self._cached = (None, None)    # one reference: threads sharing it see a consistent pair
+
+    def at(self, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        cached = self._cached
+        if cached[0] == h:
+            return cached[1]
+        E, w_prev, w_new = _phi(self.lam, h)
+        parts = (E, w_prev + w_new, w_new)      # (E, phi0, phi1_h)
+        self._cached = (h, parts)
+        return parts
+
+
+@functools.lru_cache(maxsize=16)
+def _mode_steps(lam: tuple[float, ...]) -> _ModeSteps:
+    return _ModeSteps(np.array(lam))
+
+
 class SumOfExponentials:
     """k(s) = s^(f-1)/Gamma(f) ~ sum_l c_l exp(-lam_l s) for h_min <= s <= t_max.
 
-    Instances are shared (`shared`) by all operators of one order, so the step
-    coefficients of a step h - the costly part of an online step, and the same for
-    every operator stepped with that h - are computed once per step (`coefficients`).
+    Instances are shared (`shared`) by all operators of one order, and the decay rates
+    by all orders (_ModeSteps): the step coefficients of a step h - the costly part of
+    an online step - are computed once per step for all of a specimen's operators.
     """
 
     @classmethod
@@ -133,14 +161,14 @@ class SumOfExponentials:
     def coefficients(self, h: float, linear_input: bool):
         """(E, w_prev or b, w_new or None, c*E, h^f) of a step h, cached for the last h."""
         key = (h, linear_input)
-        cached = self._cached          # one reference: threads sharing this SOE see a consistent pair
+        cached = self._cached
         if cached[0] == key:
             return cached[1]
-        if linear_input:
-            E, wp, wn = _phi(self.lam, h)
-        else:
-            (E, wp), wn = _phi_const(self.lam, h), None
-        coef = (E, wp, wn, self.c * E, h**self.f)
+        E, phi0, phi1_h = self._steps.at(h)
+        if linear_input:      # z_n = E z_{n-1} + (phi0 - phi1_h) x_{n-1} + phi1_h x_n
+            coef = (E, phi0 - phi1_h, phi1_h, self.c * E, h**self.f)
+        else:                 # s_n = E s_{n-1} + phi0 u_n (u constant over the step)
+            coef = (E, phi0, None, self.c * E, h**self.f)
         self._cached = (key, coef)
         return coef
 
@@ -150,19 +178,20 @@ class SumOfExponentials:
         if f >= 1.0:  # plain integral: a single exact integrator
             self.lam = np.array([0.0])
             self.c = np.array([1.0])
-            return
-        g = 1.0 - f
-        y_lo = math.log(SOE_TAIL / t_max)
-        y_hi = math.log(SOE_FAST / h_min)
-        y = np.arange(y_lo, y_hi + SOE_STEP, SOE_STEP)
-        pref = math.sin(math.pi * f) / math.pi          # 1/(Gamma(f) Gamma(1-f))
-        c = SOE_STEP * pref * np.exp(g * y)
-        # the infinite trapezoid sum continues below y_lo with nodes whose modes never
-        # decay within t_max: their geometric sum becomes one exact integrator.
-        q = math.exp(-g * SOE_STEP)
-        tail = SOE_STEP * pref * math.exp(g * y_lo) * q / (1.0 - q)
-        self.lam = np.concatenate([[0.0], np.exp(y)])
-        self.c = np.concatenate([[tail], c])
+        else:
+            g = 1.0 - f
+            y_lo = math.log(SOE_TAIL / t_max)
+            y_hi = math.log(SOE_FAST / h_min)
+            y = np.arange(y_lo, y_hi + SOE_STEP, SOE_STEP)
+            pref = math.sin(math.pi * f) / math.pi          # 1/(Gamma(f) Gamma(1-f))
+            c = SOE_STEP * pref * np.exp(g * y)
+            # the infinite trapezoid sum continues below y_lo with nodes whose modes never
+            # decay within t_max: their geometric sum becomes one exact integrator.
+            q = math.exp(-g * SOE_STEP)
+            tail = SOE_STEP * pref * math.exp(g * y_lo) * q / (1.0 - q)
+            self.lam = np.concatenate([[0.0], np.exp(y)])
+            self.c = np.concatenate([[tail], c])
+        self._steps = _mode_steps(tuple(self.lam))
 
     def kernel(self, s: np.ndarray) -> np.ndarray:
         return np.exp(-np.outer(s, self.lam)) @ self.c
@@ -194,38 +223,11 @@ class FractionalOperator:
         self.reset()
 
     def reset(self) -> None:
-        self._s = np.zeros(len(self.soe.lam))
-        self._x_prev = 0.0
-        self._ints = np.zeros(self.j)        # running integrals I^1..I^j of x
-        self._w_prev = 0.0
-        self._last = 0.0
-
-    def _coefficients(self, h: float):
-        return self.soe.coefficients(h, self.linear_input)
+        self._online = FractionalBank(self)
 
     def step(self, h: float, x: float) -> float:
-        if h <= 0:
-            return self._last
-        if not self.linear_input:
-            u = (x - self._x_prev) / h
-            self._x_prev = x
-            E, b, _, cE, hf = self._coefficients(h)
-            y = u * self.local * hf + float(cE @ self._s)
-            self._s = E * self._s + b * u
-        else:
-            inp_prev, inp_new = self._x_prev, x
-            for i in range(self.j):                 # trapezoid: exact for piecewise-linear x
-                old = self._ints[i]
-                self._ints[i] = old + 0.5 * h * (inp_prev + inp_new)
-                inp_prev, inp_new = old, self._ints[i]
-            w = inp_new
-            self._x_prev = x
-            E, wp, wn, cE, hf = self._coefficients(h)
-            y = hf * (w * self.local - (w - self._w_prev) * self.local_slope) + float(cE @ self._s)
-            self._s = E * self._s + wp * self._w_prev + wn * w
-            self._w_prev = w
-        self._last = y
-        return y
+        """Advance by h seconds to x (online; the same numbers as batch())."""
+        return float(self._online.step(h, np.array([x]))[0])
 
     def batch(self, h: float, x: np.ndarray) -> np.ndarray:
         """Uniform step h; x[0] = 0 at the operator's start. Same numbers as step()."""
@@ -252,4 +254,58 @@ class FractionalOperator:
             E, wp, wn = _phi(np.array([lam]), h)
             s = lfilter([wn[0], wp[0]], [1.0, -E[0]], w)       # s_n after step n
             y[1:] += c * E[0] * s[:-1]
+        return y
+
+
+class FractionalBank:
+    """Online stepping of several operators of one order D^beta at once (one row each).
+
+    The simulator's specimen runs one operator per residual term of every cycle started,
+    all with the same steps: one array update for all of them instead of a Python loop
+    over operators (the step's cost is numpy calls, not arithmetic). Row r is an
+    operator started at its own time (its input zero until then).
+    """
+
+    def __init__(self, order: FractionalOperator, rows: int = 1):
+        self.order = order
+        n_modes = len(order.soe.lam)
+        self._s = np.zeros((rows, n_modes))
+        self._x_prev = np.zeros(rows)
+        self._ints = np.zeros((order.j, rows))   # running integrals I^1..I^j of x
+        self._w_prev = np.zeros(rows)
+        self._last = np.zeros(rows)
+
+    @property
+    def rows(self) -> int:
+        return len(self._x_prev)
+
+    def add_row(self) -> int:
+        """A new operator (state zero); returns its row."""
+        self._s = np.vstack([self._s, np.zeros((1, self._s.shape[1]))])
+        self._x_prev, self._w_prev, self._last = (np.append(a, 0.0) for a in (self._x_prev, self._w_prev, self._last))
+        self._ints = np.hstack([self._ints, np.zeros((self.order.j, 1))])
+        return self.rows - 1
+
+    def step(self, h: float, x: np.ndarray) -> np.ndarray:
+        """Advance every row by h seconds to its input x[row]; returns D^beta x per row."""
+        if h <= 0:
+            return self._last
+        op = self.order
+        E, wp, wn, cE, hf = op.soe.coefficients(h, op.linear_input)
+        if not op.linear_input:
+            u = (x - self._x_prev) / h                 # xdot, constant over the step
+            y = u * (op.local * hf) + self._s @ cE
+            self._s = self._s * E + np.outer(u, wp)    # wp is b of the constant-input step
+        else:
+            inp_prev, inp_new = self._x_prev, x
+            for i in range(op.j):                      # trapezoid: exact for piecewise-linear x
+                old = self._ints[i].copy()
+                self._ints[i] = old + 0.5 * h * (inp_prev + inp_new)
+                inp_prev, inp_new = old, self._ints[i]
+            w = inp_new.copy() if op.j else np.array(x, dtype=float)
+            y = hf * (w * op.local - (w - self._w_prev) * op.local_slope) + self._s @ cE
+            self._s = self._s * E + np.outer(self._w_prev, wp) + np.outer(w, wn)
+            self._w_prev = w
+        self._x_prev = np.array(x, dtype=float)
+        self._last = y
         return y

@@ -5,7 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from foamlab.model.components import elastic_force
-from foamlab.model.operators import FractionalOperator, HereditaryOperator
+import numpy as np
+
+from foamlab.model.operators import FractionalBank, FractionalOperator, HereditaryOperator
 from foamlab.model.params import ModelParameters
 
 
@@ -45,9 +47,12 @@ class SpecimenState:
         self._x_ref = 0.0
         self._hered: HereditaryOperator | None = None
         self._damping = 0.0
-        # one entry per residual term of every cycle started: (cycle, r_i, x_ref, operator)
-        self._fractional: list[tuple[int, float, float, FractionalOperator]] = []
+        # one row per residual term of every cycle started, in one bank per order beta
+        # (stepped together: see FractionalBank); per bank the rows' cycle, r_i and x_ref
+        self._banks: dict[float, FractionalBank] = {}
+        self._rows: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._active_cycles: set[int] = set()
+        self._active_weights: dict[float, np.ndarray] = {}
 
     def _start_cycle(self) -> None:
         self._cycle += 1
@@ -55,8 +60,21 @@ class SpecimenState:
         self._hered = HereditaryOperator(self.params.damping_a, self.params.damping_alpha)
         r, beta = self.params.residual_terms(self._cycle)
         for r_i, b_i in zip(r, beta):
-            self._fractional.append(
-                (self._cycle, float(r_i), self._x_ref, FractionalOperator(b_i, self.h_min, self.t_max)))
+            b_i = float(b_i)
+            if b_i not in self._banks:
+                self._banks[b_i] = FractionalBank(FractionalOperator(b_i, self.h_min, self.t_max), rows=0)
+                self._rows[b_i] = (np.zeros(0, int), np.zeros(0), np.zeros(0))
+            self._banks[b_i].add_row()
+            cycles, weights, x_refs = self._rows[b_i]
+            self._rows[b_i] = (np.append(cycles, self._cycle), np.append(weights, float(r_i)),
+                               np.append(x_refs, self._x_ref))
+        self._update_active_weights()
+
+    def _update_active_weights(self) -> None:
+        # a cycle's residual force counts from its first unloading on (paper Eq. 10)
+        active = np.array(sorted(self._active_cycles), dtype=int)
+        self._active_weights = {b: np.where(np.isin(cycles, active), weights, 0.0)
+                                for b, (cycles, weights, _) in self._rows.items()}
 
     def step(self, t: float, x: float) -> ComponentForces:
         if self._t is None:
@@ -70,6 +88,7 @@ class SpecimenState:
         elif self._state == 1 and x < self._ext_x - self.deadband:
             self._state = -1
             self._active_cycles.add(self._cycle)
+            self._update_active_weights()
             self._damping = 0.0
         if (self._state == 1 and x >= self._ext_x) or (self._state != 1 and x <= self._ext_x):
             self._ext_x = x
@@ -78,10 +97,9 @@ class SpecimenState:
         if self._state == 1 and self._hered is not None:
             self._damping = self._hered.step(h, x - self._x_ref)
         residual = 0.0
-        for cyc, r_i, x_ref, op in self._fractional:
-            value = op.step(h, x - x_ref)
-            if cyc in self._active_cycles:
-                residual += r_i * value
+        for b, bank in self._banks.items():
+            values = bank.step(h, x - self._rows[b][2])
+            residual += float(self._active_weights[b] @ values)
         self._t, self._x = t, x
         damping = self._damping if self._state == 1 else 0.0
         return ComponentForces(float(elastic_force(self.params, x)), damping, residual,
