@@ -73,6 +73,11 @@ class RunningSimulator:
     def running(self) -> bool:
         return not self._stopped and self._thread.is_alive()
 
+    @property
+    def server_thread_id(self) -> int | None:
+        """The OS id of the thread that answers requests (for its scheduling priority)."""
+        return self._thread.native_id
+
     def stop(self) -> None:
         with self._lock:
             if self._stopped:

@@ -28,10 +28,12 @@ START_TIMEOUT_S = 30.0
 REPLY_TIMEOUT_S = 10.0
 
 
-#: SCHED_FIFO priority for the child when asked (below the run engine's 10).
-#: Otherwise its niceness (negative = more CPU share; needs privileges, ignored without).
+#: SCHED_FIFO priority for the child when asked (below the run engine's 10); else only
+#: the thread answering requests gets it (SERVER_PRIORITY) and the rest a niceness
+#: (negative = more CPU share). Both need privileges and are skipped without.
 NICE = -15
 REALTIME_PRIORITY = 5
+SERVER_PRIORITY = 5
 #: Interpreter-lock switch interval in the child (Python's default is 5 ms).
 SWITCH_INTERVAL_S = 0.0005
 
@@ -61,6 +63,15 @@ def _child(conn, transport: str, kwargs: dict, realtime: bool) -> None:
     except BaseException as exc:   # report any start failure to the parent, then exit
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
+    if not realtime:
+        # A real device answers within its firmware's fixed time. Here the answering thread
+        # blocks on the wire and computes ~1 ms per request, so it may preempt other jobs
+        # (on a loaded 2-core computer an ordinary thread waited up to ~20 ms for a CPU)
+        # without starving anything; the physics ticker, which can run long, stays normal.
+        try:
+            os.sched_setscheduler(sim.server_thread_id, os.SCHED_FIFO, os.sched_param(SERVER_PRIORITY))
+        except (AttributeError, OSError, TypeError):
+            pass
     # the imports' objects out of the collector's way: a full collection of them takes
     # ~20 ms, a reply that late costs the host several samples at high speedups
     gc.collect()

@@ -1,23 +1,20 @@
-"""Hardware in the loop: test methods run through the real drivers, over each wire protocol,
-against the simulated machine in its own process.
+"""Hardware in the loop: the paper's protocol runs in full through the real drivers, over
+each wire protocol, against the simulated machine in its own process.
 
-Throughput sets what fits in CI. A sample costs one request over ASCII (~0.4-1 ms here), two
-over Modbus TCP (~1.1-2 ms) and two over Modbus RTU (~6-8 ms: pymodbus' serial client polls
-the port in 1 ms sleeps). At 16 Hz of machine time a speedup S needs 16*S samples per wall
-second, and the paper's protocol is 14 156 samples whatever the speedup: a zero-miss run of
-it takes ~20 s (ASCII), ~45 s (TCP) and ~4 min (RTU) on a quiet 2-core machine. So:
-
-- default: the paper's protocol in full through `foamlab run` (Modbus TCP, the README's main
-  job; every deadline accounted for, the fit succeeds, misses reported and bounded), and a
-  short three-cycle protocol through each transport at a speedup it sustains: zero missed;
-- FOAMLAB_FULL_HIL=1: the full paper protocol through each transport, zero missed, fit.
+Throughput sets the speedup. A sample costs one request over ASCII and two over Modbus
+(force and position are separate devices); at 16 Hz of machine time a speedup S needs 16*S
+samples per wall second, and the paper's protocol is 14 156 samples whatever the speedup.
+Each transport runs at a speedup whose wall period (62.5 ms / S) is several times its
+loaded p99 sample time (measured here while other jobs ran: TCP ~6 ms, ASCII ~5 ms, RTU on
+a pty ~7 ms), so a zero-miss run does not depend on a quiet computer: ~2.5 min each.
+`foamlab run` (the README's main job) runs the same protocol at speedup 30 and must hold it
+densely enough to fit (misses there are counted and reported, not failed).
 """
 
 from __future__ import annotations
 
 import importlib.util
 import json
-import os
 
 import numpy as np
 import pytest
@@ -26,18 +23,14 @@ from foamlab import cli
 from foamlab.methods import cycle_spans, load_method
 from foamlab.storage.runfile import read_run_file
 from tests.hil_support import (approach, assert_no_miss_unless_overloaded, machine_for, make_engine,
-                               short_method, simulated, wait_at_rest)
+                               simulated, wait_at_rest)
 
 pytestmark = [pytest.mark.hil]
 
 HAVE_FIT = importlib.util.find_spec("foamlab.identification") is not None
-FULL = os.environ.get("FOAMLAB_FULL_HIL") == "1"
 
-#: Speedups each transport sustains at 16 Hz (machine time) with margin on a busy 2-core
-#: machine: the wall period (62.5 ms / S) stays ~3x above the loaded p99 sample time
-#: (paced requests here: TCP ~3 ms p50 / 7 ms p99, ASCII ~2.5 / 6 ms, RTU ~8 / 15 ms).
-SHORT_SPEEDUP = {"modbus-tcp": 4.0, "serial": 4.0, "modbus-rtu-pty": 1.5}
-FULL_SPEEDUP = {"modbus-tcp": 12.0, "serial": 25.0, "modbus-rtu-pty": 4.0}
+#: Speedup per transport for the full protocol (see the module docstring).
+FULL_SPEEDUP = {"modbus-tcp": 6.0, "serial": 8.0, "modbus-rtu-pty": 6.0}
 
 
 def _expected(method, height=72.5):
@@ -55,27 +48,6 @@ def _check_run(result, method, *, cycles):
     # 16 Hz of machine time, sample after sample
     assert np.median(np.diff(on_disk.time_s)) == pytest.approx(1 / method.sampling_hz, rel=0.05)
     return on_disk
-
-
-@pytest.mark.timeout(60)
-@pytest.mark.parametrize("transport", list(SHORT_SPEEDUP))
-def test_short_protocol_through_each_transport_misses_nothing(tmp_path, transport):
-    speedup = SHORT_SPEEDUP[transport]
-    method = load_method(short_method(tmp_path, strain=0.10, speed=200.0, cycles=3))
-    with simulated(transport, speedup=speedup) as sim:
-        approach(machine_for(sim))
-        engine = make_engine(sim, method, tmp_path, speedup=speedup, fit=False)
-        result = engine.wait(40) if engine.start() is None else None
-        assert result is not None, "the run did not end"
-        wait_at_rest(sim)
-    _check_run(result, method, cycles=3)
-    expected = _expected(method)
-    # every deadline is a sample or a counted miss: nominal duration x 16 Hz, plus about one
-    # per programmed step (the turning points, where the drive is confirmed at rest)
-    assert expected <= result.n_samples + result.missed <= 1.03 * expected + 3 * len(method.steps)
-    assert result.park.startswith("parked at")
-    assert result.results.get("hysteresis_loss", 3).value > 0
-    assert_no_miss_unless_overloaded(result)
 
 
 @pytest.mark.timeout(150)
@@ -119,8 +91,7 @@ def test_paper_protocol_through_foamlab_run(tmp_path, capsys):
         assert [r.path for r in catalog.runs()] == [str(run_file.resolve())]
 
 
-@pytest.mark.skipif(not FULL, reason="full paper protocol per transport: set FOAMLAB_FULL_HIL=1 (~5 min)")
-@pytest.mark.timeout(600)
+@pytest.mark.timeout(400)
 @pytest.mark.parametrize("transport", list(FULL_SPEEDUP))
 def test_full_paper_protocol_through_each_transport(tmp_path, transport):
     speedup = FULL_SPEEDUP[transport]
@@ -128,7 +99,7 @@ def test_full_paper_protocol_through_each_transport(tmp_path, transport):
     with simulated(transport, speedup=speedup) as sim:
         approach(machine_for(sim))
         engine = make_engine(sim, method, tmp_path, speedup=speedup, fit=HAVE_FIT)
-        result = engine.wait(550) if engine.start() is None else None
+        result = engine.wait(350) if engine.start() is None else None
         assert result is not None, "the run did not end"
         wait_at_rest(sim)
     _check_run(result, method, cycles=3)
@@ -138,35 +109,3 @@ def test_full_paper_protocol_through_each_transport(tmp_path, transport):
         assert result.fit is not None, result.fit_error
         assert result.fit.rmse < 0.05 * result.run.force_N.max()
     assert_no_miss_unless_overloaded(result)
-
-
-@pytest.mark.skipif(not (FULL and HAVE_FIT), reason="round trip: set FOAMLAB_FULL_HIL=1 (~3 min)")
-@pytest.mark.timeout(900)
-def test_round_trip_fit_simulate_run_fit(tmp_path):
-    """fit a run -> simulate that fit -> run the paper's protocol through the drivers -> fit again:
-    the parameters the data determine agree within their (autocorrelation-corrected) errors."""
-    speedup = FULL_SPEEDUP["modbus-tcp"]
-    method = load_method("paper-3cycle")
-    fits = []
-    specimen = None
-    for leg in ("first", "second"):
-        out = tmp_path / leg
-        with simulated("modbus-tcp", speedup=speedup, specimen=specimen) as sim:
-            approach(machine_for(sim))
-            engine = make_engine(sim, method, out, speedup=speedup, fit=True)
-            result = engine.wait(600) if engine.start() is None else None
-            assert result is not None and result.status == "finished", result and result.reason
-            wait_at_rest(sim)
-        assert result.fit is not None, result.fit_error
-        fits.append(result.fit)
-        specimen = str(result.fit_path)          # the fitted specimen drives the next leg
-    first, second = fits
-    assert first.names == second.names
-    se1, se2 = np.asarray(first.stderr_autocorr), np.asarray(second.stderr_autocorr)
-    determined = np.isfinite(se1) & np.isfinite(se2)
-    assert determined.sum() >= 10
-    z = np.abs(first.values - second.values)[determined] / np.hypot(se1, se2)[determined]
-    disagree = [n for n, zi in zip(np.asarray(first.names)[determined], z) if zi > 3]
-    assert len(disagree) <= 0.1 * determined.sum(), f"outside 3 standard errors: {disagree}"
-    # and the two fitted models describe the same specimen
-    assert abs(second.rmse - first.rmse) < 0.5 * first.rmse + 0.05

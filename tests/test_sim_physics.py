@@ -17,6 +17,7 @@ from simulator.machine import (
     FAULT_EMERGENCY,
     FAULT_LIMIT,
     FAULT_STALL,
+    MIN_AUTO_STEP_S,
     FAULT_WATCHDOG,
     SimulatedMachine,
     plan_move,
@@ -349,7 +350,7 @@ def test_same_virtual_trajectory_at_speedup_10_and_100():
         starts = [t for t, e in m.events if e.startswith("move_to")]
         ends = [t for t, e in m.events if e.startswith("move done")]
         curves[speedup] = (tr["position_mm"], tr["contact_force_N"], ends[0] - starts[0])
-        assert m.max_step_s == pytest.approx(max(0.002, speedup / 1000))
+        assert m.max_step_s == pytest.approx(max(MIN_AUTO_STEP_S, speedup / 1000))
     (p10, f10, d10), (p100, f100, d100) = curves[10], curves[100]
     expected = 15.0 / 1.0 + 1.0 / 50.0                    # D / v + v / a
     assert d10 == pytest.approx(expected, abs=1e-9) and d100 == pytest.approx(expected, abs=1e-9)
