@@ -147,9 +147,10 @@ def main() -> None:
         if not args.no_sweep:
             lines += sweep_table(out, transports)
     lines += ["", f"Load average at the start: {load:.1f} on {os.cpu_count()} cores (other jobs share them). "
-              "The engine asks SCHED_FIFO for its worker thread (granted here as root; on a lab PC it needs "
-              "CAP_SYS_NICE or an rtprio limit); the rows 'normal' are the same runs without it. The "
-              "simulator runs in its own process at nice -15 (not real-time: see simulator/process.py). "
+              "The engine asks SCHED_FIFO for its worker thread and holds a zero CPU wake-up latency request "
+              "during the run (both granted here as root; on a lab PC SCHED_FIFO needs CAP_SYS_NICE or an "
+              "rtprio limit); the rows 'normal' are the same runs without either. The simulator runs in its "
+              "own process, its answering thread SCHED_FIFO 5, the rest at nice -15 (simulator/process.py). "
               "Missed: median over the runs (max). Aborted runs are listed below the tables."]
     if ABORTED:
         lines += ["", "Aborted runs (repeated):"] + [f"- {a}" for a in ABORTED]

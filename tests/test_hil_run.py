@@ -7,8 +7,8 @@ samples per wall second, and the paper's protocol is 14 156 samples whatever the
 Each transport runs at a speedup whose wall period (62.5 ms / S) is several times its
 loaded p99 sample time (measured here while other jobs ran: TCP ~6 ms, ASCII ~5 ms, RTU on
 a pty ~7 ms), so a zero-miss run does not depend on a quiet computer: ~2.5 min each.
-`foamlab run` (the README's main job) runs the same protocol at speedup 30 and must hold it
-densely enough to fit (misses there are counted and reported, not failed).
+`foamlab run --speedup 20` (the README's main job) runs the same protocol over Modbus TCP at
+1.8x the sample rate of the per-transport test: it must keep >= 99 % of the deadlines and fit.
 """
 
 from __future__ import annotations
@@ -55,9 +55,7 @@ def test_paper_protocol_through_foamlab_run(tmp_path, capsys):
     """The README's main job: `foamlab run --speedup S` on the built-in machine, to the fit."""
     out = tmp_path / "data"
     # (the diagnosis, ~20 s, is foamlab.diagnosis' own tests' business)
-    # (speedup 30: the simulated drive's 2 s watchdog is 67 ms of wall time, which a loaded
-    # computer's scheduling still clears; at 40+ it sometimes does not)
-    code = cli.main(["run", "--speedup", "30", "--out", str(out), "--quiet", "--specimen-label", "hil",
+    code = cli.main(["run", "--speedup", "20", "--out", str(out), "--quiet", "--specimen-label", "hil",
                      "--no-diagnose"])
     printed = capsys.readouterr()
     assert code == 0, printed.err
@@ -72,13 +70,12 @@ def test_paper_protocol_through_foamlab_run(tmp_path, capsys):
     summary_line = next(line for line in printed.out.splitlines() if line.startswith("foamlab run: finished"))
     n_samples, missed = (int(w) for w in summary_line.replace(",", "").split()[3:6:2])
     assert n_samples == len(run)
-    # Every deadline is a sample or a counted miss. At 480 samples/s Modbus TCP is near its
-    # limit on a busy machine and misses some (the short-protocol tests show zero at a rate it
-    # sustains); the run must still hold the three cycles densely enough to fit.
+    # Every deadline is a sample or a counted miss (plus the turning points, where the drive
+    # is confirmed at rest: slower on a busy machine). At 320 samples/s Modbus TCP misses
+    # none on a quiet computer (docs/benchmarks.md); another job's load costs a few.
     expected = _expected(method)
-    # (plus the turning points, where the drive is confirmed at rest: slower on a busy machine)
     assert expected <= n_samples + missed <= 1.01 * expected + 20
-    assert n_samples >= 0.3 * expected, summary_line
+    assert missed <= 0.01 * expected, summary_line
     assert "hysteresis_loss (cycle 1)" in printed.out
     if HAVE_FIT:
         fit_file = run_file.with_name(f"{run_file.stem}.fit.json")

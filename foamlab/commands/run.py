@@ -20,9 +20,9 @@ SIM_SPECIMEN = CONFIG_DIR / "specimens" / "default.toml"
 
 EXAMPLES = """\
 examples:
-  foamlab run --speedup 50                    # the paper's protocol on the built-in simulated machine
-  foamlab run --transport serial --speedup 50 # same, through the ASCII serial driver on a pty
-  foamlab run --method iso3386-1 --speedup 50 --width 100 --depth 100
+  foamlab run --speedup 20                    # the paper's protocol on the built-in simulated machine
+  foamlab run --transport serial --speedup 20 # same, through the ASCII serial driver on a pty
+  foamlab run --method iso3386-1 --speedup 20 --width 100 --depth 100
   foamlab run --machine my-instron.toml --method paper-3cycle --specimen-height 72.5 --specimen-label B7
 
 Without --machine the built-in simulated machine is started on 127.0.0.1 (free port) and
