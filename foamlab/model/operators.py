@@ -60,19 +60,6 @@ def _phi(lam: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return E, phi0 - phi1_h, phi1_h
 
 
-def _phi_const(lam: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
-    """Exact step of s' = -lam s + u for u constant over a step h: s_n = E s_{n-1} + b u_n."""
-    lh = lam * h
-    E = np.exp(-lh)
-    small = np.abs(lh) < 1e-4
-    if small.any():
-        safe = np.where(small, 1.0, lam)
-        b = np.where(small, h * (1 - lh / 2 + lh**2 / 6), -np.expm1(-lh) / safe)
-    else:
-        b = -np.expm1(-lh) / lam
-    return E, b
-
-
 def is_uniform(t: np.ndarray) -> bool:
     if len(t) < 3:
         return True
@@ -241,7 +228,8 @@ class FractionalOperator:
             u[1:] = np.diff(x) / h
             y = u * (self.local * hf)
             for lam, c in zip(self.soe.lam, self.soe.c):
-                E, b = _phi_const(np.array([lam]), h)
+                E, w_prev, w_new = _phi(np.array([lam]), h)
+                b = w_prev + w_new                      # constant input: the whole step's weight
                 s = lfilter([b[0]], [1.0, -E[0]], u)          # s_n after step n
                 y[1:] += c * E[0] * s[:-1]
             return y
