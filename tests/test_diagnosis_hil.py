@@ -1,58 +1,83 @@
-"""Hidden effects through the simulator and the real drivers: one cause per transport.
+"""Hidden effects through the simulator and the real drivers: a different cause per transport,
+and a clean run that must give `none`.
 
-The simulated machine (its own process) hides an effect in its physics (the online form
-of foamlab.model.effects); the run engine records a short cyclic test through the real
-driver of each wire protocol; the diagnosis of the recorded run must name the effect.
+The simulated machine (its own process) hides an effect in its physics (the online form of
+foamlab.model.effects); the run engine records a short cyclic test through the real driver
+of each wire protocol; the diagnosis of the recorded run must name the effect, with the
+fitted size near the hidden one and a lower held-out RMSE than the base model's.
+
+What makes these runs harder than the offline ones: the crosshead decelerates, waits and
+reverses between samples (those samples are predicted but not evidence, see
+foamlab.diagnosis.data.path_determined); positions are read at 1 um; a sample is stamped
+at the force reading's instant, which a transport knows to a fraction of its round trip -
+S round trips of machine time at speedup S. Measured over 5 recordings per case at speedup
+4 (docs/benchmarks.md): clean runs give `none` in 4/5 (serial, RTU) and 2/5 (TCP; the rest
+`unexplained`: correlated residuals from stamps scattered by a loaded computer), so the
+clean run is recorded through serial ASCII (force and position in one reply) at speedup 3
+(5 of 6 `none`; the sixth missed 10 samples: skipped as overloaded, below).
+Over Modbus the position comes from a second request and is interpolated to the force's
+instant: cycle_softening through RTU was named in 4/5 and 1/4 (at 20 %/cycle), lost to
+damping_cycle_change; through serial in 4/4, so each cause goes where it is told apart.
+Sizes are well above the smallest named offline on this protocol.
 """
 
 from __future__ import annotations
 
-import os
-
 import pytest
 
-from foamlab.diagnosis import diagnose
+from foamlab.diagnosis import CAUSES, diagnose
 from foamlab.methods import load_method
-from tests.hil_support import approach, machine_for, make_engine, short_method, simulated, wait_at_rest
+from tests.hil_support import (approach, assert_no_miss_unless_overloaded, machine_for, make_engine,
+                               short_method, simulated, wait_at_rest)
 
-pytestmark = [
-    pytest.mark.hil,
-    # Opt-in until diagnosis drives its model with identification's displacement path
-    # (corner nodes): with the raw sampled displacement these runs were named correctly in
-    # one clean-clone CI run and `unexplained` in the next (force_zero_drift not named).
-    pytest.mark.skipif(os.environ.get("FOAMLAB_FULL_HIL") != "1",
-                       reason="hidden effects through the drivers: set FOAMLAB_FULL_HIL=1 (flaky, see module)"),
-]
+pytestmark = [pytest.mark.hil]
 
-#: transport -> (hidden effect, magnitude, speedup the transport sustains at 16 Hz).
-#: The recorded runs also carry the transports' own skew: force and position are read by
-#: separate requests, ~4 ms of wall time apart, i.e. ~35 ms of machine time at speedup 8
-#: (the diagnosis finds it as `channel_lag`, force early); the hidden effects are sized
-#: to stand above it.
+#: Three cycles to 25 % strain at 120 mm/min: ~55 s of machine time, ~870 samples at 16 Hz.
+STRAIN, SPEED_MM_MIN = 0.25, 120.0
+
+#: case -> (transport, speedup, hidden effect, magnitude, relative tolerance of the fitted
+#: magnitude); effect None: a clean run.
 CASES = {
-    "modbus-tcp": ("force_zero_drift", 0.5, 8.0),
-    "serial": ("force_zero_drift", 0.5, 4.0),
-    "modbus-rtu-pty": ("force_zero_drift", 0.5, 2.0),
+    "modbus-tcp": ("modbus-tcp", 4.0, "force_zero_drift", 0.05, 0.1),        # N/s: 2.7 N over the run
+    "modbus-rtu-pty": ("modbus-rtu-pty", 4.0, "machine_compliance", 0.005, 0.25),   # 5 um/N
+    "serial": ("serial", 4.0, "cycle_softening", 0.10, 0.25),                 # 10 % per cycle
+    "serial-clean": ("serial", 3.0, None, 0.0, 0.0),
 }
 
 
-@pytest.mark.timeout(150)
-@pytest.mark.parametrize("transport", list(CASES))
-def test_hidden_effect_through_the_real_drivers_is_named(tmp_path, transport):
-    name, magnitude, speedup = CASES[transport]
-    # three cycles to 30 % strain at 100 mm/min: ~80 s of machine time, ~1250 samples at 16 Hz
-    method = load_method(short_method(tmp_path, strain=0.30, speed=100.0, cycles=3))
-    with simulated(transport, speedup=speedup, effects={name: magnitude}, seed=7) as sim:
+def _record(tmp_path, transport: str, speedup: float, effects: dict | None, seed: int):
+    method = load_method(short_method(tmp_path, strain=STRAIN, speed=SPEED_MM_MIN, cycles=3))
+    with simulated(transport, speedup=speedup, effects=effects, seed=seed) as sim:
         approach(machine_for(sim))
         engine = make_engine(sim, method, tmp_path, speedup=speedup, fit=False)
         engine.start()
-        result = engine.wait(100)
+        result = engine.wait(60)
         assert result is not None, "the run did not end"
         wait_at_rest(sim)
     assert result.status == "finished", result.reason
+    return result
+
+
+def _tested(d) -> list:
+    return [(c.name, round(c.delta_bic, 1), c.description(), c.reason) for r in d.tested for c in r]
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("case", list(CASES))
+def test_hidden_effect_through_the_real_drivers_is_named(tmp_path, case):
+    transport, speedup, name, magnitude, rel = CASES[case]
+    result = _record(tmp_path, transport, speedup, {name: magnitude} if name else None, seed=7)
+    if name is None:
+        # a clean run is one without gaps: a computer too loaded to keep the sampling (missed
+        # samples, replies later than half a period) stamps samples out of place (skipped)
+        assert_no_miss_unless_overloaded(result)
+        d = diagnose([result.run])
+        assert d.verdict == "none", _tested(d)
+        return
     d = diagnose([result.run])
-    assert d.verdict == name, [(c.name, round(c.delta_bic, 1), c.reason) for r in d.tested for c in r]
+    assert d.verdict == name, _tested(d)
     gain = d.findings[0].gain()
     assert gain["heldout_rmse_after"] < gain["heldout_rmse_before"]
-    rate = d.findings[0].values["values"]["rate_N_per_s"]
-    assert rate == pytest.approx(magnitude, rel=0.2)
+    assert gain["rmse_after"] < gain["rmse_before"]
+    fitted = d.findings[0].values["values"][CAUSES[name].effect.parameters[0].name]
+    assert fitted == pytest.approx(magnitude, rel=rel), _tested(d)

@@ -278,12 +278,20 @@ def decimation(series: list[Series]) -> int:
     return max(1, int(round(max(len(x) for x in series) / SEARCH_SAMPLES)))
 
 
+def contact_of(fit: Fit, series: list[Series]) -> list[np.ndarray] | None:
+    """The fit's contact set, if it was fitted on these very series (a start for a model
+    that extends or refits it)."""
+    same = len(fit.model.series) == len(series) and all(a is b for a, b in zip(fit.model.series, series))
+    return [m.copy() for m in fit.solution.masks] if same else None
+
+
 def _model_like(fit: Fit, series: list[Series], free_base: bool | None = None) -> ExtendedModel:
     m = fit.model
     free = m.free_base if free_base is None else free_base
     return ExtendedModel(series, fit.params, m.effect_types, m.settings, effect_bounds=m.effect_bounds,
                          free_base=free,
-                         base_bounds=base_bounds(series, fit.params) if free else None)
+                         base_bounds=base_bounds(series, fit.params) if free else None,
+                         masks=contact_of(fit, series))
 
 
 def at_full_resolution(fit: Fit, full: list[Series], polish_nfev: int = 0) -> Fit:
@@ -310,7 +318,8 @@ def screen(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit
     """Fit base + causes with the base's alpha/beta held: the last cause's parameter scanned,
     then the effect parameters refined (cheap: only the linear parameters move with them)."""
     model = ExtendedModel(series, current.params, [c.effect for c in causes], _settings(causes, series),
-                          effect_bounds={c.effect.name: c.bounds() for c in causes})
+                          effect_bounds={c.effect.name: c.bounds() for c in causes},
+                          masks=contact_of(current, series))
     prev = current.eta
     trials = [np.concatenate([prev, row]) for row in causes[-1].starts(series)]
     rss = [model.solve(eta).rss() for eta in trials]
@@ -359,7 +368,7 @@ def without_last(series: list[Series], fit: Fit) -> Fit:
     m = fit.model
     model = ExtendedModel(series, fit.params, m.effect_types[:-1], m.settings, effect_bounds=m.effect_bounds,
                           free_base=True,
-                          base_bounds=base_bounds(series, fit.params))
+                          base_bounds=base_bounds(series, fit.params), masks=contact_of(fit, series))
     k = len(m.effect_types[-1].fitted_parameters())
     eta = fit.eta[:len(fit.eta) - k]
     nu, stderr, sol = _least_squares(model, model.start(eta), max_nfev=POLISH_NFEV)
@@ -391,7 +400,7 @@ def reidentify(series: list[Series], fit: Fit) -> Fit:
         return fit
     restart = ExtendedModel(series, params, model.effect_types, model.settings, free_base=True,
                             effect_bounds=model.effect_bounds,
-                            base_bounds=base_bounds(series, params))
+                            base_bounds=base_bounds(series, params), masks=contact_of(fit, series))
     nu, stderr, sol = _least_squares(restart, restart.start(fit.eta), max_nfev=RESTART_NFEV)
     out = Fit(list(fit.causes), restart, nu, stderr, sol)
     return out if out.rss < fit.rss else fit
@@ -448,7 +457,7 @@ def _refit_without(fit: Fit, keep: list[np.ndarray]) -> Solution:
     model = fit.model
     if model.free_base:
         model = ExtendedModel(model.series, fit.params, model.effect_types, model.settings,
-                              effect_bounds=model.effect_bounds)
+                              effect_bounds=model.effect_bounds, masks=contact_of(fit, model.series))
     if not model.n_eta:
         return model.solve((), keep)
     _, _, sol = _least_squares(model, fit.eta, keep, max_nfev=HELDOUT_NFEV)
@@ -467,6 +476,13 @@ def _compare(cands: list[Candidate], before: Fit) -> None:
         rss_e = float(we @ we)
         q = c.fit.model.n_eta - before.model.n_eta
         lr = n * np.log(rss_b / rss_e) if rss_e > 0 and rss_b > 0 else 0.0
+        # the fits minimise the plain residuals: a candidate that fits them worse than the
+        # model it extends (a worse local optimum) has no evidence, whatever the filter
+        # does to it (one AR filter can favour a residual that moved its error to low
+        # frequencies); so the plain likelihood ratio bounds the prewhitened one
+        n_raw = c.fit.n
+        if c.fit.rss > 0 and before.rss > 0:
+            lr = min(lr, n_raw * np.log(before.rss / c.fit.rss) * n / max(n_raw, 1))
         c.delta_bic = float(lr - q * np.log(n))
         c.lr_p = float(chi2.sf(max(lr, 0.0), q))
 

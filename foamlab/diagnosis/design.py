@@ -265,7 +265,8 @@ class ExtendedModel:
     def __init__(self, series: list[Series], params: ModelParameters,
                  effects: list[type[Effect]] = (), settings: dict[str, dict[str, float]] | None = None,
                  free_base: bool = False, base_bounds: tuple[np.ndarray, np.ndarray] | None = None,
-                 effect_bounds: dict[str, tuple[np.ndarray, np.ndarray]] | None = None):
+                 effect_bounds: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
+                 masks: list[np.ndarray] | None = None):
         self.series = series
         self.params = params
         self.layout = layout_of(params)
@@ -280,7 +281,10 @@ class ExtendedModel:
         lay = self.layout
         self._component = np.array([0] * (lay.P + 1) + [1] * lay.N + [2] * (lay.C * lay.M))
         self._column_of = np.array([lay.column_of_nonlinear(j) for j in range(lay.n_nonlinear)], int)
-        self._masks: list[np.ndarray | None] = [None] * len(series)
+        # the contact set the first solve starts from (see solve): the set of the model this
+        # one extends, when given; a start from the force's sign alone can end the active-set
+        # iteration in a worse fixed point than that model had reached
+        self._last_masks: list[np.ndarray | None] = list(masks) if masks is not None else [None] * len(series)
         self._cache: tuple | None = None
 
     # -- parameters
@@ -398,43 +402,49 @@ class ExtendedModel:
         """
         phi, eta = self.split(nu)
         chain = EffectChain(self.effects(eta))
-        prepared = []
-        for i, s in enumerate(self.series):
+        columns = []
+        for s in self.series:
             cols, offset, x_s, _ = self._columns(s, chain, phi)
-            compressed = x_s > 0
-            mask = self._masks[i] if self._masks[i] is not None else compressed & (s.y > 0)
-            prepared.append([s, cols, offset, compressed, mask & compressed])
+            columns.append((s, cols, offset, x_s > 0))
         rows = self.rows(keep)
         keep_all = np.concatenate(rows)
+        # the active set starts from the last full solve's (continuation: the set improves as
+        # the parameters do), at first from the one this model was made with
+        start = [(m if m is not None else compressed & (s.y > 0)) & compressed
+                 for m, (s, _, _, compressed) in zip(self._last_masks, columns)]
+        best = self._active_set(columns, chain, rows, keep_all, start)
+        if keep is None:
+            self._last_masks = [m.copy() for m in best.masks]
+        return self._predict_unfitted(best, columns, rows, chain)
+
+    def _active_set(self, columns, chain: EffectChain, rows, keep_all, start) -> Solution:
+        """Least squares with the contact set iterated to consistency from ``start``."""
+        masks = list(start)
         best = None
         seen: list[list[np.ndarray]] = []
         for _ in range(MAX_CONTACT_ITERATIONS):
             designs = [self._measured_design(s, chain, cols, offset, mask)
-                       for s, cols, offset, _, mask in prepared]
+                       for (s, cols, offset, _), mask in zip(columns, masks)]
             a = np.vstack([m[rows[k]] for k, (m, _) in enumerate(designs)])
-            b = np.concatenate([(p[0].y - c)[rows[k]] for k, (p, (_, c)) in enumerate(zip(prepared, designs))])
+            b = np.concatenate([(s.y - c)[rows[k]] for k, ((s, *_), (_, c)) in enumerate(zip(columns, designs))])
             normal = NormalSolve(a)
             theta = normal.solve(b)
             preds = [m @ theta + c for m, c in designs]
-            sol = Solution(theta, preds, [p[0].y - q for p, q in zip(prepared, preds)],
-                           [p[4] for p in prepared], [s.used for s in self.series], designs, normal)
+            sol = Solution(theta, preds, [s.y - q for (s, *_), q in zip(columns, preds)],
+                           list(masks), [s.used for s in self.series], designs, normal)
             if best is None or sol.rss(keep_all) < best.rss(keep_all):
                 best = sol
             new_masks = [compressed & (cols @ theta[:-1] + offset > 0)
-                         for _, cols, offset, compressed, _ in prepared]
+                         for _, cols, offset, compressed in columns]
             # only the fitted rows' contact set shapes the fit: iterate on them alone
             fitted = [m[r] for m, r in zip(new_masks, rows)]
-            old = [p[4][r] for p, r in zip(prepared, rows)]
+            old = [m[r] for m, r in zip(masks, rows)]
             if all(np.array_equal(a_, b_) for a_, b_ in zip(fitted, old)):
                 break
             seen.append(old)
             if any(all(np.array_equal(a_, b_) for a_, b_ in zip(fitted, prev)) for prev in seen):
                 break   # the active set cycles: keep the best solution seen
-            for p, mk in zip(prepared, new_masks):
-                p[4] = mk
-        best = self._predict_unfitted(best, prepared, rows, chain)
-        if keep is None:
-            self._masks = list(best.masks)
+            masks = new_masks
         return best
 
     def _predict_unfitted(self, sol: Solution, prepared, rows, chain: EffectChain) -> Solution:
@@ -442,7 +452,7 @@ class ExtendedModel:
         their contact set follows from it (the plate pushes where the model's force is
         positive), as in ``predict``, not from an earlier iteration's."""
         theta = sol.theta
-        for i, ((s, cols, offset, compressed, _), r) in enumerate(zip(prepared, rows)):
+        for i, ((s, cols, offset, compressed), r) in enumerate(zip(prepared, rows)):
             if r.all():
                 continue
             mask = np.where(r, sol.masks[i], compressed & (cols @ theta[:-1] + offset > 0))
