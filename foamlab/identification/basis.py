@@ -36,7 +36,7 @@ from scipy.signal import lfilter
 from scipy.special import digamma, gammaln
 
 from foamlab.model.history import HistoryLabels
-from foamlab.model.operators import _phi  # the model's exact step coefficients (one definition)
+from foamlab.model.operators import step_weights  # the model's exact step coefficients (one definition)
 
 #: Relative step for the derivative of the damping step coefficients in alpha.
 ALPHA_FD_STEP = 1e-6
@@ -168,7 +168,7 @@ class _Damping:
         by differentiating that recursion (z is analytic in alpha)."""
         eps = ALPHA_FD_STEP * max(abs(alpha), 1e-3)
         at = np.array([alpha, alpha + eps, alpha - eps] if derivative else [alpha], dtype=complex)
-        E_all, wp_all, wn_all = _phi(at, self.h)            # one call for value and derivative
+        E_all, wp_all, wn_all = step_weights(at, self.h)            # one call for value and derivative
         E, wp, wn = E_all[0], wp_all[0], wn_all[0]
         z = lfilter([wn, wp], [1.0, -E], self.xk)
         col = self.interp(z.real)

@@ -39,7 +39,7 @@ SOE_FAST = 40.0         # fastest mode: exp(-SOE_FAST) negligible after one step
 UNIFORM_RTOL = 0.1
 
 
-def _phi(lam: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def step_weights(lam: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact step coefficients of z' = -lam z + x for x linear over a step h.
 
     Returns (E, w_prev, w_new): z_n = E z_{n-1} + w_prev x_{n-1} + w_new x_n.
@@ -85,7 +85,7 @@ class HereditaryOperator:
         """Advance by h seconds to displacement x (relative to the operator's start)."""
         if h > 0:
             if h != self._coef_h:  # a simulator steps with a fixed h: compute once
-                self._coef_h, self._coef = h, _phi(self.alpha, h)
+                self._coef_h, self._coef = h, step_weights(self.alpha, h)
             E, wp, wn = self._coef
             self._z = E * self._z + wp * self._x_prev + wn * x
         self._x_prev = x
@@ -97,7 +97,7 @@ class HereditaryOperator:
         if len(x) < 2:
             return out
         for a_i, al in zip(self.a, self.alpha):
-            E, wp, wn = _phi(np.array([al]), h)
+            E, wp, wn = step_weights(np.array([al]), h)
             z = lfilter([wn[0], wp[0]], [1.0, -E[0]], x)
             z -= z[0]  # state is zero at the start, whatever x[0] is (x[0] is 0 in use)
             out += np.real(a_i * z)
@@ -108,7 +108,7 @@ class _ModeSteps:
     """Exact step factors of the modes exp(-lam s) for the last step h (shared, see below).
 
     E = exp(-lam h), phi0 = int_0^h exp(-lam s) ds, phi1_h = the weight of the step's end
-    for a linear input (see _phi). Every order's SOE uses the same decay rates lam for
+    for a linear input (see step_weights). Every order's SOE uses the same decay rates lam for
     given (h_min, t_max) - only the weights c depend on the order - so one computation
     per step serves all the operators of a specimen.
     """
@@ -121,7 +121,7 @@ class _ModeSteps:
         cached = self._cached
         if cached[0] == h:
             return cached[1]
-        E, w_prev, w_new = _phi(self.lam, h)
+        E, w_prev, w_new = step_weights(self.lam, h)
         parts = (E, w_prev + w_new, w_new)      # (E, phi0, phi1_h)
         self._cached = (h, parts)
         return parts
@@ -228,7 +228,7 @@ class FractionalOperator:
             u[1:] = np.diff(x) / h
             y = u * (self.local * hf)
             for lam, c in zip(self.soe.lam, self.soe.c):
-                E, w_prev, w_new = _phi(np.array([lam]), h)
+                E, w_prev, w_new = step_weights(np.array([lam]), h)
                 b = w_prev + w_new                      # constant input: the whole step's weight
                 s = lfilter([b[0]], [1.0, -E[0]], u)          # s_n after step n
                 y[1:] += c * E[0] * s[:-1]
@@ -239,7 +239,7 @@ class FractionalOperator:
         dw = np.concatenate([[w[0]], np.diff(w)])
         y = hf * (w * self.local - dw * self.local_slope)
         for lam, c in zip(self.soe.lam, self.soe.c):
-            E, wp, wn = _phi(np.array([lam]), h)
+            E, wp, wn = step_weights(np.array([lam]), h)
             s = lfilter([wn[0], wp[0]], [1.0, -E[0]], w)       # s_n after step n
             y[1:] += c * E[0] * s[:-1]
         return y
