@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import re
 from dataclasses import dataclass
+from typing import Callable
 
 from foamlab import FoamlabError
 from foamlab.importers._table import (Rows, check_samples, normalize_name, parse_date,
@@ -53,6 +54,18 @@ def is_number(text: str) -> bool:
 def is_data_row(fields: list[str]) -> bool:
     filled = [f for f in fields if f]
     return bool(filled) and sum(is_number(f) for f in filled) >= max(1, len(filled) - 1)
+
+
+#: A vendor export's channel-name and unit rows are looked for in its first lines.
+HEADER_LINES = 400
+
+
+def read_export(text_file: TextFile, find_layout: Callable[[list[str]], Layout | None], fmt: str) -> RunData:
+    """Read a vendor export whose header rows `find_layout` locates (one-line error if none)."""
+    layout = find_layout(text_file.lines[:HEADER_LINES])
+    if layout is None:
+        raise FoamlabError(f"{text_file.path}: no channel-names and units rows of an export from {fmt}")
+    return read_vendor(text_file, layout, fmt)
 
 
 def read_vendor(text_file: TextFile, layout: Layout, fmt: str) -> RunData:

@@ -19,9 +19,8 @@ from __future__ import annotations
 
 import re
 
-from foamlab import FoamlabError
 from foamlab.importers._text import TextFile
-from foamlab.importers._vendor import SEPARATORS, Layout, read_vendor, split_fields
+from foamlab.importers._vendor import SEPARATORS, Layout, read_export, split_fields
 from foamlab.rundata import RunData
 
 FORMAT = "Instron Bluehill"
@@ -49,7 +48,4 @@ def looks_like(lines: list[str]) -> bool:
 
 
 def read(text_file: TextFile) -> RunData:
-    layout = find_layout(text_file.lines[:400])
-    if layout is None:
-        raise FoamlabError(f"{text_file.path}: not a Bluehill raw-data export (no channel-names and units rows)")
-    return read_vendor(text_file, layout, FORMAT)
+    return read_export(text_file, find_layout, FORMAT)

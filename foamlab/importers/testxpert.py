@@ -16,9 +16,8 @@ is no standard travel). Units are converted and compression made positive.
 from __future__ import annotations
 
 from foamlab.importers._table import FORCE_NAMES, TIME_NAMES, normalize_name
-from foamlab import FoamlabError
 from foamlab.importers._text import TextFile
-from foamlab.importers._vendor import Layout, is_data_row, read_vendor, split_fields
+from foamlab.importers._vendor import Layout, is_data_row, read_export, split_fields
 from foamlab.rundata import RunData
 
 FORMAT = "ZwickRoell testXpert"
@@ -46,7 +45,4 @@ def looks_like(lines: list[str]) -> bool:
 
 
 def read(text_file: TextFile) -> RunData:
-    layout = find_layout(text_file.lines[:400])
-    if layout is None:
-        raise FoamlabError(f"{text_file.path}: not a testXpert export (no channel-names and units rows)")
-    return read_vendor(text_file, layout, FORMAT)
+    return read_export(text_file, find_layout, FORMAT)
