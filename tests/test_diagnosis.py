@@ -98,6 +98,7 @@ HIDDEN = [
     ("force_zero_drift", (0.001, 0.005)),
     ("machine_compliance", (0.003, 0.008)),
     ("direction_friction", (3.0, 6.0)),
+    ("memory_lag", (0.3, 1.0)),
 ]
 
 

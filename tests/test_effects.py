@@ -22,7 +22,7 @@ from simulator.machine import SPECIMEN_T_MAX_S, SimulatedMachine
 pytestmark = pytest.mark.timeout(120)
 
 CATALOGUE = ["cycle_softening", "damping_cycle_change", "channel_lag", "force_zero_drift",
-             "machine_compliance", "direction_friction", "rate_dependence"]
+             "machine_compliance", "direction_friction", "rate_dependence", "memory_lag"]
 AMPLITUDE, SPEED = 20.0, 120.0          # a short protocol: 2 cycles, 10 s per half-cycle
 
 
@@ -228,3 +228,40 @@ def test_motion_direction_and_velocity_estimate():
     x = np.round(0.4 * t, 3)                              # 1 um encoder resolution
     v = estimate_velocity(t, x)
     assert np.abs(v[5:-5] - 0.4).max() < 0.01
+
+
+def test_memory_lag_releases_the_force_after_a_turning_point(params, base_trace):
+    """memory_lag: the damping and residual forces through a first-order response of time tau;
+    the elastic force is not delayed; the model's jump at the turning point becomes a release."""
+    t, x, v = base_trace["t"], base_trace["x_crosshead_mm"], base_trace["velocity_mm_s"]
+    model = online_model(params)
+    tau = 0.5
+    base = EffectChain().response(model, t, x, velocity=v)
+    lagged = EffectChain([EFFECTS["memory_lag"](tau)]).response(model, t, x, velocity=v)
+    b = base.base
+    memory = b.damping + b.residual
+    expected = np.where(base.contact_force > 0, b.elastic + _first_order(t, memory, tau), 0.0)
+    inside = (lagged.contact_force > 0) & (base.contact_force > 0)
+    # (the reference is an independent explicit stepping, first-order accurate)
+    err = np.abs(lagged.contact_force - np.maximum(expected, 0.0))[inside]
+    assert err.max() < 1e-4 * np.abs(memory).max(), err.max()
+    # the jump at the first turning point (end of the first loading, then a 1 s hold) is released
+    peak = int(np.flatnonzero((b.cycle == 1) & (b.direction == 1))[-1])
+    around = slice(peak, int(np.searchsorted(t, t[peak] + 3 * tau)))
+    jump = np.abs(np.diff(base.contact_force[around])).max()
+    release = np.abs(np.diff(lagged.contact_force[around])).max()
+    assert jump > 5.0 and release < 0.3 * jump, (jump, release)
+    later = (t > t[peak] + 10 * tau) & (b.cycle == 1) & (base.contact_force > 0)
+    assert np.abs(lagged.contact_force - base.contact_force)[later].max() < 0.05 * np.abs(memory).max()
+
+
+def _first_order(t, u, tau):
+    """Reference: y' = (u - y)/tau by fine explicit stepping of the linear interpolant."""
+    fine = np.linspace(t[0], t[-1], 200 * len(t))
+    uf = np.interp(fine, t, u)
+    y = np.empty_like(uf)
+    y[0] = uf[0]
+    dt = fine[1] - fine[0]
+    for i in range(1, len(fine)):
+        y[i] = y[i - 1] + dt * (uf[i - 1] - y[i - 1]) / tau
+    return np.interp(t, fine, y)

@@ -249,3 +249,30 @@ class RateDependence(Cause):
     def describe(cls, values, stderr):
         return (f"the damping scales as (v / {values['v_ref_mm_min']:.3g} mm/min)^{values['m']:.3g} "
                 f"(± {stderr.get('m', np.nan):.2g})")
+
+
+@register
+class MemoryLag(Cause):
+    name = "memory_lag"
+    effect = fx.MemoryLag
+    meaning = ("the specimen's memory forces (damping and residual) follow the loading history with "
+               "a relaxation time: at a turning point, where the paper's model passes from the loading "
+               "to the unloading branch at once, the specimen releases its force over that time")
+    signature = ("after each reversal the measured force falls over a few tenths of a second where the "
+                 "model drops at once; the elastic force is not delayed (unlike channel_lag)")
+
+    @classmethod
+    def scale(cls, series):
+        return 10 * min(float(np.median(np.diff(s.t))) for s in series)
+
+    @classmethod
+    def starts(cls, series):
+        h = min(float(np.median(np.diff(s.t))) for s in series)
+        lo, hi = cls.bounds()
+        vals = [0.0] + [m * h for m in (0.3, 1.0, 3.0, 10.0, 30.0)]
+        return np.array(sorted({float(np.clip(v, lo[0], hi[0])) for v in vals}))[:, None]
+
+    @classmethod
+    def describe(cls, values, stderr):
+        return (f"the damping and residual forces follow with a relaxation time of "
+                f"{1000 * values['tau_s']:.3g} ± {1000 * stderr.get('tau_s', np.nan):.2g} ms")

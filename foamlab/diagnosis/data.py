@@ -62,5 +62,7 @@ def series_from_run(run: RunData, name: str = "") -> Series:
     moving = np.abs(velocity) > 0.5 * np.percentile(np.abs(velocity), 95)
     speed = float(np.median(np.abs(velocity[moving]))) * 60.0 if np.any(moving) else 0.0
     return Series(name=name or run.source or "run", t=t, x=x, y=y, labels=labels, nodes=fd.nodes,
-                  x_measured=np.asarray(run.displacement_mm, float), evidence=path_determined(t, run.displacement_mm, y, fd.nodes, noise_sigma(y)),
+                  x_measured=np.asarray(run.displacement_mm, float),
+                  evidence=path_determined(t, run.displacement_mm, y, fd.nodes, noise_sigma(y)),
+                  no_contact=np.asarray(fd.seg.contact_lost, bool),
                   velocity=velocity, rate=loading_rate(t, x, labels.starts), speed_mm_min=speed)

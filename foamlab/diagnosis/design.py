@@ -6,6 +6,8 @@ a_i and residual r_ci. Identification's ModelBasis gives that design matrix and
 each column's derivative in its own phi (foamlab.identification.basis). The
 effects of foamlab.model.effects act on it as follows:
 
+- memory (memory_lag): each effect's own ``memory_batch`` (a response in time, linear)
+  applied to the damping and residual columns and to their derivatives;
 - specimen stage (cycle_softening, damping_cycle_change, rate_dependence,
   direction_friction): each effect's own ``modify``, probed with unit components,
   gives a per-sample gain of the elastic, damping and residual components and an
@@ -20,7 +22,7 @@ effects of foamlab.model.effects act on it as follows:
   columns are evaluated at x_s; the memory operators are linear in the
   displacement history, so their columns at x_s are those of x minus C times
   those of G (exact except where the effect keeps x_s monotone after a turning
-  point: a few samples, see tests/test_diagnosis_design.py).
+  point: a few samples, see tests/test_diagnosis.py).
 - the load cell's zero offset (its unloaded reading) is one more linear column.
 
 Given the nonlinear vector nu = [phi (when the base is free), effect parameters],
@@ -28,7 +30,7 @@ the linear parameters are solved by least squares (variable projection); the
 Jacobian in nu is Kaufman's, -(I - P) d(design theta)/d nu, with the phi
 columns from ModelBasis' analytic derivatives pushed through the same effects.
 The prediction equals ``EffectChain(effects).measured_force`` of the model with
-those parameters (tests/test_diagnosis_design.py checks every effect).
+those parameters (tests/test_diagnosis.py checks every effect).
 """
 
 from __future__ import annotations
@@ -45,6 +47,9 @@ from foamlab.model.history import HistoryLabels
 
 #: The active (contact) set is iterated at most this many times per solve.
 MAX_CONTACT_ITERATIONS = 12
+#: A decimated series keeps every sample within this fraction of a half-cycle after each
+#: turning point.
+AFTER_TURN_HALF_CYCLE = 0.02
 #: Relative eigenvalue cut-off of the (column-scaled) normal equations.
 RCOND = 1e-13
 
@@ -112,6 +117,7 @@ class Series:
     nodes: PathNodes | None = None   # identification's displacement path with its corner nodes
     x_measured: np.ndarray | None = None   # the displacement as recorded (x: the path; default x)
     evidence: np.ndarray | None = None     # samples the model is judged on (None: all; see data.py)
+    no_contact: np.ndarray | None = None   # measured off the specimen (the unloaded reading)
     _bases: dict = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
@@ -172,16 +178,23 @@ class Series:
                                      frame=f.frame_force(frame_tau_s))[self.samples]
 
     def decimated(self, k: int) -> "Series":
-        """Every k-th sample plus the turning points and their neighbours (k <= 1: self)."""
+        """Every k-th sample plus the turning points and every sample in the first
+        AFTER_TURN_HALF_CYCLE of a half-cycle after each (k <= 1: self): there the memory
+        operators change fastest (the residual switches on with a near-derivative response,
+        memory_lag releases the force), and a k-times coarser grid would cut it."""
         if k <= 1 or self.full is not None:
             return self
         n = len(self.t)
         turning = np.concatenate([np.asarray(self.labels.starts, int), np.asarray(self.labels.peaks, int)])
-        keep = np.unique(np.concatenate([np.arange(0, n, k), turning, turning + 1, [n - 1]]))
+        halves = np.diff(np.sort(turning))
+        dense = max(1, int(AFTER_TURN_HALF_CYCLE * float(np.median(halves)))) if len(halves) else 1
+        after = (turning[:, None] + np.arange(dense + 1)[None, :]).ravel()
+        keep = np.unique(np.concatenate([np.arange(0, n, k), turning, after, [n - 1]]))
         keep = keep[(keep >= 0) & (keep < n)]
         return Series(self.name, self.t[keep], self.x[keep], self.y[keep], self.labels,
                       self.velocity[keep], self.rate[keep], self.speed_mm_min, full=self, obs=keep,
-                      evidence=self.used[keep])
+                      evidence=self.used[keep],
+                      no_contact=None if self.no_contact is None else self.no_contact[keep])
 
 
 def layout_of(params: ModelParameters) -> Layout:
@@ -361,12 +374,28 @@ class ExtendedModel:
                 deriv = deriv - chain.compliance * frame.design_derivatives(phi)
         else:
             x_s = s.x
+        if any(type(e).memory_batch is not Effect.memory_batch for e in chain.specimen_effects):
+            cols, deriv = self._memory(s, chain, cols, deriv)
         gains, offset = specimen_gains(chain, s.cycle, s.velocity, s.rate)
         g = np.stack(gains, axis=1)                      # (n, 3)
         cols = cols * g[:, self._component]
         if derivative:
             deriv = deriv * g[:, self._component[self._column_of]]
         return cols, offset, x_s, deriv
+
+    def _memory(self, s: Series, chain: EffectChain, cols, deriv):
+        """The specimen effects' responses in time (memory_lag) applied to the damping and
+        residual columns and their derivatives: linear in each, so column by column."""
+        damping, residual = self._component == 1, self._component == 2
+        d, r = chain.memory_batch(s.t, cols[:, damping], cols[:, residual])
+        cols = cols.copy()
+        cols[:, damping], cols[:, residual] = d, r
+        if deriv is not None:
+            comp = self._component[self._column_of]
+            dd, dr = chain.memory_batch(s.t, deriv[:, comp == 1], deriv[:, comp == 2])
+            deriv = deriv.copy()
+            deriv[:, comp == 1], deriv[:, comp == 2] = dd, dr
+        return cols, deriv
 
     @staticmethod
     def _sensor(chain: EffectChain, t, force):

@@ -12,7 +12,8 @@ docstring on its physics, and two forms that agree (tests/test_effects.py):
 
 Where an effect acts (the order of the chain):
   1. input     machine_compliance      the specimen sees the crosshead minus the frame's deflection
-  2. specimen  cycle_softening, damping_cycle_change, rate_dependence (scale model components),
+  2. specimen  memory_lag (the damping and residual components through a response in time),
+               cycle_softening, damping_cycle_change, rate_dependence (scale model components),
                direction_friction (adds a force while in contact)
   3. contact   the plate cannot pull: max(total, 0), and 0 where the specimen is not compressed
   4. sensor    channel_lag (force channel late), force_zero_drift (load-cell zero drifts)
@@ -131,9 +132,24 @@ class Effect:
     def sensor_online(self) -> "SensorStepper | None":
         return None
 
+    def memory_batch(self, t: np.ndarray, damping: np.ndarray, residual: np.ndarray):
+        """Specimen stage, before ``modify``: the model's memory components (damping,
+        residual) through a response in time; arrays (n,) or (n, k), time along axis 0."""
+        return damping, residual
+
+    def memory_online(self) -> "MemoryStepper | None":
+        return None
+
     # convenience
     def measured_force(self, model, t, x, **kw) -> np.ndarray:
         return EffectChain([self]).measured_force(model, t, x, **kw)
+
+
+class MemoryStepper:
+    """Online form of an effect on the memory components (memory_batch)."""
+
+    def step(self, t: float, damping: float, residual: float) -> tuple[float, float]:  # pragma: no cover
+        raise NotImplementedError
 
 
 class SensorStepper:
@@ -344,9 +360,108 @@ class _Drift(SensorStepper):
         return force + self.rate * (t - self._t0)
 
 
+class MemoryLag(Effect):
+    """The specimen's memory forces follow the loading history with a relaxation time.
+
+    The paper's model switches at a turning point from the loading branch to the unloading
+    branch at once: its damping (loading only, Eqs. 8-9) is switched off and the unloading's
+    residual memory (Eqs. 10-11), whose value there is the fractional derivative of the whole
+    loading, is switched on - a jump of several newtons in the model's force. A real specimen
+    releases that force over a time (the air in the cells, the polymer's fastest relaxation):
+    the damping and residual components D, R of the model act through a first-order
+    response of time constant tau, D' = (D - D_lag) / tau (and R alike); the elastic force
+    is instantaneous. On a smooth stretch that is a delay of the memory forces by ~tau
+    (small: they change slowly); at a turning point it turns the model's jump into a release
+    over a few tau. Unlike channel_lag (the whole measured force late, a sensor filter),
+    the elastic force is not delayed.
+    Batch and online: the exact response for a component linear between samples.
+    """
+
+    name = "memory_lag"
+    stage = "specimen"
+    parameters = (EffectParameter("tau_s", "s", 0.2, 0.0, 5.0,
+                                  doc="relaxation time of the damping and residual forces"),)
+
+    def memory_batch(self, t, damping, residual):
+        tau = self.values["tau_s"]
+        return first_order_response(t, damping, tau), first_order_response(t, residual, tau)
+
+    def memory_online(self) -> MemoryStepper:
+        return _MemoryLagStepper(self.values["tau_s"])
+
+
+class _MemoryLagStepper(MemoryStepper):
+    def __init__(self, tau: float):
+        self.tau = tau
+        self._prev: tuple[float, float, float, float, float] | None = None   # t, u_d, u_r, y_d, y_r
+
+    def step(self, t: float, damping: float, residual: float) -> tuple[float, float]:
+        if self._prev is None or self.tau <= 0:
+            y = (damping, residual)
+        else:
+            t0, ud, ur, yd, yr = self._prev
+            if t > t0:
+                a, b = _first_order_weights(t - t0, self.tau)
+                y = (a * yd + (1 - b) * damping + (b - a) * ud, a * yr + (1 - b) * residual + (b - a) * ur)
+            else:
+                y = (yd, yr)
+        self._prev = (t, damping, residual, y[0], y[1])
+        return y
+
+
+def _first_order_weights(dt, tau):
+    """y_i = a y_{i-1} + (1 - b) u_i + (b - a) u_{i-1}: the exact response of y' = (u - y)/tau
+    over a step dt for an input linear across it (a = exp(-dt/tau), b = tau/dt (1 - a))."""
+    a = np.exp(-np.asarray(dt, float) / tau)
+    b = -np.expm1(-np.asarray(dt, float) / tau) * tau / np.asarray(dt, float)
+    return a, b
+
+
+#: Stretches of the exponential sums in first_order_response span at most this many tau.
+_CHUNK_TAUS = 30.0
+
+
+def first_order_response(t, u, tau: float) -> np.ndarray:
+    """y' = (u - y) / tau from y = u at t[0], u linear between samples (exact; any sampling).
+
+    u: (n,) or (n, k), time along axis 0. The recursion y_i = a_i y_{i-1} + g_i is summed as
+    y_i = sum_j exp(-(t_i - t_j)/tau) g_j, in stretches of at most _CHUNK_TAUS tau (so the
+    exponentials neither overflow nor lose precision), vectorised: a plain loop over 18 000
+    samples costs ~50 ms per call, and a fit calls it hundreds of times."""
+    u = np.asarray(u, float)
+    t = np.asarray(t, float)
+    if tau <= 0 or len(t) < 2:
+        return u.copy()
+    dt = np.diff(t)
+    step = dt > 0
+    safe = np.where(step, dt, 1.0)
+    a, b = _first_order_weights(safe, tau)
+    a, b = np.where(step, a, 1.0), np.where(step, b, 1.0)       # no time: state kept
+    col = u.ndim > 1
+    ex = (lambda v: v[:, None]) if col else (lambda v: v)
+    g = ex(1 - b) * u[1:] + ex(b - a) * u[:-1]
+    y = np.empty_like(u)
+    y[0] = u[0]
+    n = len(t)
+    i = 1
+    while i < n:
+        j = int(np.searchsorted(t, t[i - 1] + _CHUNK_TAUS * tau, side="right"))
+        if j <= i + 1:                                # one step longer than the stretch
+            y[i] = ex(a[i - 1:i])[0] * y[i - 1] + g[i - 1]
+            i += 1
+            continue
+        j = min(j, n)
+        rel = (t[i:j] - t[i - 1]) / tau              # in (0, _CHUNK_TAUS]
+        w = np.exp(rel)
+        acc = np.cumsum(g[i - 1:j - 1] * ex(w), axis=0)
+        y[i:j] = (acc + ex(np.ones_like(rel)) * y[i - 1]) * ex(np.exp(-rel))
+        i = j
+    return y
+
+
 EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls for cls in (CycleSoftening, DampingCycleChange, ChannelLag, ForceZeroDrift,
-                              MachineCompliance, DirectionFriction, RateDependence)
+                              MachineCompliance, DirectionFriction, RateDependence, MemoryLag)
 }
 
 
@@ -517,6 +632,12 @@ class EffectChain:
     def __repr__(self) -> str:
         return f"EffectChain({self.effects!r})"
 
+    def memory_batch(self, t, damping, residual):
+        """The specimen effects' responses in time on the memory components (memory_batch)."""
+        for e in self._specimen:
+            damping, residual = e.memory_batch(t, damping, residual)
+        return damping, residual
+
     # ---- shared per-sample formulas (arrays or floats)
     def _contact_force(self, elastic, damping, residual, cycle, velocity, rate, x_s):
         c = Components(elastic, damping, residual, 0.0 * elastic, cycle, velocity, rate)
@@ -548,7 +669,8 @@ class EffectChain:
         def forward(x_s):
             base = fn(t, x_s, labels)
             rate = loading_rate(t, x, base.labels.starts)
-            contact = self._contact_force(base.elastic, base.damping, base.residual, base.cycle, v, rate, x_s)
+            damping, residual = self.memory_batch(t, base.damping, base.residual)
+            contact = self._contact_force(base.elastic, damping, residual, base.cycle, v, rate, x_s)
             return base, contact
 
         if self.compliance == 0.0:
@@ -600,6 +722,7 @@ class OnlineEffects:
         self.chain = chain
         self._frame = 0.0                 # frame_force, online
         self._sensors = [s for s in (e.sensor_online() for e in chain._sensor) if s is not None]
+        self._memory = [m for m in (e.memory_online() for e in chain._specimen) if m is not None]
         self._prev_force = 0.0
         self._prev_t: float | None = None
         self._prev_x: float | None = None
@@ -642,7 +765,10 @@ class OnlineEffects:
             last = self._last
             rate = abs(x - last[1]) / (t - last[0]) if last is not None and t > last[0] else 0.0
         self._last = (t, x)
-        f = float(self.chain._contact_force(comps.elastic, comps.damping, comps.residual, comps.cycle,
+        damping, residual = comps.damping, comps.residual
+        for m in self._memory:
+            damping, residual = m.step(t, damping, residual)
+        f = float(self.chain._contact_force(comps.elastic, damping, residual, comps.cycle,
                                             velocity, rate, x_s))
         self._prev_force = f
         return f
