@@ -576,12 +576,17 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
             if not findings:
                 base = current
             current_coarse = at_full_resolution(current, coarse) if k > 1 else current
+            # a candidate fitted from the base this one replaced, and not better than it, is
+            # fitted again from it (or it would be judged against a base it never started
+            # from): polished ones by a joint fit, the others by a screening (alpha/beta held)
             for c in polished:
+                if c.fit.rss >= current.rss:
+                    again = fit_joint(coarse, screen(coarse, current_coarse, accepted + [c.cause]),
+                                      current_coarse)
+                    c.coarse_fit = again
+                    c.fit = at_full_resolution(again, series, POLISH_NFEV if k > 1 else 0)
                 c.before = current
             _compare(polished, current)
-            # the others were screened against the base this one replaced: screened again
-            # against the better one (cheap: alpha/beta held), or they would be judged against
-            # a base they were never fitted from
             for c in cands:
                 if c not in polished:
                     c.fit = screen(coarse, current_coarse, accepted + [c.cause])
