@@ -91,9 +91,13 @@ def test_ctrl_c_stops_the_machine_and_keeps_the_data(tmp_path):
     """A real process and a real SIGINT: exit 130, one line, the file marked aborted."""
     out = tmp_path / "data"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    # A shell runs background jobs (`cmd &`) with SIGINT ignored, and exec keeps that: a CLI
+    # started from such a test run would ignore the very Ctrl-C under test (as it should for
+    # its own user). The child restores the default disposition before Python starts.
     proc = subprocess.Popen(
         [sys.executable, "-m", "foamlab.cli", "run", "--speedup", str(SPEEDUP), "--out", str(out),
          "--quiet", "--no-fit"],
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
         cwd=Path(__file__).resolve().parent.parent, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
         text=True)
     try:
