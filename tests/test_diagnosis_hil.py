@@ -45,7 +45,8 @@ CASES = {
 }
 
 
-def _record(tmp_path, transport: str, speedup: float, effects: dict | None, seed: int):
+def record(tmp_path, transport: str, speedup: float, effects: dict | None, seed: int):
+    """A three-cycle run through the transport's real driver and the run engine (RunResult)."""
     method = load_method(short_method(tmp_path, strain=STRAIN, speed=SPEED_MM_MIN, cycles=3))
     with simulated(transport, speedup=speedup, effects=effects, seed=seed) as sim:
         approach(machine_for(sim))
@@ -66,7 +67,7 @@ def _tested(d) -> list:
 @pytest.mark.parametrize("case", list(CASES))
 def test_hidden_effect_through_the_real_drivers_is_named(tmp_path, case):
     transport, speedup, name, magnitude, rel = CASES[case]
-    result = _record(tmp_path, transport, speedup, {name: magnitude} if name else None, seed=7)
+    result = record(tmp_path, transport, speedup, {name: magnitude} if name else None, seed=7)
     if name is None:
         # a clean run is one without gaps: a computer too loaded to keep the sampling (missed
         # samples, replies later than half a period) stamps samples out of place (skipped)
