@@ -34,6 +34,8 @@ REPLY_TIMEOUT_S = 10.0
 NICE = -15
 REALTIME_PRIORITY = 5
 SERVER_PRIORITY = 5
+#: How often the child checks that its parent is alive (s).
+PARENT_CHECK_S = 1.0
 #: Interpreter-lock switch interval in the child (Python's default is 5 ms).
 SWITCH_INTERVAL_S = 0.0005
 
@@ -79,7 +81,14 @@ def _child(conn, transport: str, kwargs: dict, realtime: bool) -> None:
     try:
         conn.send(("ready", {"profile": sim.profile, "overrides": sim.profile_overrides,
                              "address": sim.address}))
+        parent_pid = os.getppid()
         while True:
+            # A parent killed outright (SIGKILL) may not close the pipe: a forked sibling can
+            # hold its end. So the parent's pid is watched too; an orphan stops serving.
+            if not conn.poll(PARENT_CHECK_S):
+                if os.getppid() != parent_pid:
+                    return
+                continue
             try:
                 request = conn.recv()
             except EOFError:       # parent gone: stop serving

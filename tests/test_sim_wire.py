@@ -652,3 +652,29 @@ def test_sim_command_serial_prints_a_pty_path_that_answers_until_ctrl_c():
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+@pytest.mark.timeout(60)
+def test_simulator_process_stops_when_its_parent_is_killed():
+    """A `foamlab run` killed outright (SIGKILL: no cleanup) must not leave its simulated
+    machine serving forever (a CI run found one 23 min later, holding its port)."""
+    repo = Path(__file__).resolve().parent.parent
+    code = ("import sys, time; sys.path.insert(0, sys.argv[1]); "
+            "from simulator.process import start_simulator_process; "
+            "sim = start_simulator_process('modbus-tcp', speedup=1); print(sim.process.pid, flush=True); "
+            "time.sleep(60)")
+    parent = subprocess.Popen([sys.executable, "-c", code, str(repo)], stdout=subprocess.PIPE, text=True)
+    try:
+        child = int(parent.stdout.readline())
+    finally:
+        parent.kill()
+        parent.wait()
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            return
+        time.sleep(0.1)
+    os.kill(child, signal.SIGKILL)
+    pytest.fail("the simulator process outlived its killed parent by 20 s")
