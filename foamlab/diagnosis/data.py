@@ -2,24 +2,46 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from foamlab.diagnosis.design import Series
 from foamlab.diagnosis.noise import noise_sigma
-from foamlab.identification.data import PathNodes, exact_history, prepare
+from foamlab.identification.data import PathNodes, prepare
 from foamlab.model.effects import estimate_velocity, loading_rate
 from foamlab.rundata import RunData
 
 #: Samples within this many sample steps before / after a corner of the crosshead's path
-#: (a turning point, or where it arrived at or left one) are judged only where the force is
-#: steady: where it changes from a neighbouring sample by at most this many noise sigmas.
+#: (a turning point, or where it arrived at or left one) are not evidence, unless the force
+#: is steady over that whole window: no step larger than this many noise sigmas.
 CORNER_STEPS_BEFORE, CORNER_STEPS_AFTER = 1.5, 2.5
 STEADY_NOISE_MULTIPLE = 4.0
+#: A sample taken this far (as a fraction of the sampling step) off its schedule is left out
+#: (on_schedule) when at most this share of the samples are.
+OFF_SCHEDULE, RARE_OFF_SCHEDULE = 0.5, 0.02
+#: A displacement is measured (not an exact synthetic history) when more than this share of its
+#: second differences is not zero.
+MEASURED_BENDS = 0.05
+
+
+def measured_displacement(x: np.ndarray) -> bool:
+    """True for a measured displacement, False for an exact piecewise-linear history (its
+    samples are its path: synthetic runs). An exact history bends only at its corners; a
+    measured one at many samples (resolution, timing). Why not identification's
+    exact_history (a noise level of zero): a 1 um encoder read on a regular clock has
+    zero second differences at most samples, so its robust noise level is 0 too
+    (measured: serial recordings at speedup 2)."""
+    x = np.asarray(x, float)
+    if len(x) < 5:
+        return False
+    d2 = np.abs(np.diff(x, 2))
+    return bool(np.mean(d2 > 1e-9 * max(float(np.ptp(x)), 1.0)) > MEASURED_BENDS)
 
 
 def path_determined(t: np.ndarray, x: np.ndarray, force: np.ndarray, nodes: PathNodes,
                     noise_N: float) -> np.ndarray:
-    """The samples whose model force the measured displacement determines.
+    """The samples whose model force the measured run determines.
 
     The crosshead stops, waits and reverses between two samples; where exactly, and how
     (it decelerates and accelerates), the samples do not say. Near a turning point the
@@ -28,25 +50,56 @@ def path_determined(t: np.ndarray, x: np.ndarray, force: np.ndarray, nodes: Path
     cannot resolve: measured on 16 Hz runs with the simulator's crosshead (acceleration
     ramps, random dwells), the true model driven by the estimated path misses the sample at
     the extreme by 5-9 N rms, the next two by 0.5-3 N and 0.1-0.3 N, and every other sample
-    by less than the load cell's noise. Those samples are predicted but not used as evidence
-    (fits, statistics, held-out checks). Where the force is steady near a corner (the plate
-    off the specimen at the end of an unloading) the instant does not matter: kept. An
-    exact (synthetic) history has its corners at its samples: every sample is evidence.
+    by less than the load cell's noise. Where the force is steady around a corner (the plate
+    off the specimen at the end of an unloading) the instant does not matter: kept.
+    These samples are predicted but not used as evidence (fits, statistics, held-out
+    checks). An exact (synthetic) history has its corners at its samples: all are evidence.
     """
     t = np.asarray(t, float)
     y = np.asarray(force, float)
     n = len(t)
     used = np.ones(n, dtype=bool)
-    if n < 3 or exact_history(x):
+    if n < 3 or not measured_displacement(x):
         return used
     h = float(np.median(np.diff(t)))
-    near = np.zeros(n, dtype=bool)
-    for tc in nodes.t[nodes.corners]:
-        near |= (t >= tc - CORNER_STEPS_BEFORE * h) & (t <= tc + CORNER_STEPS_AFTER * h)
     step = np.abs(np.diff(y))
-    change = np.maximum(np.concatenate([[0.0], step]), np.concatenate([step, [0.0]]))
-    used[near & (change > STEADY_NOISE_MULTIPLE * noise_N)] = False
+    steady = STEADY_NOISE_MULTIPLE * noise_N
+    for tc in nodes.t[nodes.corners]:
+        near = np.flatnonzero((t >= tc - CORNER_STEPS_BEFORE * h) & (t <= tc + CORNER_STEPS_AFTER * h))
+        if not len(near):
+            continue
+        steps = step[max(near[0] - 1, 0):min(near[-1] + 1, n - 1)]     # into, inside and out of it
+        if not len(steps) or steps.max() > steady:
+            used[near] = False
     return used
+
+
+def on_schedule(run: RunData) -> tuple[RunData, int]:
+    """The run without the samples taken off its sampling schedule, and how many there were.
+
+    A request that stalls leaves a gap, then samples bunched; the instant of the samples
+    around the stall is unsure by the stall (S x its wall time on a machine run at speedup
+    S). Measured on a recording with one 0.17 s stall at speedup 3: the sample after it was
+    stamped 0.17 s early (its position 0.34 mm off the crosshead's line), which bent the
+    estimated displacement path for a second around it and a cause was named on a clean run.
+    Samples whose interval to a neighbour is off the sampling step by more than OFF_SCHEDULE
+    of it are left out - only when they are rare (a regular clock that stalled): a clock
+    irregular by design (logging on change) is kept as it is.
+    """
+    t = np.asarray(run.time_s, float)
+    if len(t) < 10:
+        return run, 0
+    dt = np.diff(t)
+    h = float(np.median(dt))
+    off = np.abs(dt - h) > OFF_SCHEDULE * h
+    bad = np.zeros(len(t), dtype=bool)
+    bad[1:] |= off
+    bad[:-1] |= off
+    if not bad.any() or bad.mean() > RARE_OFF_SCHEDULE:
+        return run, 0
+    keep = ~bad
+    return replace(run, time_s=t[keep], displacement_mm=np.asarray(run.displacement_mm)[keep],
+                   force_N=np.asarray(run.force_N)[keep]), int(bad.sum())
 
 
 def series_from_run(run: RunData, name: str = "") -> Series:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from foamlab import FoamlabError
 from foamlab.diagnosis.core import Diagnosis, diagnose_series
-from foamlab.diagnosis.data import series_from_run
+from foamlab.diagnosis.data import on_schedule, series_from_run
 from foamlab.model import ModelParameters
 from foamlab.rundata import RunData
 
@@ -30,10 +30,15 @@ def diagnose(runs: list[RunData], params: ModelParameters | None = None,
     if not runs:
         raise FoamlabError("no run to diagnose")
     names = _names(runs)
+    scheduled = [on_schedule(r) for r in runs]
+    runs = [r for r, _ in scheduled]
     series = [series_from_run(r, n) for r, n in zip(runs, names)]
     if params is None:
         params = base_parameters(runs[0])
-    return diagnose_series(series, params, causes)
+    d = diagnose_series(series, params, causes)
+    d.notes += [f"{name}: {n} samples taken off the sampling schedule left out (their instants are unsure)"
+                for name, (_, n) in zip(names, scheduled) if n]
+    return d
 
 
 def _names(runs: list[RunData]) -> list[str]:
