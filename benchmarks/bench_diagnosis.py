@@ -83,9 +83,9 @@ def _runs(name: str, magnitude: float, seed: int, hz: float):
     return [hidden_effect_run({name: magnitude}, sampling_hz=hz, seed=seed)]
 
 
-def detection(seeds: int, hz: float, ratios) -> list[str]:
+def detection(seeds: int, hz: float, ratios, causes=None) -> list[str]:
     rows = []
-    for name in EFFECTS:
+    for name in causes or EFFECTS:
         found = None
         ladder = []
         for ratio in ratios:
@@ -167,6 +167,8 @@ def main() -> None:
     ap.add_argument("--hz", type=float, default=2.0, help="sampling rate of the detection runs")
     ap.add_argument("--hil", type=int, default=0, metavar="N",
                     help="only the through-the-drivers table, N recordings per case")
+    ap.add_argument("--causes", default="", metavar="A,B",
+                    help="only the detection rows of these causes and the false alarms (printed, not published)")
     args = ap.parse_args()
     if args.hil:
         publish("Diagnosis through the real drivers (benchmarks/bench_diagnosis.py --hil)",
@@ -175,6 +177,10 @@ def main() -> None:
     seeds = args.seeds or (5 if args.quick else 10)
     clean = args.clean_seeds or (20 if args.quick else 50)
     ratios = RATIOS[::2] + RATIOS[-1:] if args.quick else RATIOS
+    if args.causes:
+        print("\n".join(false_alarms(clean, args.hz) + [""] +
+                        detection(seeds, args.hz, ratios, [c.strip() for c in args.causes.split(",")])))
+        return
     lines = ["### Speed", ""] + speed(3 if args.quick else 7)
     lines += ["", "### False alarms", ""] + false_alarms(clean, args.hz)
     lines += ["", "### Detection", ""] + detection(seeds, args.hz, ratios)

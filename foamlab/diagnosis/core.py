@@ -388,20 +388,23 @@ def without_last(series: list[Series], fit: Fit) -> Fit:
     return Fit(list(fit.causes[:-1]), model, nu, stderr, sol)
 
 
-def reidentify(series: list[Series], fit: Fit) -> Fit:
+def reidentify(series: list[Series], fit: Fit, eta: np.ndarray | None = None,
+               max_nfev: int = RESTART_NFEV) -> Fit:
     """The fit restarted from identification run on the data with its effects taken out.
 
     A base model that has bent its alpha/beta to mimic an effect sits in a local
     minimum the joint fit cannot leave; identification's own multi-start search on
-    the corrected data (measured minus what the fitted effects add) finds the base
-    the effect leaves behind, and the joint fit continues from there.
+    the corrected data (measured minus what the effects add, at the fit's values or
+    at ``eta``) finds the base the effect leaves behind, and the joint fit continues
+    from there.
     """
     from foamlab.identification.fit import fit_run
 
     model = fit.model
     theta = fit.solution.theta
     phi = model.split(fit.nu)[0]
-    with_effects = model.predict(theta, fit.nu)
+    eta = fit.eta if eta is None else np.asarray(eta, float)
+    with_effects = model.predict(theta, np.concatenate([phi if model.free_base else [], eta]))
     without = model.predict(theta, np.concatenate([phi if model.free_base else [], np.zeros(model.n_eta)]))
     ref = series[0]
     x = ref.x if ref.x_measured is None else ref.x_measured
@@ -414,9 +417,26 @@ def reidentify(series: list[Series], fit: Fit) -> Fit:
     restart = ExtendedModel(series, params, model.effect_types, model.settings, free_base=True,
                             effect_bounds=model.effect_bounds,
                             base_bounds=base_bounds(series, params), masks=contact_of(fit, series))
-    nu, stderr, sol = _least_squares(restart, restart.start(fit.eta), max_nfev=RESTART_NFEV)
+    nu, stderr, sol = _least_squares(restart, restart.start(eta), max_nfev=max_nfev)
     out = Fit(list(fit.causes), restart, nu, stderr, sol)
     return out if out.rss < fit.rss else fit
+
+
+def probe(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
+    """A short fit of base + causes: screening, a joint probe and, for a last cause that
+    identification's staged fit absorbs, a restart from identification with the effect
+    taken out at a visible size (on the side the screening leaned to)."""
+    screened = screen(series, current, causes)
+    fit = fit_joint(series, screened, current, PROBE_NFEV)
+    cause = causes[-1]
+    if cause.absorbed_by_identification:
+        lo, hi = cause.bounds()
+        side = -1.0 if screened.eta[-1] < 0 and lo[0] < 0 else 1.0
+        for size in (abs(cause.joint_start(series)), abs(cause.scale(series))):
+            eta = fit.eta.copy()
+            eta[-1] = float(np.clip(side * size, lo[0], hi[0]))
+            fit = reidentify(series, fit, eta)
+    return fit
 
 
 def folds(series: list[Series], n_folds: int = HELDOUT_FOLDS,
@@ -560,8 +580,7 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
         current_coarse = at_full_resolution(current, coarse) if k > 1 else current
         # search on the decimated runs: every cause fitted with the base's alpha/beta held
         # (screen), then a short joint probe; the best probes are fitted to convergence
-        probes = sorted((fit_joint(coarse, screen(coarse, current_coarse, accepted + [cause]),
-                                   current_coarse, PROBE_NFEV) for cause in remaining),
+        probes = sorted((probe(coarse, current_coarse, accepted + [cause]) for cause in remaining),
                         key=lambda f: f.rss)
         coarse_fits = [fit_joint(coarse, f, current_coarse) if i < JOINT_CANDIDATES else f
                        for i, f in enumerate(probes)]

@@ -8,7 +8,7 @@ import numpy as np
 
 from foamlab.diagnosis.design import Series
 from foamlab.diagnosis.noise import noise_sigma
-from foamlab.identification.data import PathNodes, prepare
+from foamlab.identification.data import PathNodes, exact_history, prepare
 from foamlab.model.effects import estimate_velocity, loading_rate
 from foamlab.rundata import RunData
 
@@ -20,23 +20,6 @@ STEADY_NOISE_MULTIPLE = 4.0
 #: A sample taken this far (as a fraction of the sampling step) off its schedule is left out
 #: (on_schedule) when at most this share of the samples are.
 OFF_SCHEDULE, RARE_OFF_SCHEDULE = 0.5, 0.02
-#: A displacement is measured (not an exact synthetic history) when more than this share of its
-#: second differences is not zero.
-MEASURED_BENDS = 0.05
-
-
-def measured_displacement(x: np.ndarray) -> bool:
-    """True for a measured displacement, False for an exact piecewise-linear history (its
-    samples are its path: synthetic runs). An exact history bends only at its corners; a
-    measured one at many samples (resolution, timing). Why not identification's
-    exact_history (a noise level of zero): a 1 um encoder read on a regular clock has
-    zero second differences at most samples, so its robust noise level is 0 too
-    (measured: serial recordings at speedup 2)."""
-    x = np.asarray(x, float)
-    if len(x) < 5:
-        return False
-    d2 = np.abs(np.diff(x, 2))
-    return bool(np.mean(d2 > 1e-9 * max(float(np.ptp(x)), 1.0)) > MEASURED_BENDS)
 
 
 def path_determined(t: np.ndarray, x: np.ndarray, force: np.ndarray, nodes: PathNodes,
@@ -59,7 +42,7 @@ def path_determined(t: np.ndarray, x: np.ndarray, force: np.ndarray, nodes: Path
     y = np.asarray(force, float)
     n = len(t)
     used = np.ones(n, dtype=bool)
-    if n < 3 or not measured_displacement(x):
+    if n < 3 or exact_history(x):
         return used
     h = float(np.median(np.diff(t)))
     step = np.abs(np.diff(y))
