@@ -132,25 +132,27 @@ class Machine(abc.ABC):
     def read_sample(self) -> MachineSample:
         """Force and position at one instant; drivers override it when one request gives both.
 
-        Two devices answer two requests, a round trip apart: at 16 Hz on a real machine
-        that is ~1 um of travel, but against a simulated machine whose clock runs S times
-        faster it is S round trips of machine time (at S = 50, ~20 um - and the model's
-        fractional derivative turns 1 um into ~0.1 N). So the sample is the force reading's
-        instant (its request's midpoint), and the position there is interpolated between
-        this position reading and the previous one (the crosshead moves steadily between two
-        samples; after a pause the correction is at most the travel of one round trip).
+        Two devices answer two requests, a round trip apart: at 16 Hz on a real machine that
+        is ~1 um of travel, but against a simulated machine whose clock runs S times faster
+        it is S round trips of machine time, and the model's fractional near-derivative turns
+        1 um into ~0.05 N. So the position is read just before and just after the force and
+        interpolated to the force reading's instant (its request's midpoint): the two
+        position readings bracket the force reading, so whatever delays a request within a
+        sample (the host's or the device's scheduling) shifts all three alike. Measured at
+        speedup 4 over Modbus TCP: interpolating from the previous sample's position instead
+        (one request fewer) left 0.069 N rms between the recording and the true specimen,
+        autocorrelated (lag-1 0.29), and clean runs were named a cause; bracketed, 0.051 N
+        (the load cell's noise 0.05 N), white.
         """
         t0 = time.monotonic()
-        reading = self.load_cell.read()
+        before = self.crosshead.read_position()
         t1 = time.monotonic()
-        position = self.crosshead.read_position()
+        reading = self.load_cell.read()
         t2 = time.monotonic()
-        at_force, at_position = 0.5 * (t0 + t1), 0.5 * (t1 + t2)
-        previous = getattr(self, "_last_position", None)
-        self._last_position = (at_position, position)
-        if previous is not None and previous[0] < at_force < at_position:
-            before, where = previous
-            position = where + (position - where) * (at_force - before) / (at_position - before)
+        after = self.crosshead.read_position()
+        t3 = time.monotonic()
+        at_before, at_force, at_after = 0.5 * (t0 + t1), 0.5 * (t1 + t2), 0.5 * (t2 + t3)
+        position = before + (after - before) * (at_force - at_before) / max(at_after - at_before, 1e-9)
         return MachineSample(reading.force_N, position, reading.status, at_force)
 
     @abc.abstractmethod

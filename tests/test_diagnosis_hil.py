@@ -11,14 +11,13 @@ reverses between samples (those samples are predicted but not evidence, see
 foamlab.diagnosis.data.path_determined); positions are read at 1 um; a sample is stamped
 at the force reading's instant, which a transport knows to a fraction of its round trip -
 S round trips of machine time at speedup S - and a stalled request stamps the samples
-around it out of place (left out: foamlab.diagnosis.data.on_schedule). Recordings of
-every case, and of clean runs through every transport, are tallied by
-`benchmarks/bench_diagnosis.py --hil N` (docs/benchmarks.md): over Modbus at speedup 4 the
-stamps scatter enough that clean runs are often `unexplained`, so the clean run goes
-through serial ASCII (force and position in one reply); over Modbus the position comes
-from a second request, interpolated to the force's instant, and cycle_softening there was
-sometimes taken for damping_cycle_change, so each cause goes where it is told apart.
-Sizes are well above the smallest named offline on this protocol.
+around it out of place (left out: foamlab.diagnosis.data.on_schedule). Over Modbus the
+position comes from a second device: it is read just before and just after the force and
+interpolated to the force's instant (drivers.base.Machine.read_sample); interpolated from
+the previous sample's position instead, clean runs at speedup 4 were `unexplained` or named
+a cause in 9 of 10 recordings. Recordings of every case are tallied by
+`benchmarks/bench_diagnosis.py --hil N` (docs/benchmarks.md). Sizes are well above the
+smallest named offline on this protocol.
 """
 
 from __future__ import annotations
@@ -41,6 +40,7 @@ CASES = {
     "modbus-rtu-pty": ("modbus-rtu-pty", 4.0, "machine_compliance", 0.005, 0.25),   # 5 um/N
     "serial": ("serial", 4.0, "cycle_softening", 0.10, 0.25),                 # 10 % per cycle
     "serial-clean": ("serial", 3.0, None, 0.0, 0.0),
+    "modbus-tcp-clean": ("modbus-tcp", 4.0, None, 0.0, 0.0),
 }
 
 

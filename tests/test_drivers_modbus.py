@@ -203,9 +203,10 @@ def test_position_and_status_decode(transport, word_order):
             assert machine.crosshead.fault_reason() == "watchdog"
 
 
-def test_read_sample_reads_force_then_position():
+def test_read_sample_brackets_the_force_with_two_position_readings():
     frame = Frames("tcp")
-    exchanges = [frame(LOAD_CELL, read_request(0x3500, 5),
+    exchanges = [frame(CROSSHEAD, read_request(0x602A, 2), read_reply(*words_of("i", 7250, "big"))),
+                 frame(LOAD_CELL, read_request(0x3500, 5),
                        read_reply(*words_of("f", 1.0, "big"), *words_of("f", 2.5, "big"), 0)),
                  frame(CROSSHEAD, read_request(0x602A, 2), read_reply(*words_of("i", 7250, "big")))]
     with peer_for("tcp", exchanges) as peer:
