@@ -157,6 +157,7 @@ class ScheduleStats:
     samples: int
     missed: int
     failed_reads: int
+    missed_waiting_device: int   # of `missed`: deadlines that passed only because a request was out
     lateness_p50_ms: float
     lateness_p99_ms: float
     lateness_max_ms: float
@@ -165,12 +166,18 @@ class ScheduleStats:
     rtt_max_ms: float
 
     @classmethod
-    def from_arrays(cls, period_s: float, lateness_ms, rtt_ms, missed: int, failed: int) -> "ScheduleStats":
+    def from_arrays(cls, period_s: float, lateness_ms, rtt_ms, missed: int, failed: int,
+                    missed_waiting_device: int = 0) -> "ScheduleStats":
         def q(a, p):
             return float(np.percentile(a, p)) if len(a) else float("nan")
         lat, rtt = np.asarray(lateness_ms, float), np.asarray(rtt_ms, float)
-        return cls(period_s, len(lat), missed, failed, q(lat, 50), q(lat, 99), q(lat, 100),
-                   q(rtt, 50), q(rtt, 99), q(rtt, 100))
+        return cls(period_s, len(lat), missed, failed, missed_waiting_device, q(lat, 50), q(lat, 99),
+                   q(lat, 100), q(rtt, 50), q(rtt, 99), q(rtt, 100))
+
+    @property
+    def missed_by_engine(self) -> int:
+        """Deadlines the engine's own work lost: they would have passed with instant replies."""
+        return self.missed - self.missed_waiting_device
 
 
 @dataclass
@@ -204,6 +211,11 @@ class SampleSchedule:
     (k, lateness_s). A deadline whose whole period has passed before its sample
     could start is skipped and counted in `missed`: sample k is taken in
     [deadline_k, deadline_k+1) or not at all.
+
+    The caller reports the wall time it spent waiting for the device (`waited_for_device`), so
+    that each miss is attributed: `missed_waiting_device` counts the deadlines that would not
+    have passed had the device answered at once (a stalled reply, a failed read), the rest are
+    the caller's own (`missed - missed_waiting_device`).
     """
 
     def __init__(self, period_s: float, start: float | None = None,
@@ -215,14 +227,21 @@ class SampleSchedule:
         self.t0 = clock() if start is None else start
         self.k = 0
         self.missed = 0
+        self.missed_waiting_device = 0
+        self._device_s = 0.0          # waited for the device since the last next()
         self._wake = wake or threading.Event()
 
     def deadline(self, k: int) -> float:
         return self.t0 + k * self.period
 
     def miss(self) -> None:
-        """The sample of the deadline just returned by next() failed: count it as missed."""
+        """The sample of the deadline just returned by next() failed (the device's doing)."""
         self.missed += 1
+        self.missed_waiting_device += 1
+
+    def waited_for_device(self, seconds: float) -> None:
+        """The caller spent `seconds` (wall) in a request to the device."""
+        self._device_s += max(0.0, seconds)
 
     def next(self) -> tuple[int, float] | None:
         """Wait for the next deadline; None when woken early (check your stop flags)."""
@@ -234,9 +253,12 @@ class SampleSchedule:
             now = self.clock()
         behind = int((now - deadline) // self.period)
         if behind > 0:
+            without_device = max(0, int((now - self._device_s - deadline) // self.period))
             self.missed += behind
+            self.missed_waiting_device += behind - without_device
             self.k += behind
             deadline = self.deadline(self.k)
+        self._device_s = 0.0
         k = self.k
         self.k += 1
         return k, now - deadline
@@ -769,6 +791,7 @@ class RunEngine:
         except DeviceConnectionLost:
             raise
         except DeviceError as exc:
+            schedule.waited_for_device(time.monotonic() - t_request)
             self._failed_reads += 1
             self._consecutive_failures += 1
             schedule.miss()
@@ -777,6 +800,7 @@ class RunEngine:
             log.warning("sample failed (%d in a row): %s", self._consecutive_failures, exc)
             return None
         t_done = time.monotonic()
+        schedule.waited_for_device(t_done - t_request)
         self._consecutive_failures = 0
         position, force = reading.position_mm, reading.force_N
         # the sample goes to disk first (also the one that crosses a limit), then the limits
@@ -864,6 +888,8 @@ class RunEngine:
             log.warning("crosshead status failed: %s", exc)
             return None
         done = time.monotonic()
+        if self._schedule is not None:
+            self._schedule.waited_for_device(done - t)
         self._status_rtt = 0.8 * self._status_rtt + 0.2 * (done - t) if self._status_rtt else done - t
         self._last_status = done
         self._check_crosshead_status(status)
@@ -1011,7 +1037,8 @@ class RunEngine:
                 self._set_state(FITTING)
                 fit, fit_error, fit_path = self._fit(run)
             timing = ScheduleStats.from_arrays(self.period_s, self._late, self._rtt,
-                                               self._schedule.missed if self._schedule else 0, self._failed_reads)
+                                               self._schedule.missed if self._schedule else 0, self._failed_reads,
+                                               self._schedule.missed_waiting_device if self._schedule else 0)
             result = RunResult(self._path, status, reason, len(self._times), timing.missed, fit, results,
                                fit_error, fit_path, end, park, self._contact, timing, run)
             if status == FINISHED:

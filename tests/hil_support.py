@@ -92,27 +92,20 @@ def wait_at_rest(sim, timeout_s: float = 5.0) -> dict:
 
 
 def assert_no_miss_unless_overloaded(result):
-    """Zero missed deadlines - unless the machine's replies themselves came too late.
+    """No deadline lost to the engine's own work; few lost waiting for replies.
 
-    A miss means a loop took longer than a period. When the device's round trips (measured
-    per sample, engine excluded) stay well inside the period, any miss is the engine's and
-    fails the test. When other jobs load the computer so much that replies take longer than
-    half a period at p99, the misses are the transport's: reported, not failed.
+    The engine attributes each miss (engine.SampleSchedule): a deadline that passed while a
+    request was out (a reply stalled by the computer - 58 ms once in CI, p99 3 ms - or a read
+    that got no reply at all) is the transport's; one that would have passed with instant
+    replies is the engine's and fails the test. The transport's may be at most 0.2 % of the
+    deadlines (a quiet machine: 0), unless replies take over half a period at p99: then the
+    computer is overloaded and the run says nothing about the engine (skipped).
     """
     timing = result.timing
     period_ms = timing.period_s * 1e3
-    if result.missed and timing.rtt_p99_ms > period_ms / 2:
+    assert timing.missed_by_engine == 0, timing
+    if timing.missed_waiting_device and timing.rtt_p99_ms > period_ms / 2:
         pytest.skip(f"computer overloaded: reply p99 {timing.rtt_p99_ms:.1f} ms > half the "
                     f"{period_ms:.1f} ms period; {result.missed} deadlines missed")
-    if result.missed:
-        # Deadlines that passed while a reply was on its way (the run file keeps each sample's
-        # round trip): a reply stalled by the computer (58 ms once, p99 3 ms, while two other
-        # real-time jobs ran) costs samples the engine could not take. Misses beyond those are
-        # the engine's and fail.
-        rtt_ms = pd.read_csv(result.path, comment="#")["rtt_ms"].to_numpy()
-        during_replies = int(np.sum(np.floor(rtt_ms / period_ms)))
-        if result.missed <= during_replies:
-            pytest.skip(f"replies stalled by the computer: max {timing.rtt_max_ms:.0f} ms (p99 "
-                        f"{timing.rtt_p99_ms:.1f} ms) for a {period_ms:.1f} ms period cost "
-                        f"{result.missed} deadlines")
-    assert result.missed == 0, timing
+    deadlines = result.n_samples + result.missed
+    assert timing.missed_waiting_device <= 0.002 * deadlines, timing

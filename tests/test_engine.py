@@ -60,6 +60,24 @@ def test_a_slow_request_costs_the_deadlines_it_overran_and_they_are_counted():
     assert schedule.missed == 2
 
 
+def test_each_miss_is_attributed_to_the_device_or_to_the_engine():
+    clock = FakeClock()
+    schedule = SampleSchedule(0.0625, clock=clock, wake=ClockEvent(clock))
+    schedule.next()
+    schedule.waited_for_device(0.0625 * 2.2)       # a stalled reply: 2.2 periods out
+    clock.t += 0.0625 * 2.3                        # plus 0.1 period of the engine's own work
+    assert schedule.next()[0] == 2                 # deadline 1 passed while the reply was out
+    assert schedule.missed == 1 and schedule.missed_waiting_device == 1
+    schedule.waited_for_device(0.001)              # a quick reply...
+    clock.t += 0.0625 * 2.5                        # ...but the engine dawdled: now 4.8 periods
+    assert schedule.next()[0] == 4                 # deadline 3 is the engine's loss
+    assert schedule.missed == 2 and schedule.missed_waiting_device == 1
+    schedule.miss()                                # a failed read: the device's
+    assert schedule.missed == 3 and schedule.missed_waiting_device == 2
+    stats = ScheduleStats.from_arrays(0.0625, [0.1], [1.0], schedule.missed, 1, schedule.missed_waiting_device)
+    assert stats.missed_by_engine == 1
+
+
 def test_schedule_wakes_early_for_a_stop_request():
     wake = threading.Event()
     schedule = SampleSchedule(10.0, wake=wake)     # the next deadline is 10 s away

@@ -284,7 +284,8 @@ def _report(result, method, out_dir: Path, no_diagnose: bool = False) -> int:
         _register(result, out_dir)
         return 130 if "Ctrl-C" in result.reason else 1
     timing = result.timing
-    print(f"foamlab run: finished: {result.n_samples} samples, {result.missed} missed "
+    waiting = f", {timing.missed_waiting_device} of them waiting for replies" if result.missed else ""
+    print(f"foamlab run: finished: {result.n_samples} samples, {result.missed} missed{waiting} "
           f"({method.sampling_hz:g} Hz; deadline lateness p99 {timing.lateness_p99_ms:.2f} ms, "
           f"request p99 {timing.rtt_p99_ms:.2f} ms)")
     deadlines = result.n_samples + result.missed
