@@ -71,11 +71,12 @@ def reversal_evidence(d) -> list[str]:
                    ", ".join(f"{dr:.2f} N at +{1000 * k * h:.0f} ms" for dr, k in zip(drops, (1, 2, 3, 5, 10, 15, 30))))
     shown = d.findings[0] if d.findings else (d.partial[0] if d.partial else None)
     if shown is not None:
+        after = np.zeros(len(s), dtype=bool)
+        for p in s.labels.peaks:
+            after |= (t > t[p]) & (t <= t[p] + 0.6)
+        u = s.used
+
         def power(res):
-            after = np.zeros(len(s), dtype=bool)
-            for p in s.labels.peaks:
-                after |= (t > t[p]) & (t <= t[p] + 0.6)
-            u = s.used
             return float(res[u & after] @ res[u & after]), float(res[u & ~after] @ res[u & ~after])
         b_after, b_else = power(shown.before.solution.residuals[0])
         e_after, e_else = power(shown.fit.solution.residuals[0])

@@ -51,6 +51,8 @@ DELTA_BIC_MIN = 10.0
 #: with their effect at 0.4-3 standard errors (the base's alpha/beta improved in their fit);
 #: the hidden effects named there lie 14-140 standard errors from zero.
 EFFECT_Z_MIN = 3.0
+#: ...and not end within this fraction of its range of a non-zero limit (see Candidate.pinned).
+PINNED_FRACTION = 0.01
 #: Whiteness tests below this p-value mean structure.
 WHITE_P = 1e-3
 #: Share of the base model's excess over the noise an extension must explain to be named
@@ -163,6 +165,24 @@ class Candidate:
         name = self.cause.effect.fitted_parameters()[0].name
         se = v["stderr"].get(name, float("nan"))
         return abs(v["values"][name]) / se if se and np.isfinite(se) and se > 0 else float("nan")
+
+    @property
+    def pinned(self) -> str:
+        """'' - or which fitted parameter ended on a limit of its range other than zero.
+
+        The optimum lies beyond what the effect can physically be (a damping change that
+        would make a later cycle's damping vanish): the data ask for something else, which
+        this effect imitates at its limit (measured: a cycle_softening of 10 %/cycle through
+        a driver fitted as damping_cycle_change at its -0.45 bound, dBIC 337 vs 330).
+        """
+        lo, hi = self.cause.bounds()
+        v = self.values["values"]
+        for p, a, b in zip(self.cause.effect.fitted_parameters(), lo, hi):
+            tol = PINNED_FRACTION * (b - a)
+            for limit in (a, b):
+                if limit != 0 and abs(v[p.name] - limit) <= tol:
+                    return f"{p.name} = {v[p.name]:.4g} at the limit of its range ({limit:g})"
+        return ""
 
     def description(self) -> str:
         v = self.values
@@ -404,8 +424,9 @@ def reidentify(series: list[Series], fit: Fit, eta: np.ndarray | None = None,
     theta = fit.solution.theta
     phi = model.split(fit.nu)[0]
     eta = fit.eta if eta is None else np.asarray(eta, float)
-    with_effects = model.predict(theta, np.concatenate([phi if model.free_base else [], eta]))
-    without = model.predict(theta, np.concatenate([phi if model.free_base else [], np.zeros(model.n_eta)]))
+    base_part = phi if model.free_base else []
+    with_effects, without = (model.predict(theta, np.concatenate([base_part, e]))
+                             for e in (eta, np.zeros(model.n_eta)))
     ref = series[0]
     x = ref.x if ref.x_measured is None else ref.x_measured
     corrected = RunData(ref.t, x, ref.y - (with_effects[0] - without[0]), source=ref.name)
@@ -657,6 +678,9 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
                 _compare([c], current)
             if c.delta_bic <= DELTA_BIC_MIN:
                 c.reason = f"delta BIC {c.delta_bic:.1f} <= {DELTA_BIC_MIN:g}"
+                continue
+            if c.pinned:
+                c.reason = f"{c.pinned}: the data ask for more than this cause can be"
                 continue
             z = c.z_score
             if not z >= EFFECT_Z_MIN:
