@@ -164,15 +164,17 @@ class ScheduleStats:
     rtt_p50_ms: float
     rtt_p99_ms: float
     rtt_max_ms: float
+    work_p99_ms: float = float("nan")   # the engine's own work per sample (device waits excluded)
+    work_max_ms: float = float("nan")
 
     @classmethod
     def from_arrays(cls, period_s: float, lateness_ms, rtt_ms, missed: int, failed: int,
-                    missed_waiting_device: int = 0) -> "ScheduleStats":
+                    missed_waiting_device: int = 0, work_ms=()) -> "ScheduleStats":
         def q(a, p):
             return float(np.percentile(a, p)) if len(a) else float("nan")
-        lat, rtt = np.asarray(lateness_ms, float), np.asarray(rtt_ms, float)
+        lat, rtt, work = (np.asarray(a, float) for a in (lateness_ms, rtt_ms, work_ms))
         return cls(period_s, len(lat), missed, failed, missed_waiting_device, q(lat, 50), q(lat, 99),
-                   q(lat, 100), q(rtt, 50), q(rtt, 99), q(rtt, 100))
+                   q(lat, 100), q(rtt, 50), q(rtt, 99), q(rtt, 100), q(work, 99), q(work, 100))
 
     @property
     def missed_by_engine(self) -> int:
@@ -215,7 +217,8 @@ class SampleSchedule:
     The caller reports the wall time it spent waiting for the device (`waited_for_device`), so
     that each miss is attributed: `missed_waiting_device` counts the deadlines that would not
     have passed had the device answered at once (a stalled reply, a failed read), the rest are
-    the caller's own (`missed - missed_waiting_device`).
+    the caller's own (`missed - missed_waiting_device`): its work between samples (`work_s`,
+    device waits excluded) or a stall of the computer while it worked.
     """
 
     def __init__(self, period_s: float, start: float | None = None,
@@ -229,6 +232,8 @@ class SampleSchedule:
         self.missed = 0
         self.missed_waiting_device = 0
         self._device_s = 0.0          # waited for the device since the last next()
+        self._returned = None         # when next() last returned a deadline
+        self.work_s: list[float] = []  # per sample: wall time between next()s minus device waits
         self._wake = wake or threading.Event()
 
     def deadline(self, k: int) -> float:
@@ -247,6 +252,9 @@ class SampleSchedule:
         """Wait for the next deadline; None when woken early (check your stop flags)."""
         deadline = self.deadline(self.k)
         now = self.clock()
+        if self._returned is not None:
+            self.work_s.append(max(0.0, now - self._returned - self._device_s))
+        self._returned = None
         while now < deadline:
             if self._wake.wait(deadline - now):
                 return None
@@ -259,6 +267,7 @@ class SampleSchedule:
             self.k += behind
             deadline = self.deadline(self.k)
         self._device_s = 0.0
+        self._returned = now
         k = self.k
         self.k += 1
         return k, now - deadline
@@ -711,7 +720,10 @@ class RunEngine:
         crosshead = self.machine.crosshead
         target = self._contact + planned.end_mm
         if step.action != "dwell":
+            sent = time.monotonic()
             self._command(crosshead.move_to, target, step.speed_mm_min)
+            if self._schedule is not None:
+                self._schedule.waited_for_device(time.monotonic() - sent)
         # the run's own schedule (and machine clock) starts when the first step is under way;
         # the contact search had its own, whose samples are not part of the run
         if planned.index == 0:
@@ -1038,7 +1050,8 @@ class RunEngine:
                 fit, fit_error, fit_path = self._fit(run)
             timing = ScheduleStats.from_arrays(self.period_s, self._late, self._rtt,
                                                self._schedule.missed if self._schedule else 0, self._failed_reads,
-                                               self._schedule.missed_waiting_device if self._schedule else 0)
+                                               self._schedule.missed_waiting_device if self._schedule else 0,
+                                               np.multiply(self._schedule.work_s, 1e3) if self._schedule else ())
             result = RunResult(self._path, status, reason, len(self._times), timing.missed, fit, results,
                                fit_error, fit_path, end, park, self._contact, timing, run)
             if status == FINISHED:

@@ -91,21 +91,23 @@ def wait_at_rest(sim, timeout_s: float = 5.0) -> dict:
     return status
 
 
-def assert_no_miss_unless_overloaded(result):
-    """No deadline lost to the engine's own work; few lost waiting for replies.
+def assert_keeps_the_schedule(result):
+    """The engine keeps up with the schedule; the computer may cost a few deadlines.
 
-    The engine attributes each miss (engine.SampleSchedule): a deadline that passed while a
-    request was out (a reply stalled by the computer - 58 ms once in CI, p99 3 ms - or a read
-    that got no reply at all) is the transport's; one that would have passed with instant
-    replies is the engine's and fails the test. The transport's may be at most 0.2 % of the
-    deadlines (a quiet machine: 0), unless replies take over half a period at p99: then the
-    computer is overloaded and the run says nothing about the engine (skipped).
+    The engine's own work per sample (engine.SampleSchedule.work_s: the time between two
+    deadlines' samples minus the device's replies) must stay a small part of the period at
+    p99 - per-sample work that grows is the engine's failure, whatever the computer does. A
+    miss is a deadline whose whole period passed: a reply stalled by the computer, a read with
+    no reply, or the engine's thread held up (measured in CI on this 2-core VM: 8 of 14 160
+    over TCP at speedup 4 - one read without a reply, one 58 ms reply - and 12 over ASCII at 8,
+    11 of them one 108 ms pause outside any request). At most 0.5 % of the deadlines; unless
+    replies take over half a period at p99: then the computer is overloaded (skipped).
     """
     timing = result.timing
     period_ms = timing.period_s * 1e3
-    assert timing.missed_by_engine == 0, timing
-    if timing.missed_waiting_device and timing.rtt_p99_ms > period_ms / 2:
+    assert timing.work_p99_ms <= 0.25 * period_ms, timing
+    if result.missed and timing.rtt_p99_ms > period_ms / 2:
         pytest.skip(f"computer overloaded: reply p99 {timing.rtt_p99_ms:.1f} ms > half the "
                     f"{period_ms:.1f} ms period; {result.missed} deadlines missed")
     deadlines = result.n_samples + result.missed
-    assert timing.missed_waiting_device <= 0.002 * deadlines, timing
+    assert result.missed <= 0.005 * deadlines, timing

@@ -68,6 +68,7 @@ def test_each_miss_is_attributed_to_the_device_or_to_the_engine():
     clock.t += 0.0625 * 2.3                        # plus 0.1 period of the engine's own work
     assert schedule.next()[0] == 2                 # deadline 1 passed while the reply was out
     assert schedule.missed == 1 and schedule.missed_waiting_device == 1
+    assert schedule.work_s == [pytest.approx(0.1 * 0.0625)]   # the engine's own time, waits excluded
     schedule.waited_for_device(0.001)              # a quick reply...
     clock.t += 0.0625 * 2.5                        # ...but the engine dawdled: now 4.8 periods
     assert schedule.next()[0] == 4                 # deadline 3 is the engine's loss
