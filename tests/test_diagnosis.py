@@ -105,9 +105,9 @@ HIDDEN = [
 ]
 
 
-@pytest.mark.parametrize("cause,magnitude", [(c, m) for c, ms in HIDDEN for m in ms])
-def test_hidden_effect_is_named_and_the_extension_predicts_held_out_data_better(cause, magnitude):
-    run = hidden_effect_run({cause: magnitude}, seed=11, **FAST)
+@pytest.mark.parametrize("cause,magnitude,seed", [(c, m, 11 + i) for c, ms in HIDDEN for i, m in enumerate(ms)])
+def test_hidden_effect_is_named_and_the_extension_predicts_held_out_data_better(cause, magnitude, seed):
+    run = hidden_effect_run({cause: magnitude}, seed=seed, **FAST)
     d = diagnose([run])
     assert d.verdict == cause, [(c.name, round(c.delta_bic, 1), c.reason) for r in d.tested for c in r]
     gain = d.to_dict()["findings"][0]["gain"]
