@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
-import pandas as pd
 import pytest
 from contextlib import contextmanager
 from pathlib import Path
