@@ -51,6 +51,7 @@ from drivers.base import CrossheadStatus, DeviceConnectionLost, DeviceError, Mac
 from foamlab import FoamlabError, __version__
 from foamlab.methods import Method, MethodResults, PlannedStep
 from foamlab.rundata import RunData, Specimen
+from foamlab.safety import check_safe_to_tare
 
 log = logging.getLogger(__name__)
 
@@ -620,6 +621,7 @@ class RunEngine:
                                         f"limits [{lim.travel_upper_mm:g}, {lim.travel_lower_mm:g}] mm")
         self._command(crosshead.set_travel_limits, lim.travel_upper_mm, lim.travel_lower_mm)
         self._set_state(TARING)
+        self._command(check_safe_to_tare, self.machine)   # never tare a squeezed specimen (issue 18)
         self._command(self.machine.load_cell.tare)
 
     def _new_schedule(self) -> SampleSchedule:

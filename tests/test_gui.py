@@ -10,7 +10,7 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 import numpy as np
 import pytest
-from PySide6 import QtCore
+from PySide6 import QtCore, QtWidgets
 
 from foamlab.gui.window import MainWindow
 from foamlab.importers import load_run
@@ -272,7 +272,6 @@ def test_closing_mid_run_stops_the_machine_and_keeps_the_data(qtbot, tmp_path, m
     enter_specimen(qtbot, w, *SPECIMEN)
     click(qtbot, w.start_button)
     wait_mid_run(qtbot, w, 50)
-    monkeypatch.setattr(w, "confirm_close_during_run", lambda: True)
     at_close = {}
     close_link = conn.machine.close
 
@@ -282,6 +281,10 @@ def test_closing_mid_run_stops_the_machine_and_keeps_the_data(qtbot, tmp_path, m
 
     monkeypatch.setattr(conn.machine, "close", record_then_close)
     w.close()
+    # Asked first, in a non-modal question (the e-stop stays at hand); the run goes on meanwhile.
+    question = w.dialog
+    assert question.objectName() == "close_question" and question.isVisible() and w.running
+    click(qtbot, question.button(QtWidgets.QMessageBox.StandardButton.Yes))
     qtbot.waitUntil(lambda: not w.isVisible(), timeout=30_000)
     result = w.last_result
     assert result is not None and result.status == "aborted"

@@ -21,10 +21,12 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from foamlab import FoamlabError
 from foamlab.gui.background import BackgroundQueue
 from foamlab.gui.bridge import EngineBridge
+from foamlab.gui.dialogs import EscapeStops, ask, choose_file
 from foamlab.gui.forms import ERROR_STYLE, LimitsForm, SpecimenForm
 from foamlab.gui.machine_link import BUILTIN_SIMULATOR, Connection, MachineLink, Readout
 from foamlab.gui.plots import LOADING, UNLOADING, LivePlots, labels_from_segmentation
 from foamlab.gui.results import Report, ResultsPanel
+from foamlab.safety import check_safe_to_tare, remember_contact, shift_contact
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +57,13 @@ def _clock(seconds: float) -> str:
     h, rest = divmod(seconds, 3600)
     m, s = divmod(rest, 60)
     return f"{h}:{m:02d}:{s:02d}" if h else f"{m:02d}:{s:02d}"
+
+
+def _zero_position(machine) -> None:
+    """Make the present position the machine's zero; the remembered contact point moves with it."""
+    position = machine.crosshead.read_position()
+    machine.crosshead.set_zero()
+    shift_contact(machine, -position)
 
 
 def _big_label(text: str, name: str) -> QtWidgets.QLabel:
@@ -95,6 +104,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self._fill_choices(profile, method)
         self._wire()
         self._update_controls()
+        # Esc is the e-stop whatever has the focus, dialogs included (see foamlab.gui.dialogs).
+        self.escape_stops = EscapeStops(self.emergency_stop, self)
+        self.escape_stops.install()
+        self.dialog: QtWidgets.QDialog | None = None     # the open question or file chooser
 
     # ================================================================ UI construction
     def _build_ui(self) -> None:
@@ -193,7 +206,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.estop_button.setStyleSheet(
             "QPushButton { background: #C62828; color: white; font-weight: bold; font-size: 16px; }"
             "QPushButton:disabled { background: #E8A5A5; }")
-        self.estop_button.setShortcut(QtGui.QKeySequence("Esc"))
         self.estop_button.setToolTip("Stops the crosshead at once (Esc). The data acquired are kept.")
         left_panel = QtWidgets.QWidget()
         left_outer = QtWidgets.QVBoxLayout(left_panel)
@@ -307,11 +319,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.jog_down.pressed.connect(lambda: self._jog(+1))
         self.jog_up.released.connect(self._stop_motion)
         self.jog_down.released.connect(self._stop_motion)
-        self.zero_position_button.clicked.connect(
-            lambda: self.link.call("zero position", lambda m: m.crosshead.set_zero()))
-        self.zero_force_button.clicked.connect(
-            lambda: self.link.call("zero force", lambda m: m.load_cell.zero()))
-        self.tare_button.clicked.connect(lambda: self.link.call("tare", lambda m: m.load_cell.tare()))
+        self.zero_position_button.clicked.connect(lambda: self.link.call("zero position", _zero_position))
+        self.zero_force_button.clicked.connect(lambda: self._tare("zero force"))
+        self.tare_button.clicked.connect(lambda: self._tare("tare"))
         self.reset_button.clicked.connect(
             lambda: self.link.call("reset e-stop", lambda m: m.crosshead.reset_fault()))
         self.start_button.clicked.connect(self.start_run)
@@ -336,7 +346,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def _update_controls(self) -> None:
         connected, running = self.connected, self.running
         connecting = self.connect_button.text() == "Connecting…"
-        idle = connected and not running
+        idle = connected and not running and not self._close_requested
         self.profile_combo.setEnabled(not connected and not connecting)
         self.connect_button.setEnabled(not running and not connecting)
         self.connect_button.setText("Connecting…" if connecting else ("Disconnect" if connected else "Connect"))
@@ -347,8 +357,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.method_combo.setEnabled(not running)
         self.specimen_form.setEnabled(not running)
         self.start_button.setEnabled(idle)
-        self.stop_button.setEnabled(running)
-        self.estop_button.setEnabled(connected)
+        self.stop_button.setEnabled(running and not self._close_requested)
+        self.estop_button.setEnabled(connected)      # in every state, closing included
         self.open_action.setEnabled(not running)
         self.browser.setEnabled(not running)
 
@@ -434,6 +444,26 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _stop_motion(self) -> None:
         self.link.call("stop", lambda m: m.crosshead.stop())
+
+    def _tare(self, what: str) -> None:
+        """Tare or zero the load cell, refused in words while it carries a load (foamlab.safety)."""
+        conn = self.link.connection
+        if conn is None:
+            return
+        machine = conn.machine
+
+        def work() -> None:
+            check_safe_to_tare(machine, what)
+            if what == "tare":
+                machine.load_cell.tare()
+            else:
+                machine.load_cell.zero()
+
+        def failed(message: str) -> None:
+            self._status(message if message.startswith(f"{what} refused") else f"{what} failed: {message}",
+                         error=True)
+
+        self.link.submit(work, lambda _: self._status(f"{what}: done", timeout_ms=5000), failed)
 
     # ================================================================ method
     def _on_method_changed(self) -> None:
@@ -567,6 +597,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self._drain_samples()
         self.plots.refresh()
         self.last_result = result
+        if result.contact_position_mm is not None and self.link.connection is not None:
+            remember_contact(self.link.connection.machine, result.contact_position_mm)
         self._end_run_ui()
         ok = result.status == "finished"
         if ok:
@@ -682,11 +714,9 @@ class MainWindow(QtWidgets.QMainWindow):
             self._status("a run is going: open files after it ends", error=True)
             return
         if path is None:
-            path, _ = QtWidgets.QFileDialog.getOpenFileName(
-                self, "Open measured data", str(self.out_dir),
-                "Measured data (*.csv *.txt *.tsv);;All files (*)")
-            if not path:
-                return
+            self._show_dialog(choose_file(self, "Open measured data", self.out_dir,
+                                          "Measured data (*.csv *.txt *.tsv);;All files (*)", self.open_file))
+            return
         path = Path(path)
         self._analysis_generation += 1
         generation = self._analysis_generation
@@ -741,10 +771,9 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def export_png(self, path: str | Path | None = None) -> Path | None:
         if path is None:
-            path, _ = QtWidgets.QFileDialog.getSaveFileName(self, "Export plot", str(self.out_dir / "plot.png"),
-                                                            "PNG image (*.png)")
-            if not path:
-                return None
+            self._show_dialog(choose_file(self, "Export plot", self.out_dir / "plot.png", "PNG image (*.png)",
+                                          self.export_png, save=True))
+            return None
         path = Path(path)
         try:
             self.plots.export_png(str(path))
@@ -759,10 +788,9 @@ class MainWindow(QtWidgets.QMainWindow):
             self._status("nothing to export yet: run a test or open a file", error=True)
             return None
         if path is None:
-            path, _ = QtWidgets.QFileDialog.getSaveFileName(self, "Export results",
-                                                            str(self.out_dir / "results.csv"), "CSV (*.csv)")
-            if not path:
-                return None
+            self._show_dialog(choose_file(self, "Export results", self.out_dir / "results.csv", "CSV (*.csv)",
+                                          self.export_csv, save=True))
+            return None
         path = Path(path)
         try:
             self.results.report.write_csv(str(path))
@@ -772,31 +800,50 @@ class MainWindow(QtWidgets.QMainWindow):
         self._status(f"results written to {path}", timeout_ms=5000)
         return path
 
-    # ================================================================ closing
-    def confirm_close_during_run(self) -> bool:
-        """Asked when the window is closed mid-run (tests replace it)."""
-        answer = QtWidgets.QMessageBox.question(
-            self, "A test is running",
-            "A test is running. Stop the machine and close?\nThe data acquired so far are kept.",
-            QtWidgets.QMessageBox.StandardButton.Yes | QtWidgets.QMessageBox.StandardButton.No,
-            QtWidgets.QMessageBox.StandardButton.No)
-        return answer == QtWidgets.QMessageBox.StandardButton.Yes
+    # ================================================================ dialogs, closing
+    def _show_dialog(self, dialog: QtWidgets.QDialog) -> None:
+        """One non-modal dialog at a time: a new one replaces the one still open."""
+        self.close_dialog()
+        self.dialog = dialog
+        dialog.destroyed.connect(lambda *_: self._dialog_gone(dialog))
+
+    def close_dialog(self) -> None:
+        dialog, self.dialog = self.dialog, None
+        if dialog is not None:
+            try:
+                dialog.close()
+            except RuntimeError:      # already deleted by Qt (closed by its own buttons)
+                pass
+
+    def _dialog_gone(self, dialog) -> None:
+        if self.dialog is dialog:
+            self.dialog = None
+
+    def _confirm_close(self) -> None:
+        """Closing mid-run asks first, without a modal dialog: the e-stop stays at hand."""
+        self._show_dialog(ask(self, "A test is running",
+                              "A test is running. Stop the machine and close?\nThe data acquired so far are kept.",
+                              self._close_after_stop, name="close_question"))
+
+    def _close_after_stop(self) -> None:
+        if self.engine is None:          # the run ended while the question was open
+            self.close()
+            return
+        self._close_requested = True
+        self.engine.request_stop("window closed during the run")
+        self._status("stopping the machine before closing…")
+        self._update_controls()
+        # If the engine cannot stop in time, e-stop; the window closes when it reports.
+        QtCore.QTimer.singleShot(int(CLOSE_STOP_TIMEOUT_S * 1000), self._close_timeout)
 
     def closeEvent(self, event: QtGui.QCloseEvent) -> None:
         if self.engine is not None:
             if not self._close_requested:
-                if not self.confirm_close_during_run():
-                    event.ignore()
-                    return
-                self._close_requested = True
-                self.engine.request_stop("window closed during the run")
-                self._status("stopping the machine before closing…")
-                self.setEnabled(False)
-                self.estop_button.setEnabled(True)
-                # If the engine cannot stop in time, e-stop; the window closes when it reports.
-                QtCore.QTimer.singleShot(int(CLOSE_STOP_TIMEOUT_S * 1000), self._close_timeout)
+                self._confirm_close()
             event.ignore()
             return
+        self.close_dialog()
+        self.escape_stops.remove()
         self.frame_timer.stop()
         self.poll_timer.stop()
         self.analysis.shutdown(wait=False)
