@@ -6,14 +6,13 @@ button could not be clicked and Esc only answered the dialog (issue 18). So:
 
 - every question and file chooser of the window is non-modal (show() and a callback), the
   e-stop button stays clickable beside it;
-- Esc is caught for the whole application by an event filter, before any widget or
-  dialog (modal ones included, e.g. a platform's own message box) sees it, and calls
-  the e-stop. Esc therefore never cancels a dialog in this application: it stops the machine.
+- Esc is an application-wide shortcut for the e-stop, matched before any widget or
+  dialog of the application sees the key: Esc never cancels a dialog here, it stops
+  the machine.
 """
 
 from __future__ import annotations
 
-import weakref
 from pathlib import Path
 from typing import Callable
 
@@ -23,33 +22,24 @@ Button = QtWidgets.QMessageBox.StandardButton
 
 
 class EscapeStops(QtCore.QObject):
-    """Application-wide event filter: Esc anywhere calls `stop()` and goes no further."""
+    """Esc calls `stop()` from any window of the application that has the focus.
+
+    An application-wide shortcut, not an event filter: a Python filter on QApplication
+    runs Python for every event of the program, and measured here it deadlocked with
+    PySide's deferred deletion of a closed window (the GIL against a QObject mutex).
+    A shortcut is matched in C++ and only calls Python when Esc is pressed. It is
+    taken before a dialog's own Esc (reject); modal dialogs would shadow it, and this
+    window opens none."""
 
     def __init__(self, stop: Callable[[], None], owner: QtWidgets.QWidget) -> None:
         super().__init__(owner)
-        self._stop = stop
-        self._owner = weakref.ref(owner)
-
-    def eventFilter(self, watched: QtCore.QObject, event: QtCore.QEvent) -> bool:
-        kind = event.type()
-        if kind not in (QtCore.QEvent.Type.KeyPress, QtCore.QEvent.Type.ShortcutOverride):
-            return False
-        if not isinstance(event, QtGui.QKeyEvent) or event.key() != QtCore.Qt.Key.Key_Escape:
-            return False
-        if self._owner() is None:
-            return False
-        if kind == QtCore.QEvent.Type.KeyPress and not event.isAutoRepeat():
-            self._stop()
-        event.accept()
-        return True          # no dialog, menu or shortcut gets this Esc
-
-    def install(self) -> None:
-        QtWidgets.QApplication.instance().installEventFilter(self)
+        self.shortcut = QtGui.QShortcut(QtGui.QKeySequence(QtCore.Qt.Key.Key_Escape), owner)
+        self.shortcut.setContext(QtCore.Qt.ShortcutContext.ApplicationShortcut)
+        self.shortcut.setAutoRepeat(False)
+        self.shortcut.activated.connect(stop)
 
     def remove(self) -> None:
-        app = QtWidgets.QApplication.instance()
-        if app is not None:
-            app.removeEventFilter(self)
+        self.shortcut.setEnabled(False)
 
 
 def ask(parent: QtWidgets.QWidget, title: str, text: str, on_yes: Callable[[], None],

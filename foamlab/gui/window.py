@@ -106,7 +106,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self._update_controls()
         # Esc is the e-stop whatever has the focus, dialogs included (see foamlab.gui.dialogs).
         self.escape_stops = EscapeStops(self.emergency_stop, self)
-        self.escape_stops.install()
         self.dialog: QtWidgets.QDialog | None = None     # the open question or file chooser
 
     # ================================================================ UI construction
