@@ -7,9 +7,10 @@ engine, which the window asks before it starts anything.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
-from PySide6 import QtCore, QtGui, QtWidgets
+from PySide6 import QtCore, QtWidgets
 
 from foamlab.rundata import Specimen
 
@@ -34,14 +35,40 @@ DIMENSIONS = (
 )
 MAX_LABEL_CHARS = 80
 
+_NUMBER = re.compile(r"^[+-]?(\d+([.,]\d*)?|[.,]\d+)$")
+
+
+def parse_number(text: str, locale: QtCore.QLocale) -> float:
+    """The number typed, read in `locale`; ValueError with a plain reason when it is not one.
+
+    The locale's decimal separator is read as such, and so is the other of '.' and ','
+    when it cannot be a thousands separator (72,5 is 72.5 everywhere). A thousands
+    separator followed by three digits (72,500 where ',' groups) is refused as
+    ambiguous, never guessed; grouping is not accepted at all.
+    """
+    t = text.strip()
+    if not t:
+        raise ValueError("is missing")
+    if not _NUMBER.match(t):
+        raise ValueError(f"'{t}' is not a number")
+    decimal, group = locale.decimalPoint(), locale.groupSeparator()
+    sep = next((c for c in t if c in ".,"), None)
+    if sep is not None and sep != decimal and sep == group and len(t) - t.index(sep) - 1 == 3:
+        raise ValueError(f"'{t}' is ambiguous ('{sep}' also separates thousands): "
+                         f"write the decimals after '{decimal}'")
+    return float(t.replace(",", "."))
+
 
 class SpecimenForm(QtWidgets.QGroupBox):
     """Label, height, width, depth. `specimen()` returns a Specimen or None and shows why."""
 
     changed = QtCore.Signal()
 
-    def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
+    def __init__(self, parent: QtWidgets.QWidget | None = None, locale: QtCore.QLocale | None = None) -> None:
         super().__init__("Specimen", parent)
+        # The machine's (the desktop's) locale; numbers are never edited as they are typed
+        # (a QValidator silently drops what it rejects: "-5" became "5", "72,5" became "725").
+        self.number_locale = locale or QtCore.QLocale()
         form = QtWidgets.QFormLayout(self)
         self.label_edit = QtWidgets.QLineEdit()
         self.label_edit.setPlaceholderText("e.g. PU-foam-01")
@@ -49,14 +76,8 @@ class SpecimenForm(QtWidgets.QGroupBox):
         self.label_edit.setObjectName("specimen_label")
         form.addRow("Label", self.label_edit)
         self.edits: dict[str, QtWidgets.QLineEdit] = {}
-        c_locale = QtCore.QLocale.c()  # "." as decimal separator whatever the desktop's locale
-        c_locale.setNumberOptions(QtCore.QLocale.NumberOption.RejectGroupSeparator)
         for dim in DIMENSIONS:
-            edit = QtWidgets.QLineEdit(dim.default)
-            validator = QtGui.QDoubleValidator(dim.low_mm, dim.high_mm, 3, edit)
-            validator.setNotation(QtGui.QDoubleValidator.Notation.StandardNotation)
-            validator.setLocale(c_locale)
-            edit.setValidator(validator)
+            edit = QtWidgets.QLineEdit(self._show_number(float(dim.default)))
             edit.setObjectName(f"specimen_{dim.key}")
             edit.setToolTip(f"{dim.label} in mm, {dim.low_mm:g} to {dim.high_mm:g}")
             edit.textChanged.connect(self._on_edit)
@@ -70,42 +91,61 @@ class SpecimenForm(QtWidgets.QGroupBox):
         self.message.hide()
         form.addRow(self.message)
 
+    def _show_number(self, value: float) -> str:
+        return self.number_locale.toString(float(value), "g", 6)
+
     def _on_edit(self) -> None:
-        # Clear the complaint as soon as the technician edits; it comes back on the next check.
-        self.message.hide()
-        for edit in (self.label_edit, *self.edits.values()):
-            edit.setStyleSheet("")
+        # Numbers are checked as they are typed: a wrong one turns red with the reason below,
+        # as typed (never repaired); the label's complaint waits for Start (empty while typing).
+        self._mark(self.problems(with_label=False), prefix="")
         self.changed.emit()
+
+    def _mark(self, problems: list[tuple[QtWidgets.QLineEdit, str]], prefix: str) -> None:
+        bad = {id(edit) for edit, _ in problems}
+        for edit in (self.label_edit, *self.edits.values()):
+            edit.setStyleSheet(INVALID_FIELD_STYLE if id(edit) in bad else "")
+        self.message.setText(prefix + " ".join(text for _, text in problems))
+        self.message.setVisible(bool(problems))
 
     def set_values(self, label: str, height_mm: float, width_mm: float, depth_mm: float) -> None:
         self.label_edit.setText(label)
         for key, value in (("height_mm", height_mm), ("width_mm", width_mm), ("depth_mm", depth_mm)):
-            self.edits[key].setText(f"{value:g}")
+            self.edits[key].setText(self._show_number(value))
 
-    def problems(self) -> list[tuple[QtWidgets.QLineEdit, str]]:
+    def values(self) -> dict[str, float | None]:
+        """Each dimension as read (None where the entry is not a number)."""
+        out: dict[str, float | None] = {}
+        for dim in DIMENSIONS:
+            try:
+                out[dim.key] = parse_number(self.edits[dim.key].text(), self.number_locale)
+            except ValueError:
+                out[dim.key] = None
+        return out
+
+    def problems(self, with_label: bool = True) -> list[tuple[QtWidgets.QLineEdit, str]]:
         found = []
-        if not self.label_edit.text().strip():
+        if with_label and not self.label_edit.text().strip():
             found.append((self.label_edit, "Enter a specimen label."))
         for dim in DIMENSIONS:
             edit = self.edits[dim.key]
-            text = edit.text().strip()
-            state, _, _ = edit.validator().validate(text, 0)
-            if state != QtGui.QValidator.State.Acceptable:
-                what = "is missing" if not text else f"'{text}' is not a number from {dim.low_mm:g} to {dim.high_mm:g}"
-                found.append((edit, f"{dim.label} {what} (mm)."))
+            try:
+                value = parse_number(edit.text(), self.number_locale)
+            except ValueError as exc:
+                found.append((edit, f"{dim.label} {exc} (mm)."))
+                continue
+            if not dim.low_mm <= value <= dim.high_mm:
+                found.append((edit, f"{dim.label} {self._show_number(value)} mm is outside "
+                                    f"{dim.low_mm:g} to {dim.high_mm:g} mm."))
         return found
 
     def specimen(self) -> Specimen | None:
         """The entered specimen, or None after showing what is wrong."""
         problems = self.problems()
         if problems:
-            for edit, _ in problems:
-                edit.setStyleSheet(INVALID_FIELD_STYLE)
-            self.message.setText("Cannot start: " + " ".join(text for _, text in problems))
-            self.message.show()
+            self._mark(problems, prefix="Cannot start: ")
             problems[0][0].setFocus()
             return None
-        values = {dim.key: float(self.edits[dim.key].text()) for dim in DIMENSIONS}
+        values = self.values()
         return Specimen(label=self.label_edit.text().strip(), **values)
 
     def show_error(self, text: str) -> None:
