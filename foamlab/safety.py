@@ -64,3 +64,19 @@ def check_safe_to_tare(machine: Machine, action: str = "tare") -> None:
         raise FoamlabError(
             f"{action} refused: the crosshead is at {sample.position_mm:.2f} mm, below the point where the "
             f"plate last touched the specimen ({contact:.2f} mm); jog up above it before the {action}")
+
+
+def check_run_fits(method, specimen, limits, position_mm: float | None) -> None:
+    """Raise FoamlabError, in the operator's words, when the method's deepest point on this
+    specimen lies beyond the lower travel limit, counted from where the crosshead stands
+    (the contact search starts there and only goes down). `position_mm` None: unknown,
+    counted from the upper travel limit. (method: foamlab.methods.Method, specimen:
+    foamlab.rundata.Specimen, limits: foamlab.engine.Limits.)"""
+    stroke = method.max_strain * specimen.height_mm
+    start = limits.travel_upper_mm if position_mm is None else position_mm
+    room = limits.travel_lower_mm - start
+    if stroke > room:
+        raise FoamlabError(
+            f"{specimen.height_mm:g} mm specimen, {method.max_strain:.0%} stroke: needs {stroke:.3g} mm of travel; "
+            f"the lower travel limit ({limits.travel_lower_mm:g} mm) allows {max(room, 0):.3g} mm below the "
+            f"crosshead at {start:.1f} mm")

@@ -9,7 +9,7 @@ import importlib
 import importlib.util
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +39,7 @@ class Loaded:
     method_results: Any = None
     segmentation_note: str = ""
     stored_diagnosis: dict | None = None   # <run>.diagnosis.json beside the file, when there is one
+    headline: list[str] = field(default_factory=list)   # the method's headline results (report.py)
 
     def describe(self) -> str:
         run = self.run
@@ -82,15 +83,17 @@ def load_for_display(path: str | Path) -> Loaded:
         n_cycles = segmentation.n_cycles
     except FoamlabError as exc:
         note = f"no cycles found: {exc}"
-    method_results = None
+    method_results, headline = None, []
     if run.method:
         try:
+            from foamlab.gui.report import headline_names
             from foamlab.methods import load_method
 
-            method_results = load_method(run.method).compute_results(run)
+            method = load_method(run.method)
+            method_results, headline = method.compute_results(run), headline_names(method)
         except FoamlabError as exc:
             log.info("method results of %s not computed: %s", path, exc)
-    return Loaded(run, cycles, phases, n_cycles, method_results, note, stored_diagnosis(path))
+    return Loaded(run, cycles, phases, n_cycles, method_results, note, stored_diagnosis(path), headline)
 
 
 def stored_diagnosis(path: str | Path) -> dict | None:
@@ -129,17 +132,7 @@ def diagnose_run(run: RunData) -> Any:
 
 
 def predicted_force(fit: Any, run: RunData) -> np.ndarray | None:
-    """The fitted model's force at the run's samples (what the plot overlays)."""
-    for name in ("predicted_force_N", "predicted", "force_fit_N"):
-        value = getattr(fit, name, None)
-        if value is not None and not callable(value):
-            value = np.asarray(value, dtype=float)
-            if value.shape == run.force_N.shape:
-                return value
-    for name in ("predict", "simulate"):
-        fn = getattr(fit, name, None)
-        if callable(fn):
-            value = fn(run)
-            value = getattr(value, "force_N", value)
-            return np.asarray(value, dtype=float)
-    return None
+    """The fitted model's force at the run's samples (what the plot overlays); `fit` is a
+    foamlab.identification FitResult of this run."""
+    value = np.asarray(fit.predicted_force_N, dtype=float)
+    return value if value.shape == run.force_N.shape else None

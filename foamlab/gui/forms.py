@@ -107,10 +107,12 @@ class SpecimenForm(QtWidgets.QGroupBox):
         self.message.setText(prefix + " ".join(text for _, text in problems))
         self.message.setVisible(bool(problems))
 
-    def set_values(self, label: str, height_mm: float, width_mm: float, depth_mm: float) -> None:
+    def set_values(self, label: str, height_mm: float | None, width_mm: float | None,
+                   depth_mm: float | None) -> None:
+        """Show a specimen (None: not known, the field is left empty)."""
         self.label_edit.setText(label)
         for key, value in (("height_mm", height_mm), ("width_mm", width_mm), ("depth_mm", depth_mm)):
-            self.edits[key].setText(self._show_number(value))
+            self.edits[key].setText("" if value is None else self._show_number(value))
 
     def values(self) -> dict[str, float | None]:
         """Each dimension as read (None where the entry is not a number)."""

@@ -25,8 +25,10 @@ from foamlab.gui.dialogs import EscapeStops, ask, choose_file
 from foamlab.gui.forms import ERROR_STYLE, LimitsForm, SpecimenForm
 from foamlab.gui.machine_link import BUILTIN_SIMULATOR, Connection, MachineLink, Readout
 from foamlab.gui.plots import LOADING, UNLOADING, LivePlots, labels_from_segmentation
-from foamlab.gui.results import Report, ResultsPanel
-from foamlab.safety import check_safe_to_tare, remember_contact, shift_contact
+from foamlab.gui.report import Report, headline_names
+from foamlab.gui.results import ResultsPanel
+from foamlab.gui.status import end_message, missed_flag
+from foamlab.safety import check_run_fits, check_safe_to_tare, remember_contact, shift_contact
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +97,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.progress_fraction = 0.0
         self._auto_diagnose = auto_diagnose
         self._link_trouble = False
+        self.last_readout: Readout | None = None   # the machine's state as last polled
+        self._run_start_mm = 0.0                   # where "Return to start" goes: the last run's start
+        self._run_title = ""
+        self._run_method = None                    # the Method of the run going or last run
 
         self.link = MachineLink(self)
         self.analysis = BackgroundQueue("foamlab-analysis", self)
@@ -156,6 +162,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.zero_force_button = QtWidgets.QPushButton("Zero force")
         self.tare_button = QtWidgets.QPushButton("Tare")
         self.reset_button = QtWidgets.QPushButton("Reset e-stop")
+        self.return_button = QtWidgets.QPushButton("Return to start")
+        self.return_button.setObjectName("return_button")
+        self.return_button.setToolTip("Move to where the last run started (0 mm before any run) at the jog "
+                                      "speed; Stop or Esc halts it")
         self.reset_button.setToolTip("Clear a latched emergency stop or fault of the crosshead")
         jog.addWidget(QtWidgets.QLabel("Speed"), 0, 0)
         jog.addWidget(self.jog_speed, 0, 1, 1, 2)
@@ -165,6 +175,7 @@ class MainWindow(QtWidgets.QMainWindow):
         jog.addWidget(self.zero_position_button, 2, 0)
         jog.addWidget(self.zero_force_button, 2, 1)
         jog.addWidget(self.tare_button, 2, 2)
+        jog.addWidget(self.return_button, 3, 0, 1, 3)
         left.addWidget(jog_box)
 
         self.limits_form = LimitsForm()
@@ -321,6 +332,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.zero_position_button.clicked.connect(lambda: self.link.call("zero position", _zero_position))
         self.zero_force_button.clicked.connect(lambda: self._tare("zero force"))
         self.tare_button.clicked.connect(lambda: self._tare("tare"))
+        self.return_button.clicked.connect(self._return_to_start)
         self.reset_button.clicked.connect(
             lambda: self.link.call("reset e-stop", lambda m: m.crosshead.reset_fault()))
         self.start_button.clicked.connect(self.start_run)
@@ -350,13 +362,14 @@ class MainWindow(QtWidgets.QMainWindow):
         self.connect_button.setEnabled(not running and not connecting)
         self.connect_button.setText("Connecting…" if connecting else ("Disconnect" if connected else "Connect"))
         for w in (self.jog_up, self.jog_down, self.jog_speed, self.zero_position_button,
-                  self.zero_force_button, self.tare_button, self.reset_button):
+                  self.zero_force_button, self.tare_button, self.reset_button, self.return_button):
             w.setEnabled(idle)
         self.limits_form.setEnabled(idle and self.limits_form.profile_limits is not None)
         self.method_combo.setEnabled(not running)
         self.specimen_form.setEnabled(not running)
         self.start_button.setEnabled(idle)
-        self.stop_button.setEnabled(running and not self._close_requested)
+        # Stops a run, or an idle move (return to start) when no run is going.
+        self.stop_button.setEnabled(connected and not self._close_requested)
         self.estop_button.setEnabled(connected)      # in every state, closing included
         self.open_action.setEnabled(not running)
         self.browser.setEnabled(not running)
@@ -415,6 +428,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.connection_label.setStyleSheet("")
         for label in (self.force_label, self.position_label, self.state_label):
             label.setText("–")
+        self.last_readout = None
         self._update_controls()
 
     def _on_poll_failed(self, message: str) -> None:
@@ -428,6 +442,7 @@ class MainWindow(QtWidgets.QMainWindow):
         if self._link_trouble and self.link.connection is not None:
             self._link_trouble = False
             self._show_connected(self.link.connection)
+        self.last_readout = readout
         self.force_label.setText(f"{readout.force_N:.2f}")
         self.position_label.setText(f"{readout.position_mm:.3f}")
         state = readout.state + (" · OVERLOAD" if readout.overload else "")
@@ -443,6 +458,14 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _stop_motion(self) -> None:
         self.link.call("stop", lambda m: m.crosshead.stop())
+
+    def _return_to_start(self) -> None:
+        target = self._run_start_mm
+        speed = self.jog_speed.value()
+        if self.limits_form.profile_limits is not None:
+            speed = min(speed, self.limits_form.values()["max_speed_mm_min"])
+        self.link.call("return to start", lambda m: m.crosshead.move_to(target, speed))
+        self._status(f"returning to the start position, {target:.2f} mm, at {speed:g} mm/min (Stop or Esc halts)")
 
     def _tare(self, what: str) -> None:
         """Tare or zero the load cell, refused in words while it carries a load (foamlab.safety)."""
@@ -500,6 +523,8 @@ class MainWindow(QtWidgets.QMainWindow):
             limits = Limits(**self.limits_form.values())
             if not limits.travel_upper_mm < limits.travel_lower_mm:
                 raise FoamlabError("the upper travel limit must be above (smaller than) the lower one")
+            position = self.last_readout.position_mm if self.last_readout is not None else None
+            check_run_fits(method, specimen, limits, position)
             engine = RunEngine(conn.machine, method, specimen, self.out_dir, limits=limits,
                                speedup=conn.speedup, connect=False, machine_name=conn.profile.get("name"))
         except FoamlabError as exc:
@@ -524,8 +549,13 @@ class MainWindow(QtWidgets.QMainWindow):
         self.progress_fraction = 0.0
         self.progress.setValue(0)
         self.progress.setFormat(f"Cycle 0/{method.n_cycles} — %p% — starting")
-        self.run_status.setText(f"Run of {method.name} on {specimen.label}: starting…")
+        self._run_title = f"Run of {method.name} on {specimen.label}"
+        self._run_method = method
+        if position is not None:
+            self._run_start_mm = position
+        self.run_status.setText(f"{self._run_title}: starting…")
         self.run_status.setStyleSheet("")
+        self._status(f"{self._run_title} started")      # replaces any earlier e-stop or refusal
         self.tabs.setCurrentIndex(0)
         # Queued behind any idle poll still on its way, so the engine gets the machine to itself.
         self.link.submit(engine.start, None, self._on_start_failed)
@@ -541,6 +571,8 @@ class MainWindow(QtWidgets.QMainWindow):
         if self.engine is not None:
             self.engine.request_stop("stopped by the operator")
             self._status("stop requested: the crosshead stops, the data are kept")
+        else:
+            self._stop_motion()
 
     def emergency_stop(self) -> None:
         """Immediate stop: through the engine during a run, else straight to the crosshead."""
@@ -586,6 +618,8 @@ class MainWindow(QtWidgets.QMainWindow):
     def _on_engine_state(self, state: str) -> None:
         self.state_label.setText(STATE_TEXT.get(state, state))
         self.state_label.setStyleSheet("")
+        if self.running:
+            self.run_status.setText(f"{self._run_title}: {STATE_TEXT.get(state, state)}")
         if state == "parking" and self._close_requested and self.engine is not None:
             # The operator is closing the window: don't keep them waiting for the park.
             self.engine.request_stop("window closed during the run")
@@ -593,6 +627,10 @@ class MainWindow(QtWidgets.QMainWindow):
     def _on_finished(self, result) -> None:
         if self.bridge is None or self.sender() is not self.bridge:
             return
+        self.show_finished(result)
+
+    def show_finished(self, result) -> None:
+        """Everything the window says about a run that ended (a foamlab.engine.RunResult)."""
         self._drain_samples()
         self.plots.refresh()
         self.last_result = result
@@ -606,14 +644,19 @@ class MainWindow(QtWidgets.QMainWindow):
         else:
             self.progress.setFormat(f"Aborted — %p% — {result.reason}")
         where = str(result.path) if result.path else "nothing recorded (ended before contact)"
-        self.run_status.setText(f"Run {result.status}{': ' + result.reason if result.reason else ''}. "
-                                f"{result.n_samples} samples, {result.missed} missed. Data: {where}")
-        self.run_status.setStyleSheet("" if ok else ERROR_STYLE)
+        text, style = end_message(result.status, result.reason, result.n_samples, result.missed, where)
+        self.run_status.setText(text)
+        self.run_status.setStyleSheet(style)
+        self.statusBar().setStyleSheet(style)
+        self.statusBar().showMessage(text.split(" Data:")[0])
+        gaps = missed_flag(result.n_samples, result.missed)
 
         report = Report()
         report.run = self._run_rows(result)
+        if gaps is not None:
+            report.flags.append(gaps)
         if result.results is not None:
-            report.set_method_results(result.results)
+            report.set_method_results(result.results, headline_names(self._run_method) if self._run_method else [])
         if result.fit is not None:
             report.set_fit(result.fit)
         elif result.fit_error:
@@ -625,8 +668,11 @@ class MainWindow(QtWidgets.QMainWindow):
         if result.fit is not None and result.run is not None:
             self._overlay_fit(result.fit, result.run)
         self.browser.refresh()
-        if result.run is not None and len(result.run) and ok:
+        if result.run is not None and len(result.run) and ok and gaps is None:
             self._maybe_diagnose(result.run, report, self._analysis_generation)
+        elif gaps is not None:
+            report.diagnosis_note = "not run: too many samples are missing for a diagnosis"
+            self.results.show_report(report)
         if self._close_requested:
             self.close()
 
@@ -643,9 +689,9 @@ class MainWindow(QtWidgets.QMainWindow):
         rows = [("status", result.status + (f" ({result.reason})" if result.reason else "")),
                 ("file", str(result.path) if result.path else "–"),
                 ("samples", f"{result.n_samples} ({result.missed} missed)")]
-        if getattr(result, "park", ""):
+        if result.park:
             rows.append(("crosshead", result.park))
-        timing = getattr(result, "timing", None)
+        timing = result.timing
         if timing is not None and timing.samples:
             rows.append(("schedule", f"lateness p50 {timing.lateness_p50_ms:.2f} ms, p99 {timing.lateness_p99_ms:.2f} ms"))
         return rows
@@ -738,10 +784,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self.progress.setFormat(f"{Path(run.source).name if run.source else 'file'}: {len(run)} samples")
         self.run_status.setText(loaded.describe())
         self.run_status.setStyleSheet("")
+        self._show_run_inputs(run)
         report = Report()
         report.run = loaded.rows()
         if loaded.method_results is not None:
-            report.set_method_results(loaded.method_results)
+            report.set_method_results(loaded.method_results, loaded.headline)
         report.fit_note = "fitting…"
         if loaded.stored_diagnosis:
             report.set_diagnosis(loaded.stored_diagnosis)
@@ -767,6 +814,17 @@ class MainWindow(QtWidgets.QMainWindow):
             self._maybe_diagnose(run, report, generation, loaded.stored_diagnosis)
 
         self.analysis.submit(lambda: fit_for_display(loaded), fitted, not_fitted)
+
+    def _show_run_inputs(self, run) -> None:
+        """The left panels show the opened run's method and specimen (what it was run with)."""
+        spec = run.specimen
+        self.specimen_form.set_values(spec.label or "", spec.height_mm, spec.width_mm, spec.depth_mm)
+        index = self.method_combo.findText(run.method) if run.method else -1
+        if index >= 0:
+            self.method_combo.setCurrentIndex(index)
+        else:
+            self.method_info.setText(f"The opened run's method, {run.method!r}, is not installed here" if run.method
+                                     else "The opened run records no method (imported data)")
 
     def export_png(self, path: str | Path | None = None) -> Path | None:
         if path is None:
