@@ -10,10 +10,17 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 import pytest
 from PySide6 import QtCore, QtWidgets
+from test_gui import (
+    RUN_TIMEOUT_MS,
+    SPECIMEN,
+    SPEEDUP,
+    click,
+    connect,
+    enter_specimen,
+    wait_mid_run,
+)
 
 from foamlab.gui.window import MainWindow
-from test_gui import CONNECT_TIMEOUT_MS, RUN_TIMEOUT_MS, SPEEDUP, SPECIMEN, click, connect, enter_specimen, \
-    wait_mid_run
 
 pytestmark = [pytest.mark.gui, pytest.mark.hil, pytest.mark.timeout(120)]
 
@@ -107,7 +114,7 @@ def test_tare_and_zero_are_refused_with_a_loaded_specimen(qtbot, win):
     loaded = press_into_specimen(qtbot, w, sim)
     for button, what in ((w.tare_button, "tare"), (w.zero_force_button, "zero force")):
         click(qtbot, button)
-        qtbot.waitUntil(lambda: f"{what} refused" in w.statusBar().currentMessage(), timeout=5000)
+        qtbot.waitUntil(lambda what=what: f"{what} refused" in w.statusBar().currentMessage(), timeout=5000)
         assert "unload the specimen" in w.statusBar().currentMessage()
     # The zero is unchanged: the cell still reads the specimen's load (a tare would read ~0).
     w.force_label.setText("0")

@@ -11,6 +11,14 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 import numpy as np
 import pytest
+from test_gui import (
+    RUN_TIMEOUT_MS,
+    SPEEDUP,
+    click,
+    connect,
+    enter_specimen,
+    wait_mid_run,
+)
 
 from foamlab.engine import RunResult
 from foamlab.gui.forms import ERROR_STYLE
@@ -18,7 +26,6 @@ from foamlab.gui.status import WARNING_STYLE
 from foamlab.gui.window import MainWindow
 from foamlab.rundata import RunData, Specimen
 from foamlab.storage.runfile import write_run_file
-from test_gui import RUN_TIMEOUT_MS, SPEEDUP, click, connect, enter_specimen, wait_mid_run
 
 pytestmark = [pytest.mark.gui, pytest.mark.hil, pytest.mark.timeout(120)]
 

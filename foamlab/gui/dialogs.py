@@ -88,3 +88,28 @@ def choose_file(parent: QtWidgets.QWidget, caption: str, start: str | Path, filt
     dialog.fileSelected.connect(chosen)
     dialog.show()
     return dialog
+
+
+class DialogSlot:
+    """The window's one open question or file chooser: a new one replaces the one open,
+    and closing the window closes it."""
+
+    def __init__(self) -> None:
+        self.dialog: QtWidgets.QDialog | None = None
+
+    def show(self, dialog: QtWidgets.QDialog) -> None:
+        self.close()
+        self.dialog = dialog
+        dialog.destroyed.connect(lambda *_: self._gone(dialog))
+
+    def close(self) -> None:
+        dialog, self.dialog = self.dialog, None
+        if dialog is not None:
+            try:
+                dialog.close()
+            except RuntimeError:      # already deleted by Qt (closed by its own buttons)
+                pass
+
+    def _gone(self, dialog: QtWidgets.QDialog) -> None:
+        if self.dialog is dialog:
+            self.dialog = None

@@ -13,7 +13,13 @@ from typing import Any
 
 from PySide6 import QtCore, QtWidgets
 
-from foamlab.gui.report import CONSTRAINT_MEANINGS, STEP_NAMES, Report, ResultRow, number
+from foamlab.gui.report import (
+    CONSTRAINT_MEANINGS,
+    STEP_NAMES,
+    Report,
+    ResultRow,
+    number,
+)
 
 __all__ = ["Report", "ResultsPanel"]
 
@@ -128,7 +134,8 @@ class ResultsPanel(QtWidgets.QTabWidget):
             parts.append(f"<b>fit</b>: {html.escape(report.fit_note)}")
         self.summary.setText(" &nbsp;·&nbsp; ".join(parts) or "No run yet.")
         rows = []
-        for r in report.results:
+        # The headline results lead the table too; then the per-cycle ones in cycle order.
+        for r in sorted(report.results, key=lambda r: r.name not in report.headline):
             value, unit = shown_value(r)
             rows.append((r.label, str(r.cycle or ""), value, unit, r.description))
         _fill(self.method_results, rows, numeric={1, 2})
