@@ -73,3 +73,18 @@ def test_an_ambiguous_thousands_separator_is_shown_not_guessed(qtbot, form):
     assert form.specimen() is None
     type_into(qtbot, height, "72")                      # corrected: the complaint goes
     assert not form.message.isVisible() and form.specimen().height_mm == 72.0
+
+
+def test_limits_are_read_as_typed_never_725(qtbot):
+    from foamlab.engine import Limits
+    from foamlab.gui.forms import LimitsForm
+
+    limits = LimitsForm(locale=ENGLISH)
+    qtbot.addWidget(limits)
+    limits.set_profile_limits(Limits(450.0, -20.0, 70.0, 500.0))
+    lower = limits.fields["travel_lower_mm"]
+    type_into(qtbot, lower, "72,5")
+    assert lower.text() == "72,5" and lower.value() is None      # 72.5: beyond the 70 mm bound
+    assert "Travel, lower 72.5 mm is outside -20 to 70 mm." in limits.message.text()
+    type_into(qtbot, lower, "65,5")
+    assert lower.value() == 65.5 and limits.values()["travel_lower_mm"] == 65.5

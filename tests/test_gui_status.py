@@ -80,9 +80,11 @@ def test_status_after_an_estop_and_a_later_run_is_current(qtbot, win):
     assert "started" in text and style == "", (text, style)       # the red e-stop is gone at once
     qtbot.waitUntil(lambda: w.last_result is not None, timeout=RUN_TIMEOUT_MS)
     assert w.last_result.status == "finished", w.last_result.reason
+    # The e-stop is history: the line is this run's end (amber, not red, if a busy computer
+    # made the simulated machine miss samples: that is reported too, see the next test).
     text, style = status(w)
-    assert text.startswith("Run finished") and style == "", (text, style)
-    assert w.run_status.text().startswith("Run finished") and w.run_status.styleSheet() == ""
+    assert text.startswith("Run finished") and style != ERROR_STYLE, (text, style)
+    assert w.run_status.text().startswith("Run finished") and w.run_status.styleSheet() != ERROR_STYLE
 
 
 def test_a_run_with_many_missed_samples_is_flagged_not_just_finished(qtbot, win):
@@ -133,7 +135,7 @@ def test_opening_a_past_run_updates_every_panel(qtbot, win, tmp_path):
 def test_start_checks_the_travel_the_method_needs_in_plain_words(qtbot, win):
     w = win
     connect(qtbot, w)
-    w.limits_form.spins["travel_lower_mm"].setValue(50.0)
+    w.limits_form.fields["travel_lower_mm"].setValue(50.0)
     w.specimen_form.label_edit.setText("tall")
     w.specimen_form.edits["height_mm"].setText("72,5")
     assert not w.start_run()

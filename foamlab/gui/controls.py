@@ -7,7 +7,7 @@ from __future__ import annotations
 from PySide6 import QtCore, QtWidgets
 
 from foamlab import FoamlabError
-from foamlab.gui.forms import ERROR_STYLE, LimitsForm, SpecimenForm
+from foamlab.gui.forms import ERROR_STYLE, LimitsForm, NumberField, SpecimenForm
 from foamlab.gui.machine_link import BUILTIN_SIMULATOR, Readout
 
 DEFAULT_JOG_SPEED = 50.0
@@ -100,11 +100,10 @@ class ControlPanel(QtWidgets.QWidget):
     def _jog_box(self) -> QtWidgets.QGroupBox:
         jog_box = QtWidgets.QGroupBox("Jog and zero (idle only)")
         jog = QtWidgets.QGridLayout(jog_box)
-        self.jog_speed = QtWidgets.QDoubleSpinBox()
+        self.jog_speed = NumberField("Jog speed", "mm/min", 1.0, 500.0)
         self.jog_speed.setObjectName("jog_speed")
         self.jog_speed.setRange(1.0, 500.0)
         self.jog_speed.setValue(DEFAULT_JOG_SPEED)
-        self.jog_speed.setSuffix(" mm/min")
         self.jog_up = QtWidgets.QPushButton("▲ Up")
         self.jog_up.setObjectName("jog_up")
         self.jog_down = QtWidgets.QPushButton("▼ Down")
@@ -120,7 +119,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.return_button.setToolTip("Move to where the last run started (0 mm before any run) at the jog "
                                       "speed; Stop or Esc halts it")
         self.reset_button.setToolTip("Clear a latched emergency stop or fault of the crosshead")
-        jog.addWidget(QtWidgets.QLabel("Speed"), 0, 0)
+        jog.addWidget(QtWidgets.QLabel("Speed [mm/min]"), 0, 0)
         jog.addWidget(self.jog_speed, 0, 1, 1, 2)
         jog.addWidget(self.jog_up, 1, 0)
         jog.addWidget(self.jog_down, 1, 1)

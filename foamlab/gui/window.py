@@ -229,7 +229,7 @@ class MainWindow(QtWidgets.QMainWindow):
         try:
             limits = Limits.from_profile(conn.profile)
             self.limits_form.set_profile_limits(limits)
-            self.jog_speed.setMaximum(limits.max_speed_mm_min)
+            self.jog_speed.setRange(1.0, limits.max_speed_mm_min)
         except FoamlabError as exc:
             self._status(str(exc), error=True)
         self._status(f"connected to {conn.name}", timeout_ms=5000)
@@ -260,20 +260,32 @@ class MainWindow(QtWidgets.QMainWindow):
         self.controls.show_readout(readout)
 
     # ================================================================ idle machine commands
+    def _move_speed(self, what: str) -> float | None:
+        """The jog speed, capped by the speed limit entered; None (and why) if an entry is wrong."""
+        try:
+            problem = self.jog_speed.problem()
+            if problem:
+                raise FoamlabError(problem)
+            speed = self.jog_speed.value()
+            if self.limits_form.profile_limits is not None:   # the speed limit entered applies too
+                speed = min(speed, self.limits_form.values()["max_speed_mm_min"])
+        except FoamlabError as exc:
+            self._status(f"{what} refused: {exc}", error=True)
+            return None
+        return speed
+
     def _jog(self, direction: int) -> None:
-        speed = self.jog_speed.value()
-        if self.limits_form.profile_limits is not None:   # the speed limit entered applies to jogging too
-            speed = min(speed, self.limits_form.values()["max_speed_mm_min"])
-        self.link.call("jog", lambda m: m.crosshead.jog(direction, speed))
+        speed = self._move_speed("jog")
+        if speed is not None:
+            self.link.call("jog", lambda m: m.crosshead.jog(direction, speed))
 
     def _stop_motion(self) -> None:
         self.link.call("stop", lambda m: m.crosshead.stop())
 
     def _return_to_start(self) -> None:
-        target = self._run_start_mm
-        speed = self.jog_speed.value()
-        if self.limits_form.profile_limits is not None:
-            speed = min(speed, self.limits_form.values()["max_speed_mm_min"])
+        target, speed = self._run_start_mm, self._move_speed("return to start")
+        if speed is None:
+            return
         self.link.call("return to start", lambda m: m.crosshead.move_to(target, speed))
         self._status(f"returning to the start position, {target:.2f} mm, at {speed:g} mm/min (Stop or Esc halts)")
 
