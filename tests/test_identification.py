@@ -12,9 +12,10 @@ import pytest
 
 from foamlab import FoamlabError
 from foamlab.identification import FitResult, Orders, fit_run
-from foamlab.identification.basis import Layout, ModelBasis
+from foamlab.analysis.basis import ModelBasis
+from foamlab.model.layout import Layout
 from foamlab.identification.compare import compare_orders
-from foamlab.identification.data import prepare
+from foamlab.analysis.prepared import prepare
 from foamlab.identification.statistics import GoodnessOfFit, autocorrelation_time
 from foamlab.model import ModelParameters, evaluate, thermodynamic_checks, triangular_history
 from foamlab.rundata import RunData

@@ -322,7 +322,7 @@ def _diagnose(result) -> tuple[str, Path | None]:
         from foamlab.diagnosis import diagnose
         from foamlab.diagnosis.store import store_diagnosis
 
-        report = diagnose([result.run], params=result.fit.params)
+        report = diagnose([result.run], fit=result.fit)
         path = store_diagnosis(report.to_dict(), result.path).path
     except KeyboardInterrupt:
         return "skipped (Ctrl-C)", None

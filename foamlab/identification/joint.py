@@ -22,11 +22,17 @@ from typing import Callable
 import numpy as np
 from scipy.optimize import least_squares
 
-from foamlab.identification.basis import Layout, ModelBasis
-from foamlab.identification.data import FitData, Orders, model_response
-from foamlab.identification.paper import alpha_candidates, beta_candidates, nonlinear_bounds
-from foamlab.identification.varpro import GreedyBasis, SeparableFit, SeparableProblem, solve_linear
+from foamlab.analysis.basis import ModelBasis
+from foamlab.analysis.prepared import PreparedRun, model_response
+from foamlab.identification.paper import alpha_candidates, beta_candidates
+from foamlab.identification.varpro import (
+    GreedyBasis,
+    SeparableFit,
+    SeparableProblem,
+    solve_linear,
+)
 from foamlab.model import ModelParameters
+from foamlab.model.layout import Layout, Orders, nonlinear_bounds
 
 #: Budget of the short runs that pick the better start, and of the continuation.
 PROBE_NFEV, FIT_NFEV = 6, 40
@@ -212,11 +218,11 @@ def _globalise(problem: SeparableProblem, fit, slots, lower, upper, ftol: float,
     return fit
 
 
-def _layout(fd: FitData, orders: Orders) -> Layout:
+def _layout(fd: PreparedRun, orders: Orders) -> Layout:
     return Layout(P=orders.P, N=orders.N, M=orders.M, C=fd.n_residual_cycles)
 
 
-def joint_fit(fd: FitData, orders: Orders, start: ModelParameters | None,
+def joint_fit(fd: PreparedRun, orders: Orders, start: ModelParameters | None,
               progress: Callable[[str, float], None] | None = None) -> JointFit:
     lay = _layout(fd, orders)
     lower, upper = nonlinear_bounds(orders, lay.C, fd.loading_time_s)
@@ -244,7 +250,7 @@ def joint_fit(fd: FitData, orders: Orders, start: ModelParameters | None,
         if progress:
             progress(f"joint fit: start '{name}'", 0.5 + 0.1 * len(probes))
     # the best start is continued; should its optimum be one the model cannot evaluate
-    # (see _evaluable), the next best start is, and so on
+    # (see evaluable), the next best start is, and so on
     ranked = sorted(probes, key=lambda fr: fr[0].sse)
     for rank, (best, best_name) in enumerate(ranked):
         fit = problem.fit(best.nonlinear, lower, upper, max_nfev=FIT_NFEV, ftol=ftol, xtol=1e-6)
@@ -256,21 +262,22 @@ def joint_fit(fd: FitData, orders: Orders, start: ModelParameters | None,
                      [f"{n}{' (chosen)' if n == best_name else ''}" for _, n in probes])
         if rank == 0:
             first = jf
-        if _evaluable(fd, jf):
+        if evaluable(fd, jf):
             return jf
     return first
 
 
-def _evaluable(fd: FitData, jf: "JointFit") -> bool:
+def evaluable(fd: PreparedRun, jf: "JointFit", rows: np.ndarray | None = None) -> bool:
     """Does the model's own evaluation (foamlab.model.evaluate: the operators the simulator
     steps, ~1e-7 relative accuracy) reproduce the fit within a tenth of the noise? The fit's
     columns are exact, so it can find optima that cancel huge terms: two residual terms of
     one cycle at nearly the same order (near beta = -3 the columns grow like t^4) with
     amplitudes +-1e5 whose difference is the force. No evaluation in finite precision
     reproduces such a model, and the simulator cannot run it."""
+    rows = fd.observed if rows is None else rows
     response = model_response(jf.params, fd)
-    predicted = np.maximum(response.force, jf.contact_zero_N)[fd.observed]
-    fitted = fd.f[fd.observed] - jf.residual
+    predicted = np.maximum(response.force, jf.contact_zero_N)[rows]
+    fitted = fd.f[rows] - jf.residual
     tolerance = 0.1 * max(fd.noise_N, 1e-4 * float(np.ptp(fd.f)))
     return bool(np.sqrt(np.mean((predicted - fitted) ** 2)) <= tolerance)
 
@@ -317,7 +324,7 @@ def _real_modes(problem: SeparableProblem, lay: Layout, fit, lower, upper, ftol:
     return fit, fixed
 
 
-def _polish(fd: FitData, lay: Layout, linear: np.ndarray, nonlinear: np.ndarray, fixed: np.ndarray,
+def _polish(fd: PreparedRun, lay: Layout, linear: np.ndarray, nonlinear: np.ndarray, fixed: np.ndarray,
             lower: np.ndarray, upper: np.ndarray, nfev: int, starts: list[str]) -> JointFit:
     full = fd.nodes.basis(fd.observed, lay, fd.x_scale_mm, fd.native_step_s)
     y = fd.f[fd.observed]

@@ -10,10 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
-from foamlab.identification.data import Orders
+from foamlab.analysis.prepared import PreparedRun
+from foamlab.analysis.solve import Fit
 from foamlab.identification.paper import PaperResult
 from foamlab.identification.statistics import GoodnessOfFit
 from foamlab.model import ModelParameters, ModelResponse
+from foamlab.model.layout import Orders
 
 #: The steps of Table 5, plus the joint refinement.
 STEPS = ("damping", "residual", "elastic", "joint")
@@ -53,6 +55,8 @@ class FitResult:
     run_time_s: np.ndarray | None = None
     run_displacement_mm: np.ndarray | None = None
     run_force_N: np.ndarray | None = None
+    prepared: PreparedRun | None = None   # the run as prepared for every fit (foamlab.analysis)
+    core_fit: Fit | None = None           # the analysis core's fit: what diagnosis extends
 
     # -- views -----------------------------------------------------------------------
     @property
