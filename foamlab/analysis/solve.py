@@ -39,6 +39,13 @@ class Fit:
     stderr: np.ndarray                 # of the effect parameters
     solution: Solution
     heldout_rmse: float | None = None
+    status: int = 0                    # the optimizer's (scipy least_squares) at the end of this fit
+    message: str = ""
+
+    @classmethod
+    def of(cls, causes: list[type], model: ExtendedModel, optimum: "Optimum") -> "Fit":
+        return cls(causes, model, optimum.nu, optimum.stderr, optimum.solution,
+                   status=optimum.status, message=optimum.message)
 
     @property
     def name(self) -> str:
@@ -91,8 +98,20 @@ def base_bounds(series: list[Series], params: ModelParameters) -> tuple[np.ndarr
     return np.minimum(lo, phi), np.maximum(hi, phi)
 
 
+@dataclass
+class Optimum:
+    """What one variable-projection run ended with (scipy's status and message kept)."""
+
+    nu: np.ndarray
+    stderr: np.ndarray                 # of the effect parameters (linear ones profiled out)
+    solution: Solution
+    status: int                        # scipy.optimize.least_squares: > 0 converged, 0 budget used up
+    message: str
+    nfev: int
+
+
 def varpro(model: ExtendedModel, nu0: np.ndarray, keep: list[np.ndarray] | None = None,
-                   max_nfev: int | None = None) -> tuple[np.ndarray, np.ndarray, Solution]:
+           max_nfev: int | None = None) -> Optimum:
     """Variable projection on nu (trust-region reflective, Kaufman's Jacobian)."""
     lo, hi = model.bounds()
     nu0 = np.clip(np.asarray(nu0, float), lo, hi)
@@ -114,7 +133,7 @@ def varpro(model: ExtendedModel, nu0: np.ndarray, keep: list[np.ndarray] | None 
             stderr = np.sqrt(np.maximum(np.diag(cov), 0.0))[model.n_phi:]
         except np.linalg.LinAlgError:
             pass
-    return res.x, stderr, sol
+    return Optimum(res.x, stderr, sol, int(res.status), str(res.message), int(res.nfev))
 
 
 def decimation(series: list[Series]) -> int:
@@ -145,17 +164,14 @@ def at_full_resolution(fit: Fit, full: list[Series], polish_nfev: int = 0) -> Fi
     model = model_like(fit, full)
     nu = np.concatenate([fit.model.split(fit.nu)[0] if model.free_base else [], fit.eta])
     if polish_nfev:
-        nu, stderr, sol = varpro(model, nu, max_nfev=polish_nfev)
-    else:
-        sol, stderr = model.solve(nu), fit.stderr
-    return Fit(list(fit.causes), model, nu, stderr, sol)
+        return Fit.of(list(fit.causes), model, varpro(model, nu, max_nfev=polish_nfev))
+    return Fit(list(fit.causes), model, nu, fit.stderr, model.solve(nu), status=fit.status, message=fit.message)
 
 
 def fit_base(series: list[Series], params: ModelParameters) -> Fit:
     """The base model on all runs: identification's alpha/beta polished with the rest."""
     model = ExtendedModel(series, params, [], free_base=True, base_bounds=base_bounds(series, params))
-    nu, stderr, sol = varpro(model, model.start(), max_nfev=BASE_NFEV)
-    return Fit([], model, nu, stderr, sol)
+    return Fit.of([], model, varpro(model, model.start(), max_nfev=BASE_NFEV))
 
 
 def polish(series: list[Series], params: ModelParameters) -> Fit:

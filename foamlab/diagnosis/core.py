@@ -231,8 +231,7 @@ def screen(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit
     prev = current.eta
     trials = [np.concatenate([prev, row]) for row in causes[-1].starts(series)]
     rss = [model.solve(eta).rss() for eta in trials]
-    nu, stderr, sol = varpro(model, trials[int(np.argmin(rss))], max_nfev=SCREEN_NFEV)
-    return Fit(list(causes), model, nu, stderr, sol)
+    return Fit.of(list(causes), model, varpro(model, trials[int(np.argmin(rss))], max_nfev=SCREEN_NFEV))
 
 
 def fit_joint(series: list[Series], start: Fit, current: Fit, max_nfev: int | None = None) -> Fit:
@@ -261,14 +260,14 @@ def fit_joint(series: list[Series], start: Fit, current: Fit, max_nfev: int | No
                 starts.append(model.start(eta0))
     best = None
     for nu0 in starts:
-        nu, stderr, sol = varpro(model, nu0, max_nfev=max_nfev or JOINT_NFEV)
-        if best is None or sol.rss() < best[2].rss():
-            best = (nu, stderr, sol)
-    if best[2].rss() > start.rss:
+        optimum = varpro(model, nu0, max_nfev=max_nfev or JOINT_NFEV)
+        if best is None or optimum.solution.rss() < best.solution.rss():
+            best = optimum
+    if best.solution.rss() > start.rss:
         # every start from a visible size ended in a worse local minimum than the screening
         # (a lag of seconds): the screening's fit is the extension's best, keep it
         return start
-    return Fit(list(start.causes), model, *best)
+    return Fit.of(list(start.causes), model, best)
 
 
 def without_last(series: list[Series], fit: Fit) -> Fit:
@@ -279,8 +278,7 @@ def without_last(series: list[Series], fit: Fit) -> Fit:
                           base_bounds=base_bounds(series, fit.params), masks=contact_of(fit, series))
     k = len(m.effect_types[-1].fitted_parameters())
     eta = fit.eta[:len(fit.eta) - k]
-    nu, stderr, sol = varpro(model, model.start(eta), max_nfev=POLISH_NFEV)
-    return Fit(list(fit.causes[:-1]), model, nu, stderr, sol)
+    return Fit.of(list(fit.causes[:-1]), model, varpro(model, model.start(eta), max_nfev=POLISH_NFEV))
 
 
 def reidentify(ref: PreparedRun, series: list[Series], fit: Fit, eta: np.ndarray | None = None,
@@ -314,8 +312,7 @@ def reidentify(ref: PreparedRun, series: list[Series], fit: Fit, eta: np.ndarray
     restart = ExtendedModel(series, params, model.effect_types, model.settings, free_base=True,
                             effect_bounds=model.effect_bounds,
                             base_bounds=base_bounds(series, params), masks=contact_of(fit, series))
-    nu, stderr, sol = varpro(restart, restart.start(eta), max_nfev=max_nfev)
-    out = Fit(list(fit.causes), restart, nu, stderr, sol)
+    out = Fit.of(list(fit.causes), restart, varpro(restart, restart.start(eta), max_nfev=max_nfev))
     return out if out.rss < fit.rss else fit
 
 
@@ -396,8 +393,7 @@ def _refit_without(fit: Fit, keep: list[np.ndarray]) -> Solution:
                               effect_bounds=model.effect_bounds, masks=contact_of(fit, model.series))
     if not model.n_eta:
         return model.solve((), keep)
-    _, _, sol = varpro(model, fit.eta, keep, max_nfev=HELDOUT_NFEV)
-    return sol
+    return varpro(model, fit.eta, keep, max_nfev=HELDOUT_NFEV).solution
 
 
 def _before_with_contact_of(before: Fit, fit: Fit) -> Solution:

@@ -124,7 +124,8 @@ def _from_core(fd: PreparedRun, jf: JointFit, base: Fit) -> JointFit | None:
     lin, phi, fixed = lin[perm[:L]], phi[nl_perm], fixed[nl_perm]
     params = jf.params.with_vector(lay.to_flat(lin, phi))
     polished = JointFit(params, lay, lin, phi, fixed, zero, zero_fitted, jacobian, residual,
-                        jacobian.shape[1], jf.nfev, jf.starts + ["polish on every sample (analysis core)"])
+                        jacobian.shape[1], jf.nfev, jf.starts + ["polish on every sample (analysis core)"],
+                        base.status, base.message)
     return polished if evaluable(fd, polished, rows) else None
 
 
@@ -151,6 +152,10 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
     stderr[order] = unc.stderr[:len(order)]
     corr = np.full((len(names), len(names)), np.nan)
     corr[np.ix_(order, order)] = unc.correlation[:len(order), :len(order)]
+    flat_lower, flat_upper = np.full(len(names), -np.inf), np.full(len(names), np.inf)
+    flat_lower[nl_idx], flat_upper[nl_idx] = lower, upper
+    varied = np.ones(len(names), bool)
+    varied[nl_idx[jf.fixed_nonlinear]] = False
     notes = [f"{names[i]} = 0 (fixed): the data do not support an oscillation of damping mode "
              f"{names[i][5:-3]} (BIC), so it is a real mode" for i in nl_idx[jf.fixed_nonlinear]]
 
@@ -184,7 +189,9 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
         observed=fd.observed, paper=paper, source=fd.run.source,
         elapsed_s=time.perf_counter() - started, starts=jf.starts,
         run_time_s=fd.t, run_displacement_mm=fd.run.displacement_mm, run_force_N=fd.f,
-        prepared=fd, core_fit=base,
+        lower=flat_lower, upper=flat_upper, varied=varied,
+        status=jf.status, message=jf.message,
+        noise_N=fd.noise_N, prepared=fd, core_fit=base,
     )
 
 

@@ -4,8 +4,8 @@
    FIT_SAMPLES_PER_HALF_CYCLE per half-cycle; the model is continuous in time, so
    the same model runs on a coarser operator grid): only the decay rates alpha and
    fractional orders beta are searched, the linear k, a, r are solved exactly.
-   Starts: the paper's three-step values, and a start built from the run's time
-   scale alone; the better after a short run is continued.
+   Starts: the paper's three-step values and two forward selections; the best after a
+   short run is continued.
 2. Polish at full resolution on every sample of the half-cycles, all parameters
    at once, with the load cell's contact loss in the measurement model: a plate
    that has lost contact reads the unloaded value z0, so the prediction is
@@ -59,18 +59,8 @@ class JointFit:
     n_free: int
     nfev: int
     starts: list[str]
-
-
-def generic_start(orders: Orders, n_cycles: int, loading_time_s: float) -> np.ndarray:
-    """Nonlinear start from the run's time scale only: decay rates spread over
-    1..30 per loading time (alternately real and oscillating), orders spread over
-    the residual's range."""
-    rates = np.geomspace(1.0, 30.0, orders.N) / loading_time_s if orders.N else np.zeros(0)
-    alphas = []
-    for i, re in enumerate(rates):
-        alphas += [re, re if i % 2 else 0.0]
-    betas = np.linspace(-1.5, 0.8, orders.M) if orders.M > 1 else np.full(orders.M, 0.3)
-    return np.concatenate([np.asarray(alphas, float), np.tile(betas, n_cycles)])
+    status: int = 0               # scipy least_squares' at the end (> 0 converged)
+    message: str = ""
 
 
 def greedy_start(basis: ModelBasis, w: np.ndarray, blocks: Callable, y: np.ndarray, orders: Orders,
@@ -382,4 +372,4 @@ def _polish(fd: PreparedRun, lay: Layout, linear: np.ndarray, nonlinear: np.ndar
         description=f"identified by foamlab fit from {fd.run.source or 'a run'}")
     params = template.with_vector(flat)
     return JointFit(params, lay, lin, nl, fixed, float(zero), fit_zero, jacobian, -np.asarray(res.fun),
-                    len(res.x), nfev + int(res.nfev), starts)
+                    len(res.x), nfev + int(res.nfev), starts, int(res.status), str(res.message))
