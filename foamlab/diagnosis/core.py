@@ -49,7 +49,9 @@ from foamlab.analysis.solve import (
 )
 from foamlab.diagnosis.causes import CAUSES, Cause
 from foamlab.diagnosis.residuals import ResidualAnalysis, analyse
-from foamlab.identification.fit import fit_prepared
+from foamlab.identification.joint import search_start
+from foamlab.identification.paper import paper_steps
+from foamlab.model.layout import Orders
 from foamlab.model import ModelParameters
 
 #: A candidate must improve BIC (prewhitened residuals) by more than this ("very strong" evidence).
@@ -305,8 +307,9 @@ def reidentify(ref: PreparedRun, series: list[Series], fit: Fit, eta: np.ndarray
         effect = np.interp(ref.series.t, series[0].t, with_effects[0] - without[0])
     lay = fit.params.layout
     try:
-        params = fit_prepared(ref.with_force(ref.series.y - effect), orders=(lay.N, lay.M, lay.P),
-                              polish_all=False).params
+        corrected = ref.with_force(ref.series.y - effect)
+        orders = Orders(N=lay.N, M=lay.M, P=lay.P)
+        params = search_start(corrected, orders, paper_steps(corrected, orders).start)
     except FoamlabError:
         return fit
     restart = ExtendedModel(series, params, model.effect_types, model.settings, free_base=True,

@@ -51,10 +51,8 @@ def fit_run(run: RunData, orders: Orders | str | tuple = Orders(), progress: Pro
 
 
 def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple = Orders(),
-                 progress: Progress | None = None, polish_all: bool = True) -> FitResult:
-    """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run.
-
-    polish_all=False stops after identification's own search (a start for another fit)."""
+                 progress: Progress | None = None) -> FitResult:
+    """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run."""
     orders = _orders(orders)
     report = progress or (lambda stage, fraction: None)
     started = time.perf_counter()
@@ -66,8 +64,8 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple = Orders(),
         report("joint refinement", 0.3)
         jf = joint_fit(fd, orders, paper.start, report)
         report("polish on every sample", 0.8)
-        base = polish([fd.series], jf.params) if polish_all else None
-        polished = _from_core(fd, jf, base) if base is not None else None
+        base = polish([fd.series], jf.params)
+        polished = _from_core(fd, jf, base)
         if polished is not None:
             jf = polished
         else:

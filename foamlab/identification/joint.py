@@ -212,8 +212,11 @@ def _layout(fd: PreparedRun, orders: Orders) -> Layout:
     return Layout(P=orders.P, N=orders.N, M=orders.M, C=fd.n_residual_cycles)
 
 
-def joint_fit(fd: PreparedRun, orders: Orders, start: ModelParameters | None,
-              progress: Callable[[str, float], None] | None = None) -> JointFit:
+def _ranked_searches(fd: PreparedRun, orders: Orders, start: ModelParameters | None,
+                     progress: Callable[[str, float], None] | None):
+    """The global search of alpha and beta on the decimated run, from each start in turn, best
+    short probe first: yields (fit, fixed nonlinear, the starts' names, the lower and upper
+    bounds, the evaluations so far)."""
     lay = _layout(fd, orders)
     lower, upper = nonlinear_bounds(orders, lay.C, fd.loading_time_s)
     coarse = fd.nodes.basis(fd.fit_rows, lay, fd.x_scale_mm, fd.fit_step_s)
@@ -239,19 +242,33 @@ def joint_fit(fd: PreparedRun, orders: Orders, start: ModelParameters | None,
                        name))
         if progress:
             progress(f"joint fit: start '{name}'", 0.5 + 0.1 * len(probes))
-    # the best start is continued; should its optimum be one the model cannot evaluate
-    # (see evaluable), the next best start is, and so on
-    ranked = sorted(probes, key=lambda fr: fr[0].sse)
-    for rank, (best, best_name) in enumerate(ranked):
+    for best, best_name in sorted(probes, key=lambda fr: fr[0].sse):
         fit = problem.fit(best.nonlinear, lower, upper, max_nfev=FIT_NFEV, ftol=ftol, xtol=1e-6)
         fit = _globalise(problem, fit, slots, lower, upper, ftol)
         fit, fixed = _real_modes(problem, lay, fit, lower, upper, ftol)
+        yield (fit, fixed, [f"{n}{' (chosen)' if n == best_name else ''}" for _, n in probes],
+               lower, upper, problem.nfev)
+
+
+def search_start(fd: PreparedRun, orders: Orders, start: ModelParameters | None = None) -> ModelParameters:
+    """The global search's best optimum as parameters, without the full-resolution steps: a
+    start for a fit that continues on every sample (diagnosis' restarts)."""
+    fit, *_ = next(_ranked_searches(fd, orders, start, None))
+    lay = _layout(fd, orders)
+    return _template(fd, lay).with_vector(lay.to_flat(fit.linear, fit.nonlinear))
+
+
+def joint_fit(fd: PreparedRun, orders: Orders, start: ModelParameters | None,
+              progress: Callable[[str, float], None] | None = None) -> JointFit:
+    lay = _layout(fd, orders)
+    # the best start is continued; should its optimum be one the model cannot evaluate
+    # (see evaluable), the next best start is, and so on
+    first = None
+    for fit, fixed, names, lower, upper, nfev in _ranked_searches(fd, orders, start, progress):
         if progress:
             progress("joint fit: full-resolution polish", 0.8)
-        jf = _polish(fd, lay, fit.linear, fit.nonlinear, fixed, lower, upper, problem.nfev,
-                     [f"{n}{' (chosen)' if n == best_name else ''}" for _, n in probes])
-        if rank == 0:
-            first = jf
+        jf = _polish(fd, lay, fit.linear, fit.nonlinear, fixed, lower, upper, nfev, names)
+        first = first or jf
         if evaluable(fd, jf):
             return jf
     return first
@@ -364,12 +381,14 @@ def _polish(fd: PreparedRun, lay: Layout, linear: np.ndarray, nonlinear: np.ndar
     keep = [jac_col[f] for f in perm if jac_col[f] >= 0] + ([L + K] if fit_zero else [])
     jacobian = np.asarray(res.jac)[:, keep]
     lin, nl, fixed = lin[perm[:L]], nl[nl_perm], fixed[nl_perm]
-    flat = lay.to_flat(lin, nl)
-    template = ModelParameters(
+    params = _template(fd, lay).with_vector(lay.to_flat(lin, nl))
+    return JointFit(params, lay, lin, nl, fixed, float(zero), fit_zero, jacobian, -np.asarray(res.fun),
+                    len(res.x), nfev + int(res.nfev), starts, int(res.status), str(res.message))
+
+
+def _template(fd: PreparedRun, lay: Layout) -> ModelParameters:
+    return ModelParameters(
         x_scale_mm=fd.x_scale_mm, elastic_k=np.zeros(lay.P + 1), damping_a=np.zeros(lay.N),
         damping_alpha=np.zeros(lay.N, complex), residual_r=np.zeros((lay.C, lay.M)),
         residual_beta=np.zeros((lay.C, lay.M)),
         description=f"identified by foamlab fit from {fd.run.source or 'a run'}")
-    params = template.with_vector(flat)
-    return JointFit(params, lay, lin, nl, fixed, float(zero), fit_zero, jacobian, -np.asarray(res.fun),
-                    len(res.x), nfev + int(res.nfev), starts, int(res.status), str(res.message))
