@@ -32,9 +32,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT))
 
-import numpy as np  # noqa: E402
-
-import independent_model as im  # noqa: E402
+import independent_model as im
+import numpy as np
 
 TURN_STEPS = 3
 
@@ -43,7 +42,7 @@ def cli(*args: str) -> tuple[str, float]:
     env = dict(os.environ, PYTHONPATH=str(ROOT), OPENBLAS_NUM_THREADS="1")
     started = time.perf_counter()
     out = subprocess.run([sys.executable, "-m", "foamlab.cli", *args], cwd=ROOT, env=env,
-                         capture_output=True, text=True, timeout=900)
+                         capture_output=True, text=True, check=False, timeout=900)
     elapsed = time.perf_counter() - started
     if out.returncode != 0:
         raise RuntimeError(f"foamlab {' '.join(args)}: exit {out.returncode}: {out.stderr.strip()}")
@@ -75,7 +74,7 @@ def measure(regime: im.Regime, seed: int, folder: Path, diagnose: bool) -> dict:
                worst_t=float(run.time_s[np.argmax(np.abs(e))]), inproc=res.rmse / sigma)
     if diagnose:
         out, diag_s = cli("diagnose", str(path), "--no-store")
-        verdict = re.search(r"^verdict: (\S+)", out, re.M).group(1)
+        verdict = re.search(r"^verdict: (\S+)", out, re.MULTILINE).group(1)
         base = float(re.search(r"base model RMSE ([0-9.eE+-]+) N", out).group(1))
         row.update(verdict=verdict, base=base / sigma, diag_s=diag_s)
     return row

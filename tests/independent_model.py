@@ -138,7 +138,7 @@ class Regime:
         c = min(cycle, len(self.r) - 1)
         return self.r[c], self.beta[c]
 
-    def with_(self, **changes) -> "Regime":
+    def with_(self, **changes) -> Regime:
         from dataclasses import replace
         return replace(self, **changes)
 
@@ -365,7 +365,7 @@ class SyntheticRun:
         return self.regime.noise_N
 
     def to_rundata(self):
-        from foamlab.rundata import RunData, Specimen   # hand-over only, not model code
+        from foamlab.rundata import RunData, Specimen  # hand-over only, not model code
         spec = Specimen(label=f"independent-{self.regime.name}-{self.seed}", height_mm=self.regime.height_mm,
                         width_mm=self.regime.width_mm, depth_mm=self.regime.depth_mm)
         return RunData(self.time_s.copy(), self.displacement_mm.copy(), self.force_N.copy(), specimen=spec,

@@ -22,12 +22,11 @@ import math
 import tomllib
 from pathlib import Path
 
+import independent_model as im
 import numpy as np
 import pytest
 from scipy.integrate import quad
 from scipy.signal import fftconvolve
-
-import independent_model as im
 
 ALL = list(im.REGIMES.values()) + list(im.GRID_REGIMES.values())
 START = 0.0371          # an arbitrary phase of the motion within the first sample step
@@ -98,19 +97,19 @@ def grunwald_letnikov(y: np.ndarray, step: float, beta: float) -> np.ndarray:
 def gl_residual_terms(regime, hist, k, per_half):
     """GL of y = x - x(t_k) for every term of cycle k on the grid t_k + i T/2/per_half."""
     step = hist.half_s / per_half
-    grid = hist.start_time(k) + step * np.arange(int(round((hist.end_s - hist.start_time(k)) / step)) + 1)
+    grid = hist.start_time(k) + step * np.arange(round((hist.end_s - hist.start_time(k)) / step) + 1)
     y = im.triangle(regime, grid, start_s=hist.start_s).x      # x(t_k) = 0 on this history
-    r, beta = regime.residual_row(k)
+    _, beta = regime.residual_row(k)
     return grid, [grunwald_letnikov(y, step, b) for b in beta]
 
 
 @pytest.mark.parametrize("regime", ALL, ids=lambda r: r.name)
 def test_residual_corner_sum_equals_gruenwald_letnikov(regime):
     hist = im.triangle(regime, start_s=0.0 if regime.start_s == 0.0 else START)
-    per_half = int(round(hist.half_s * 8))                 # ~1/8 s, corners on the grid
+    per_half = round(hist.half_s * 8)                 # ~1/8 s, corners on the grid
     for k in range(hist.n_cycles):
         coarse_t, coarse = gl_residual_terms(regime, hist, k, per_half)
-        fine_t, fine = gl_residual_terms(regime, hist, k, 2 * per_half)
+        _, fine = gl_residual_terms(regime, hist, k, 2 * per_half)
         _, beta = regime.residual_row(k)
         corners = hist.corners(k)
         for b, gc, gf in zip(beta, coarse, fine):
@@ -129,7 +128,7 @@ def test_total_force_equals_brute_force_assembly(regime):
     """Eq. 20 at coarse instants: E + quadrature damping while loading + GL residuals after each peak."""
     start = 0.0 if regime.start_s == 0.0 else START
     hist = im.triangle(regime, start_s=start)
-    per_half = int(round(hist.half_s * 8))
+    per_half = round(hist.half_s * 8)
     gl = {}
     for k in range(hist.n_cycles):
         t_c, coarse = gl_residual_terms(regime, hist, k, per_half)
@@ -143,12 +142,15 @@ def test_total_force_equals_brute_force_assembly(regime):
         k = min(int((t - start + 1e-9) // hist.period_s), hist.n_cycles - 1)
         tk = hist.start_time(k)
         if t <= hist.peak_time(k) + 1e-9:                     # loading: Eq. 9 by quadrature
-            brute[i] += sum(quad(lambda tau: a * np.real(np.exp(-complex(al) * (t - tau))) * regime.rate_mm_s
-                                 * (tau - tk), tk, t, epsabs=1e-12)[0] for a, al in zip(regime.a, regime.alpha))
+            def integrand(tau, t=t, tk=tk):
+                return sum(a * np.real(np.exp(-complex(al) * (t - tau))) for a, al in
+                           zip(regime.a, regime.alpha)) * regime.rate_mm_s * (tau - tk)
+
+            brute[i] += quad(integrand, tk, t, epsabs=1e-12)[0]
         for j in range(hist.n_cycles):
             if t > hist.peak_time(j) + 1e-9:
                 tg, v = gl[j]
-                brute[i] += v[int(round((t - tg[0]) / (tg[1] - tg[0])))]
+                brute[i] += v[round((t - tg[0]) / (tg[1] - tg[0]))]
     closed = im.components(regime, probe, start_s=start).force
     peak = np.abs(closed).max()
     assert np.abs(brute - closed).max() < 1e-4 * peak       # measured 2.7e-5 (A), 1.2e-6 (B)
@@ -182,7 +184,7 @@ def test_same_model_as_foamlab_evaluate_between_samples(regime):
     from foamlab.model import evaluate
 
     hist = im.triangle(regime, start_s=START)
-    m = int(round(hist.half_s * 80))
+    m = round(hist.half_s * 80)
     t = START + hist.half_s / m * np.arange(2 * hist.n_cycles * m + 1)
     mine = im.components(regime, t, start_s=START)
     theirs = evaluate(foamlab_parameters(regime), t, mine.hist.x)
