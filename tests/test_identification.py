@@ -126,9 +126,12 @@ def test_fit_reports_table5_statistics_checks_and_json(default_fit, default_para
     assert "nan" not in result.to_json().lower()
     joint = result.statistics["joint"]
     assert joint.r2 > 0.9999 and joint.adj_r2 <= joint.r2
-    # the fitted curve is the model's own evaluation
+    # the fitted curve is the model: its causal evaluation agrees to 1e-5 of the peak force
+    # (the fitted curve is the exact columns', the causal operators are accurate to ~1e-7)
     again = evaluate(result.params, run.time_s, run.displacement_mm, result.response.labels)
-    assert np.allclose(np.maximum(again.force, result.contact_zero_N), result.predicted_force_N)
+    peak = float(np.max(result.predicted_force_N))
+    assert np.allclose(np.maximum(again.force, result.contact_zero_N), result.predicted_force_N,
+                       rtol=0, atol=1e-5 * peak)
     text = result.summary()
     for word in ("damping", "residual", "elastic", "joint", "k7", "beta3_3", "eq23", "AIC"):
         assert word in text

@@ -556,6 +556,15 @@ class ExtendedModel:
             out.append(m @ theta + const)
         return out
 
+    def specimen_force(self, nu, theta) -> list[np.ndarray]:
+        """The specimen's force per series before contact and sensor (the model's F of Eq. 20,
+        evaluated exactly by the columns), for given linear parameters and nu."""
+        phi, eta = self.split(nu)
+        chain = EffectChain(self.effects(eta))
+        theta = np.asarray(theta, float)
+        return [cols @ theta[:-1] + offset for s in self.series
+                for cols, offset, _, _ in [self._columns(s, chain, phi)]]
+
     def linear_start(self) -> np.ndarray:
         """The given parameters' linear values, zero offset 0."""
         return np.append(self.linear0, 0.0)

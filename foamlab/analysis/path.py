@@ -6,7 +6,7 @@ Used by every fit (identification, diagnosis) through the prepared run (prepared
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.signal import savgol_filter
@@ -98,6 +98,8 @@ class PathNodes:
     of_sample: np.ndarray         # node index of each sample
     labels: HistoryLabels         # the model's half-cycles on the nodes
     corners: np.ndarray           # node indices where x has a corner (turning points, arrivals)
+    between_samples: bool = True  # turns without a stop are nodes between samples (else at one)
+    turns_between: np.ndarray = field(default_factory=lambda: np.zeros(0))  # their instants
 
     @property
     def inserted(self) -> int:
@@ -120,8 +122,32 @@ class PathNodes:
                           x_scale_mm, step_s, self.corners)
 
 
+def _lines_meet(t: np.ndarray, path: np.ndarray, first: int, last: int, v_in: float, v_out: float):
+    """(time, x, sample it precedes) where the straight lines into and out of a turning point
+    meet, when that falls between two samples from first - 1 to last + 1 (not within
+    CORNER_AT_SAMPLE of one) and beyond the extreme samples; else None.
+
+    A drive that reverses without stopping turns between two samples: the samples nearest
+    the turn lie on the lines, and the model must switch (damping off, the residual memory
+    on: Eq. 20) at the turn, not at a sample; switching at a sample puts the sample just
+    after a turn on the wrong half-cycle (tens of newtons; docs/identification.md).
+    """
+    if v_in == v_out:
+        return None
+    a, b = first - 1, last + 1
+    when = (path[b] - path[a] + v_in * t[a] - v_out * t[b]) / (v_in - v_out)
+    x = path[a] + v_in * (when - t[a])
+    if not min((x - path[first]) * v_in, (x - path[last]) * v_in) > 0:   # not beyond the extreme
+        return None
+    for lo in range(a, b):
+        gap = t[lo + 1] - t[lo]
+        if t[lo] + CORNER_AT_SAMPLE * gap < when < t[lo + 1] - CORNER_AT_SAMPLE * gap:
+            return float(when), float(x), lo + 1
+    return None
+
+
 def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, bool]],
-               tol: float) -> PathNodes:
+               tol: float, between_samples: bool = True) -> PathNodes:
     """The crosshead's path with the corners the samples miss.
 
     A drive that reverses from rest arrives at a turning point between two samples,
@@ -134,10 +160,13 @@ def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, b
     that line reaches the extreme and the departure where the outgoing line leaves it,
     each a node when it falls between two samples, and the model switches at the
     departure (the last node at the extreme, as model.label_history does). A path that
-    turns without stopping (a triangle sampled anywhere) keeps its samples as nodes."""
+    turns without stopping turns where the lines into and out of the turning point meet
+    (_lines_meet: between_samples) or at its extreme sample (a polyline made of its
+    samples, as foamlab's own synthetic runs are); the samples alone cannot tell which."""
     n = len(t)
     inserts: list[tuple[float, float, int]] = []          # (time, x, sample it precedes)
     arrival, departure = {}, {}
+    between: list[float] = []
 
     def line(a: int, b: int):
         if not (0 <= a < n and 0 <= b < n and t[b] > t[a]):
@@ -150,9 +179,19 @@ def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, b
         incoming, outgoing = line(first - 2, first - 1), line(last + 1, last + 2)
         if incoming is None or outgoing is None or incoming[1] == 0 or outgoing[1] == 0:
             continue
-        if first == last and min(abs(incoming[0](t[first]) - path[first]),
-                                 abs(outgoing[0](t[first]) - path[first])) <= tol:
-            continue                           # on one of the lines: turned without stopping
+        on_in, on_out = (abs(incoming[0](t[first]) - path[first]) <= tol,
+                         abs(outgoing[0](t[last]) - path[last]) <= tol)
+        if (first == last and (on_in or abs(outgoing[0](t[first]) - path[first]) <= tol)
+                or last == first + 1 and on_in and on_out):
+            # turned without stopping (the samples at the extreme lie on the lines into and
+            # out of it: one, or two that round to the same height), where the lines meet
+            turn = _lines_meet(t, path, first, last, incoming[1], outgoing[1])
+            if turn is not None:
+                between.append(turn[0])
+            if turn is not None and between_samples:
+                departure[k] = len(inserts)
+                inserts.append(turn)
+            continue
         at = t[first - 1] + (x_ext - path[first - 1]) / incoming[1]
         if t[first - 1] < at < t[first] - CORNER_AT_SAMPLE * (t[first] - t[first - 1]):
             arrival[k] = len(inserts)
@@ -177,7 +216,8 @@ def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, b
         (maxima if top else minima).append(turn)
         corners += [turn, insert_node[arrival[k]] if k in arrival else int(of_sample[first])]
     labels = labels_from_extrema(len(node_t), minima, maxima)
-    return PathNodes(node_t, node_x, of_sample, labels, np.unique(np.asarray(corners, dtype=int)))
+    return PathNodes(node_t, node_x, of_sample, labels, np.unique(np.asarray(corners, dtype=int)),
+                     between_samples, np.asarray(between, float))
 
 
 def path_determined(t: np.ndarray, x: np.ndarray, force: np.ndarray, nodes: PathNodes,

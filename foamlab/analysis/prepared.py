@@ -21,6 +21,7 @@ from foamlab.analysis.noise import noise_sigma
 from foamlab.analysis.path import (
     PathNodes,
     displacement_path,
+    exact_history,
     path_determined,
     path_nodes,
 )
@@ -93,7 +94,17 @@ class PreparedRun:
     block_q: int                  # samples per block of the decimated search
     half_id: np.ndarray           # per sample: its half-cycle as the model switches (-1: outside)
     series: Series                # the run as every full fit sees it (all samples, evidence)
+    extremes: list[tuple[int, int, bool]]  # (first, last sample, is maximum) at each turning point
+    corner_tol: float             # mm: a sample this close to a line lies on it (path_nodes)
     off_schedule: int = 0         # samples left out: taken off the sampling schedule
+
+    def other_turns(self) -> "PreparedRun":
+        """The same run with its turns without a stop at the other place: between samples where
+        this one has them at a sample, or the other way round (path.path_nodes)."""
+        nodes = path_nodes(self.t, self.path_mm, self.extremes, self.corner_tol,
+                           between_samples=not self.nodes.between_samples)
+        return replace(self, nodes=nodes, series=_series(self.run, self.series.name, self.labels, nodes,
+                                                         self.seg.contact_lost))
 
     def with_force(self, force: np.ndarray) -> "PreparedRun":
         """The same run (segmentation, path, labels) with another force: what a fit sees of
@@ -299,14 +310,17 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
     if off_schedule:
         warnings.append(f"{off_schedule} samples taken off the sampling schedule left out "
                         "(their instants are unsure)")
-    nodes = path_nodes(run.time_s, path, sorted(extremes), corner_tol)
+    # a measured displacement turns between its samples; an exact one (a polyline of its
+    # samples: foamlab's own synthetic runs) at them - the fit checks the other (other_turns)
+    nodes = path_nodes(run.time_s, path, sorted(extremes), corner_tol,
+                       between_samples=not exact_history(run.displacement_mm))
     return PreparedRun(
         run=run, seg=seg, labels=labels, observed=observed, contact=contact,
         fit_rows=fit_rows, corners=corners, fit_force=fit_force, fit_count=fit_count,
         block_curvature=curvature, fit_step_s=fit_step, native_step_s=native,
         x_scale_mm=x_scale, n_residual_cycles=n_res,
         loading_time_s=float(np.median(loading_times)), noise_N=noise, warnings=warnings,
-        path_mm=path, nodes=nodes, block_q=q, half_id=half_id,
+        path_mm=path, nodes=nodes, block_q=q, half_id=half_id, extremes=sorted(extremes), corner_tol=corner_tol,
         series=_series(run, name, labels, nodes, seg.contact_lost), off_schedule=off_schedule,
     )
 
