@@ -162,7 +162,7 @@ class ProgressLine:
 
 def run(args) -> int:
     from drivers.profile import ProfileError, load_profile, open_machine
-    from foamlab.engine import RunEngine
+    from foamlab.acquisition import RunEngine
     from foamlab.methods import load_method
     from foamlab.rundata import Specimen
 

@@ -1,4 +1,4 @@
-"""The technician's main window. It drives foamlab.engine.RunEngine and shows what
+"""The technician's main window. It drives foamlab.acquisition.RunEngine and shows what
 the engine reports; it holds no test logic of its own.
 
 Threads: the GUI thread only draws. Machine I/O runs on the MachineLink's thread
@@ -372,7 +372,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.link.connect_machine(self.profile_combo.currentText(), self.speedup)
 
     def _on_connected(self, conn: Connection) -> None:
-        from foamlab.engine import Limits
+        from foamlab.acquisition import Limits
 
         self.connect_button.setText("Disconnect")
         self._link_trouble = False
@@ -464,7 +464,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self._status("start refused: the specimen entry is not valid", error=True)
             return False
         try:
-            from foamlab.engine import Limits, RunEngine
+            from foamlab.acquisition import Limits, RunEngine
             from foamlab.methods import load_method
 
             method = load_method(self.method_combo.currentText())
