@@ -102,8 +102,11 @@ def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
     np.testing.assert_allclose(w.plots.buffer.force_N[: result.n_samples], on_disk.force_N, atol=1e-3)
     assert w.progress.value() == w.progress.maximum()
     assert "100%" in w.progress.text()
+    # The pipeline's method results and fit follow the run (foamlab.pipeline, analysis thread).
+    qtbot.waitUntil(lambda: w.shown_analysis is not None, timeout=RUN_TIMEOUT_MS)
+    analysis = w.shown_analysis
     # Method results are shown and exported with the run summary.
-    assert w.results.method_results.rowCount() == len(result.results) > 0
+    assert w.results.method_results.rowCount() == len(analysis.method_results) > 0
     png = w.export_png(tmp_path / "plot.png")
     assert png.exists() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     out = w.export_csv(tmp_path / "results.csv")
@@ -111,8 +114,8 @@ def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
     assert rows[0][0] == "section"
     sections = {r[0] for r in rows[1:]}
     assert {"run", "method_result"} <= sections
-    # The fit table and the fitted curve come with the engine's fit (foamlab.identification).
-    fitted = result.fit is not None
+    # The fit table and the fitted curve come with the pipeline's fit (foamlab.identification).
+    fitted = analysis.fit is not None
     if fitted:
         assert w.results.parameters.rowCount() > 0
         assert w.results.statistics.rowCount() > 0
@@ -154,7 +157,7 @@ def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
     if fitted:   # the stored diagnosis is shown at once, not recomputed
         assert w.results.report.verdict == verdict and "stored with the run" in w.results.report.diagnosis_note
     if not fitted:
-        pytest.skip(f"no fit to show: {result.fit_error or 'foamlab.identification not installed'}")
+        pytest.skip(f"no fit to show: {analysis.fit_error}")
     qtbot.waitUntil(lambda: w.results.parameters.rowCount() > 0, timeout=30_000)
 
 

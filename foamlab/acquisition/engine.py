@@ -85,7 +85,7 @@ class RunEngine:
         self.plan: list[PlannedStep] = method.plan(specimen.height_mm)
         self.nominal_s = sum(p.duration_s for p in self.plan)
         self.period_s = 1.0 / (method.sampling_hz * self.speedup)      # wall
-        self.recorder = recorder or Recorder(out_dir, run_name)
+        self.recorder = recorder if recorder is not None else Recorder(out_dir, run_name)
         self.recorder.check_folder()
         self.realtime = realtime
         self.scheduling = "not started"
