@@ -59,7 +59,7 @@ def test_operator_stop_keeps_the_data_and_parks(tmp_path):
     assert 5.0 <= result.run.displacement_mm.max() < 6.0    # stopped right after the request
     assert listener.samples == result.n_samples
     _assert_file_matches(result)
-    assert pipeline.method_stage(pipeline.Analysis(result.run, result.path)).method_results is not None
+    assert pipeline.method_stage(pipeline.Analysis(result.run, result.path), engine.method).method_results is not None
 
 
 def test_emergency_stop_latches_and_does_not_park(tmp_path):
