@@ -2,6 +2,8 @@
 
 - engine.py: RunEngine, the run's state machine on its worker thread (connect, tare,
   contact search, the method's steps, stop, park);
+- sampling.py: Sampler, one sample per deadline (read, record, check the limits, tell the
+  listeners) and the drive's status between samples;
 - safety.py: Limits (force, travel, speed), the crosshead's alarms, stop / e-stop / park,
   the stall watchdog;
 - schedule.py: SampleSchedule (fixed deadlines, misses counted and attributed),

@@ -7,8 +7,8 @@ One worker thread owns the run:
 - Contact search: jog down slowly until the force reaches the method's preload;
   that position becomes displacement 0 (kept in software, so the machine's own
   zero and its travel limits stay valid).
-- Sampling runs on a fixed monotonic schedule (schedule.SampleSchedule); a deadline whose
-  whole period passed without a sample is counted as missed, never filled in.
+- Sampling (sampling.Sampler) runs on a fixed monotonic schedule (schedule.SampleSchedule); a
+  deadline whose whole period passed without a sample is counted as missed, never filled in.
 - At `speedup` S (a simulated machine whose clock runs S times faster) the schedule's wall
   period is period / S and time_s = wall elapsed * S: the method's rate in machine time.
 - Every sample goes to the recorder (foamlab.storage.recorder) when it arrives, then the
@@ -35,10 +35,11 @@ from foamlab import FoamlabError, __version__
 from foamlab.acquisition.events import (ABORTED, CONNECTING, CONTACT_SEARCH, END_ERROR, END_ESTOP, END_FAULT,
                                         END_FINISHED, END_LIMIT, END_LINK, END_STOP, END_STORAGE, FINISHED,
                                         IDLE, PARK_AFTER, PARKING, RUNNING, STOPPING, TARING, Listeners,
-                                        ProgressReporter, RunAborted, RunResult, Sample)
+                                        ProgressReporter, RunAborted, RunResult)
 from foamlab.acquisition.safety import (AT_TARGET_MM, STOP_CONFIRM_S, Limits, StallWatch, Stopper,
-                                        CrossheadWatch, check_crosshead_status, fault_name, park)
-from foamlab.acquisition.schedule import CpuWakeupLatency, SampleSchedule, ScheduleStats, raise_thread_priority
+                                        check_crosshead_status, fault_name, park)
+from foamlab.acquisition.sampling import Sampler
+from foamlab.acquisition.schedule import CpuWakeupLatency, raise_thread_priority
 from foamlab.methods import Method, PlannedStep
 from foamlab.rundata import Specimen
 from foamlab.storage.recorder import Recorder, RecordingFailed
@@ -48,8 +49,6 @@ log = logging.getLogger(__name__)
 
 #: The position is this close to a move's target before the drive is asked whether it arrived.
 NEAR_TARGET_MM = 0.05
-#: Consecutive failed reads (after the driver's own retries) tolerated before aborting.
-MAX_FAILED_READS = 3
 #: Attempts for an idempotent command whose reply was lost (after the driver's retries).
 COMMAND_ATTEMPTS = 3
 
@@ -101,14 +100,10 @@ class RunEngine:
         # filled by the worker
         self._start_position: float | None = None
         self._contact: float | None = None
-        self._t0 = 0.0
-        self._late: list[float] = []
-        self._failed_reads = 0
-        self._consecutive_failures = 0
-        self._schedule: SampleSchedule | None = None
-        self._watch = CrossheadWatch(machine)
-        self._step: PlannedStep | None = None
         self._step_start_s = 0.0
+        self._sampler = Sampler(machine, self.limits, self.recorder, self._listeners, period_s=self.period_s,
+                                speedup=self.speedup, wake=self._wake, check_flags=self._check_flags,
+                                on_sample=lambda s: self._report_progress(s.displacement_mm, s.force_N))
         self._progress = ProgressReporter(self._listeners, self.plan, method.n_cycles, self.speedup,
                                           progress_interval_s)
         self._connected_once = False
@@ -170,9 +165,6 @@ class RunEngine:
         self._state = state
         self._listeners.emit("on_state", state)
 
-    def _machine_time(self, wall: float) -> float:
-        return (wall - self._t0) * self.speedup
-
     def _worker(self) -> None:
         self.scheduling = raise_thread_priority() if self.realtime else "normal"
         wakeup = CpuWakeupLatency()
@@ -222,6 +214,9 @@ class RunEngine:
             return END_ERROR, f"internal error: {type(exc).__name__}: {exc}"
         return END_FINISHED, ""
 
+    def _interrupted(self) -> bool:
+        return self._stop.is_set() or self._estop.is_set()
+
     def _check_flags(self) -> None:
         if self._estop.is_set():
             raise RunAborted(END_ESTOP, "emergency stop")
@@ -246,26 +241,18 @@ class RunEngine:
         self._set_state(TARING)
         command(self.machine.load_cell.tare)
 
-    def _new_schedule(self) -> SampleSchedule:
-        self._wake.clear()
-        if self._stop.is_set() or self._estop.is_set():
-            self._wake.set()
-        schedule = SampleSchedule(self.period_s, wake=self._wake)
-        self._schedule, self._t0 = schedule, schedule.t0
-        return schedule
-
     def _contact_search(self) -> None:
         """Jog down until the force reaches the preload; that position is displacement 0."""
         self._set_state(CONTACT_SEARCH)
         contact = self.method.contact
         crosshead = self.machine.crosshead
-        self._new_schedule()
+        self._sampler.restart(self._interrupted())
         self._report_progress(0.0, 0.0, immediate=True)
         reach = min(self._start_position + contact.max_search_mm, self.limits.travel_lower_mm)
         command(crosshead.jog, +1, contact.search_speed_mm_min)
         previous = None
         while True:
-            sample = self._acquire(record=False)
+            sample = self._sampler.take(record=False)
             if sample is None:
                 continue
             position, force = sample
@@ -277,6 +264,7 @@ class RunEngine:
                     self._contact = previous[0] + frac * (position - previous[0])
                 else:
                     self._contact = position
+                self._sampler.contact = self._contact
                 break
             if position >= reach - AT_TARGET_MM:
                 command(crosshead.stop)
@@ -311,28 +299,26 @@ class RunEngine:
         }
 
     def _run_step(self, planned: PlannedStep) -> None:
-        self._step = planned
+        self._sampler.step = planned
         step = planned.step
         target = self._contact + planned.end_mm
         if step.action != "dwell":
             sent = time.monotonic()
             command(self.machine.crosshead.move_to, target, step.speed_mm_min)
-            if self._schedule is not None:
-                self._schedule.waited_for_device(time.monotonic() - sent)
+            self._sampler.waited_for_device(time.monotonic() - sent)
         # the run's own schedule (and machine clock) starts when the first step is under way;
         # the contact search had its own, whose samples are not part of the run
         if planned.index == 0:
-            self._new_schedule()
-            self._failed_reads = 0
-        start_s = self._step_start_s = self._machine_time(time.monotonic())
+            self._sampler.restart(self._interrupted())
+        start_s = self._step_start_s = self._sampler.machine_time(time.monotonic())
         if step.action == "dwell":
             while True:
-                if self._acquire(record=True) is not None and self.recorder.last[0] - start_s >= step.duration_s:
+                if self._sampler.take(record=True) is not None and self.recorder.last[0] - start_s >= step.duration_s:
                     return
         watch = StallWatch(step.speed_mm_min, start_s, planned.duration_s)
         previous = math.inf
         while True:
-            sample = self._acquire(record=True)
+            sample = self._sampler.take(record=True)
             if sample is None:
                 continue
             position = sample[0]
@@ -341,7 +327,7 @@ class RunEngine:
                 # decelerating would overshoot) AND a recorded sample shows where it stopped: on
                 # the target, or - for a drive that settles within its in-position window -
                 # twice at the same place.
-                status = self._watch.read(self._schedule)
+                status = self._sampler.read_status()
                 if status is not None and not status.moving and (
                         abs(position - target) <= AT_TARGET_MM
                         or (status.in_position and abs(position - previous) <= AT_TARGET_MM)):
@@ -349,67 +335,14 @@ class RunEngine:
             previous = position
             problem = watch.check(self.recorder.last[0], position, target)
             if problem:
-                status = self._watch.read(self._schedule)   # raises for faults/limits: the better reason
+                status = self._sampler.read_status()   # raises for faults/limits: the better reason
                 detail = f" (drive fault: {fault_name(self.machine)})" if status is not None and status.fault else ""
                 raise RunAborted(END_FAULT, problem + detail)
-
-    # -- sampling ----------------------------------------------------------------------
-    def _acquire(self, record: bool) -> tuple[float, float] | None:
-        """Take the next scheduled sample: (position, force), or None when woken/failed."""
-        schedule = self._schedule
-        slot = schedule.next()
-        self._check_flags()
-        if slot is None:
-            return None
-        _, lateness = slot
-        t_request = time.monotonic()
-        try:
-            reading = self.machine.read_sample()
-        except DeviceConnectionLost:
-            raise
-        except DeviceError as exc:
-            schedule.waited_for_device(time.monotonic() - t_request)
-            self._failed_reads += 1
-            self._consecutive_failures += 1
-            schedule.miss()
-            if self._consecutive_failures > MAX_FAILED_READS:
-                raise RunAborted(END_FAULT, f"device not answering: {exc}") from None
-            log.warning("sample failed (%d in a row): %s", self._consecutive_failures, exc)
-            return None
-        t_done = time.monotonic()
-        schedule.waited_for_device(t_done - t_request)
-        self._consecutive_failures = 0
-        position, force = reading.position_mm, reading.force_N
-        # the sample goes to disk first (also the one that crosses a limit), then the limits
-        # are checked (an abort stops the crosshead at once), then the listeners hear of it;
-        # stamped with the instant the driver says both values describe (Machine.read_sample)
-        instant = reading.time or (t_request + t_done) / 2
-        sample = self._store(instant, position, force, (t_done - t_request) * 1e3,
-                             lateness * 1e3) if record else None
-        self.limits.check_sample(position, force, reading.load_cell_status)
-        if sample is not None:
-            if self._listeners:
-                self._listeners.emit("on_sample", sample)
-            self._report_progress(sample.displacement_mm, sample.force_N)
-        self._watch.maybe_read(self._schedule)
-        return position, force
-
-    def _store(self, wall: float, position: float, force: float, rtt_ms: float, late_ms: float) -> Sample:
-        # rounded far below the instruments' resolution: keeps the float noise of the
-        # subtraction (0.015000000000000568) and of float32 registers out of the file
-        t = round(self._machine_time(wall), 6)
-        disp, force, rtt_ms = round(position - self._contact, 6), round(force, 6), round(rtt_ms, 3)
-        step = self._step
-        index, cycle = (step.index, step.step.cycle) if step else (-1, 0)
-        n = len(self.recorder)
-        self._late.append(late_ms)
-        self.recorder.record(t, disp, force, rtt_ms, index, cycle)
-        return Sample(n, t, disp, force, rtt_ms, late_ms, position, cycle, index)
 
     def _report_progress(self, disp: float, force: float, fraction: float | None = None,
                          immediate: bool = False) -> None:
         last = self.recorder.last
-        self._progress.report(self._step, (last[0] if last else 0.0) - self._step_start_s, disp, force,
+        self._progress.report(self._sampler.step, (last[0] if last else 0.0) - self._step_start_s, disp, force,
                               self._state, fraction, immediate)
 
     # -- ending ------------------------------------------------------------------------
@@ -452,8 +385,7 @@ class RunEngine:
                 method=self.method.name, machine=self.machine_name,
                 metadata={"sampling_hz": self.method.sampling_hz, "speedup": self.speedup,
                           "contact_position_mm": self._contact, "preload_N": self.method.contact.preload_N})
-            timing = (self._schedule.stats(self._late, self.recorder.rtt_ms, self._failed_reads)
-                      if self._schedule else ScheduleStats.from_arrays(self.period_s, [], [], 0, 0))
+            timing = self._sampler.stats()
             result = RunResult(self.recorder.path, status, reason, len(self.recorder), timing.missed, end,
                                park_note, self._contact, timing, run)
             if status == FINISHED:
@@ -463,7 +395,7 @@ class RunEngine:
             log.error("run engine cleanup failed: %s: %s", type(exc).__name__, exc)
             log.debug("run engine cleanup failed", exc_info=True)
             result = RunResult(self.recorder.path, ABORTED, reason or f"cleanup failed: {exc}", len(self.recorder),
-                               self._schedule.missed if self._schedule else 0, end=end)
+                               self._sampler.schedule.missed if self._sampler.schedule else 0, end=end)
         finally:
             if self.manage_connection:
                 try:
