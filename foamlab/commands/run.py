@@ -297,7 +297,10 @@ def _report(result, method, out_dir: Path, fit: bool = True, diagnose: bool = Tr
     elif analysis.method_error:
         print(f"results: not available: {analysis.method_error}")
     if fit:
-        pipeline.fit_stage(analysis)
+        try:
+            pipeline.fit_stage(analysis)
+        except KeyboardInterrupt:   # the run is saved; the fit can be made later (foamlab fit)
+            analysis.fit_error = "skipped (Ctrl-C)"
         if analysis.fit is not None:
             print("fit:")
             print("  " + analysis.fit.summary().replace("\n", "\n  "))

@@ -664,6 +664,10 @@ class MainWindow(QtWidgets.QMainWindow):
             self.results.show_report(report)
 
     def diagnose_shown_run(self) -> None:
+        if self.shown_run is not None and self.shown_analysis is None and not self.running:
+            self._status("the fit is still being made: the diagnosis extends it, try again when it shows",
+                         error=True)
+            return
         if self.running or self.shown_analysis is None or not len(self.shown_analysis.run):
             self._status("no run to diagnose: finish a run or open a file first", error=True)
             return

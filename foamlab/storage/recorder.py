@@ -216,11 +216,7 @@ class Recorder:
         writer, self._writer = self._writer, None
         if writer is None:
             return
-        writer.closed = True
-        try:
-            writer._file.close()            # may retry the failed flush: whatever it appends is cut
-        except OSError:
-            pass
+        writer.abandon()                    # its last flush may append part of a line: cut below
         try:
             fd = os.open(self.path, os.O_RDWR)
         except OSError as exc:

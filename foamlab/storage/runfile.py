@@ -187,6 +187,17 @@ class RunWriter:
 
     close = finish
 
+    def abandon(self) -> None:
+        """Close without a trailer after a failed write (full disk); the file is left as it is."""
+        with self._lock:
+            if self.closed:
+                return
+            self.closed = True
+            try:
+                self._file.close()          # may retry the failed flush and fail again
+            except OSError:
+                pass
+
     def _sync(self) -> None:
         self._file.flush()
         os.fsync(self._file.fileno())
