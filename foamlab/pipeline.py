@@ -124,7 +124,7 @@ def diagnose_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
 
 def _diagnose(run: RunData, fit: FitResult) -> Diagnosis:
     # The one call into the diagnosis: it extends this fit instead of fitting the run again.
-    return diagnose([run], params=fit.params)
+    return diagnose([run], fit=fit)
 
 
 def files_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:

@@ -12,9 +12,10 @@ import pytest
 
 from foamlab import FoamlabError
 from foamlab.identification import FitResult, Orders, fit_run
-from foamlab.identification.basis import Layout, ModelBasis
+from foamlab.analysis.basis import ModelBasis
+from foamlab.model.layout import Layout
 from foamlab.identification.compare import compare_orders
-from foamlab.identification.data import prepare
+from foamlab.analysis.prepared import prepare
 from foamlab.identification.statistics import GoodnessOfFit, autocorrelation_time
 from foamlab.model import ModelParameters, evaluate, thermodynamic_checks, triangular_history
 from foamlab.rundata import RunData
@@ -104,14 +105,22 @@ def test_fitted_curve_rmse_is_the_noise_level(default_params, noise):
 def test_fit_reports_table5_statistics_checks_and_json(default_fit, default_params):
     run, result = default_fit
     d = result.to_dict()
-    assert list(d) == ["parameters", "statistics", "rmse", "constraints"]
+    # DESIGN.md's four keys, then the noise level and the optimizer's end (as lmfit reports it)
+    assert list(d) == ["parameters", "statistics", "rmse", "constraints", "noise", "optimizer"]
+    assert set(d["optimizer"]) == {"success", "status", "message"} and d["optimizer"]["message"]
+    assert d["optimizer"]["success"] == (d["optimizer"]["status"] > 0)
     assert list(d["statistics"]) == ["damping", "residual", "elastic", "joint"]
     for step in d["statistics"].values():
         assert set(step) == {"sse", "r2", "adj_r2", "rmse"}
         assert all(isinstance(v, float) for v in step.values())
     assert set(d["parameters"]) == set(default_params.names()) | {"x_scale_mm"}
-    assert d["parameters"]["x_scale_mm"] == {"value": A, "stderr": None}
-    assert all(set(v) == {"value", "stderr"} for v in d["parameters"].values())
+    assert d["parameters"]["x_scale_mm"]["value"] == A and not d["parameters"]["x_scale_mm"]["varied"]
+    assert all(set(v) == {"value", "stderr", "lower", "upper", "varied", "unit"} for v in d["parameters"].values())
+    beta = d["parameters"]["beta1_1"]
+    assert beta["lower"] < beta["value"] < beta["upper"] < 1 and beta["varied"]
+    assert d["parameters"]["k1"]["lower"] is None and d["parameters"]["k1"]["unit"] == "N"
+    fixed = [n for n, p in result.parameters.items() if not p.varied]
+    assert all(n.endswith("_im") and result.value(n) == 0 for n in fixed)
     assert d["constraints"] == thermodynamic_checks(result.params)
     json.loads(result.to_json())                                   # strict JSON (no NaN)
     assert "nan" not in result.to_json().lower()

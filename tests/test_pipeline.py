@@ -4,12 +4,13 @@ and fit it exactly once - the diagnosis extends that fit instead of fitting the 
 from __future__ import annotations
 
 import os
+import sys
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 import pytest
 
-from foamlab import cli, identification, pipeline
+from foamlab import cli, pipeline
 from foamlab.identification import fit as identification_fit
 from foamlab.storage.catalog import Catalog
 from tests.hil_support import short_method
@@ -22,9 +23,9 @@ SHORT = dict(strain=0.15, speed=100.0, cycles=3)
 
 @pytest.fixture
 def fits(monkeypatch):
-    """Every identification of a run, by the run's source: the pipeline's fit_run and the one
-    identification (and the diagnosis' base_parameters) call. The diagnosis' re-identification of
-    effect-corrected data is named after the series, not the run file: not a fit of the run."""
+    """Every identification of a run, by the run's source, wherever fit_run was imported (the
+    pipeline, identification, the diagnosis when it is given no fit). A re-identification of
+    effect-corrected data inside a diagnosis is named after its series: not a fit of the run."""
     calls: list[str] = []
     real = identification_fit.fit_run
 
@@ -32,20 +33,22 @@ def fits(monkeypatch):
         calls.append(run.source)
         return real(run, *args, **kwargs)
 
-    for module in (identification_fit, identification, pipeline):
-        monkeypatch.setattr(module, "fit_run", counting)
+    for module in list(sys.modules.values()):
+        if getattr(module, "fit_run", None) is real:
+            monkeypatch.setattr(module, "fit_run", counting)
+    assert getattr(pipeline, "fit_run") is counting
     return calls
 
 
 @pytest.fixture
 def diagnosed_with(monkeypatch):
-    """The parameters each diagnosis was given (the pipeline's one call into foamlab.diagnosis)."""
+    """The fit each diagnosis was given (the pipeline's one call into foamlab.diagnosis)."""
     given = []
     real = pipeline.diagnose
 
-    def spy(runs, params=None, **kwargs):
-        given.append(params)
-        return real(runs, params=params, **kwargs)
+    def spy(runs, fit=None, **kwargs):
+        given.append(fit)
+        return real(runs, fit=fit, **kwargs)
 
     monkeypatch.setattr(pipeline, "diagnose", spy)
     return given
@@ -105,7 +108,7 @@ def test_the_window_fits_the_run_once_and_diagnoses_that_fit(qtbot, tmp_path, fi
         assert w.shown_analysis.diagnosis is not None, w.shown_analysis.diagnosis_error
         assert "Diagnosis verdict:" in w.results.verdict.text()
         assert fits.count(str(result.path)) == 1, fits
-        assert diagnosed_with == [w.shown_analysis.fit.params]
+        assert len(diagnosed_with) == 1 and diagnosed_with[0] is w.shown_analysis.fit
         assert result.path.with_name(f"{result.path.stem}.diagnosis.json").is_file()
     finally:
         if w.engine is not None:

@@ -12,7 +12,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from foamlab.diagnosis.design import Series
+from foamlab.analysis.design import Series
 from foamlab.model import effects as fx
 
 CAUSES: dict[str, type["Cause"]] = {}

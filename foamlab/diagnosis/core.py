@@ -30,19 +30,29 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.stats import chi2
 from threadpoolctl import threadpool_limits
 
 from foamlab import FoamlabError
+from foamlab.analysis.design import ExtendedModel, Series, Solution
+from foamlab.analysis.noise import ArWhitener, Whiteness, series_noise_sigma, whiteness
+from foamlab.analysis.prepared import PreparedRun
+from foamlab.analysis.solve import (
+    POLISH_NFEV,
+    Fit,
+    at_full_resolution,
+    base_bounds,
+    contact_of,
+    decimation,
+    model_like,
+    varpro,
+)
 from foamlab.diagnosis.causes import CAUSES, Cause
-from foamlab.diagnosis.design import ExtendedModel, Series, Solution, layout_of
-from foamlab.identification.data import Orders
-from foamlab.identification.paper import nonlinear_bounds
-from foamlab.diagnosis.noise import ArWhitener, Whiteness, series_noise_sigma, whiteness
 from foamlab.diagnosis.residuals import ResidualAnalysis, analyse
+from foamlab.identification.joint import search_start
+from foamlab.identification.paper import paper_steps
+from foamlab.model.layout import Orders
 from foamlab.model import ModelParameters
-from foamlab.rundata import RunData
 
 #: A candidate must improve BIC (prewhitened residuals) by more than this ("very strong" evidence).
 DELTA_BIC_MIN = 10.0
@@ -83,59 +93,8 @@ JOINT_CANDIDATES = 2
 FULL_CANDIDATES = 2
 #: Iteration budgets of the screening (effect parameters only) and of the joint fits.
 SCREEN_NFEV, PROBE_NFEV, JOINT_NFEV = 10, 4, 20
-#: Samples per run in the parameter search (decimated; the decision is made at full resolution).
-SEARCH_SAMPLES = 3000
-#: Iterations of the full-resolution polish of the base and of the best candidates.
-POLISH_NFEV = 6
 #: Iterations of the joint fit restarted from identification on corrected data.
 RESTART_NFEV = 12
-
-
-@dataclass
-class Fit:
-    """A model (base or extension) fitted to all the data."""
-
-    causes: list[type[Cause]]
-    model: ExtendedModel
-    nu: np.ndarray                     # [phi if the base was free, effect parameters]
-    stderr: np.ndarray                 # of the effect parameters
-    solution: Solution
-    heldout_rmse: float | None = None
-
-    @property
-    def name(self) -> str:
-        return self.causes[-1].name if self.causes else "base"
-
-    @property
-    def eta(self) -> np.ndarray:
-        return self.model.split(self.nu)[1]
-
-    @property
-    def rss(self) -> float:
-        return self.solution.rss()
-
-    @property
-    def n(self) -> int:
-        return len(self.solution.residual)
-
-    @property
-    def rmse(self) -> float:
-        return float(np.sqrt(self.rss / self.n))
-
-    @property
-    def params(self) -> ModelParameters:
-        """The base model's parameters in this fit (effects aside)."""
-        return self.model.parameters(self.nu, self.solution.theta)
-
-    def effect_values(self) -> list[dict]:
-        """Fitted values of each effect in the chain, with standard errors."""
-        out, i = [], 0
-        for cls, e in zip(self.model.effect_types, self.model.effects(self.eta)):
-            names = [p.name for p in cls.fitted_parameters()]
-            se = dict(zip(names, self.stderr[i:i + len(names)]))
-            out.append({"effect": cls.name, "values": dict(e.values), "stderr": se})
-            i += len(names)
-        return out
 
 
 @dataclass
@@ -265,88 +224,6 @@ def _settings(causes: list[type[Cause]], series: list[Series]) -> dict:
     return {c.effect.name: c.settings(series) for c in causes}
 
 
-def loading_time_s(series: list[Series]) -> float:
-    """Median duration of the reference run's loading half-cycles."""
-    s = series[0].source
-    d = [s.t[p] - s.t[a] for a, p in zip(s.labels.starts, s.labels.peaks) if p > a]
-    return float(np.median(d)) if d else float(s.t[-1] - s.t[0])
-
-
-def base_bounds(series: list[Series], params: ModelParameters) -> tuple[np.ndarray, np.ndarray]:
-    """Identification's bounds of alpha and beta (from the loading time), widened to hold params."""
-    lay = layout_of(params)
-    lo, hi = nonlinear_bounds(Orders(N=lay.N, M=lay.M, P=lay.P), lay.C, loading_time_s(series))
-    phi = lay.from_flat(params.to_vector())[1]
-    return np.minimum(lo, phi), np.maximum(hi, phi)
-
-
-def _least_squares(model: ExtendedModel, nu0: np.ndarray, keep: list[np.ndarray] | None = None,
-                   max_nfev: int | None = None) -> tuple[np.ndarray, np.ndarray, Solution]:
-    """Variable projection on nu (trust-region reflective, Kaufman's Jacobian)."""
-    lo, hi = model.bounds()
-    nu0 = np.clip(np.asarray(nu0, float), lo, hi)
-    fun, jac = model.residual_fn(keep)
-    r0 = fun(nu0)
-    # stop when a step gains less than a tenth of the noise variance: below what the data resolve
-    ftol = max(0.1 / max(len(r0), 1), 1e-10)
-    res = least_squares(fun, nu0, jac=jac, bounds=(lo, hi), x_scale="jac", method="trf",
-                        xtol=1e-8, ftol=ftol, max_nfev=max_nfev)
-    sol = model.solve(res.x, keep)
-    # standard errors of the effect parameters (linear parameters profiled out)
-    r = res.fun
-    dof = max(len(r) - model.n_linear - model.n_nonlinear, 1)
-    s2 = float(r @ r) / dof
-    stderr = np.full(model.n_eta, np.nan)
-    if model.n_eta:
-        try:
-            cov = np.linalg.pinv(res.jac.T @ res.jac) * s2
-            stderr = np.sqrt(np.maximum(np.diag(cov), 0.0))[model.n_phi:]
-        except np.linalg.LinAlgError:
-            pass
-    return res.x, stderr, sol
-
-
-def decimation(series: list[Series]) -> int:
-    """Decimation factor of the parameter search (about SEARCH_SAMPLES samples per run)."""
-    return max(1, int(round(max(len(x) for x in series) / SEARCH_SAMPLES)))
-
-
-def contact_of(fit: Fit, series: list[Series]) -> list[np.ndarray] | None:
-    """The fit's contact set, if it was fitted on these very series (a start for a model
-    that extends or refits it)."""
-    same = len(fit.model.series) == len(series) and all(a is b for a, b in zip(fit.model.series, series))
-    return [m.copy() for m in fit.solution.masks] if same else None
-
-
-def _model_like(fit: Fit, series: list[Series], free_base: bool | None = None) -> ExtendedModel:
-    m = fit.model
-    free = m.free_base if free_base is None else free_base
-    return ExtendedModel(series, fit.params, m.effect_types, m.settings, effect_bounds=m.effect_bounds,
-                         free_base=free,
-                         base_bounds=base_bounds(series, fit.params) if free else None,
-                         masks=contact_of(fit, series))
-
-
-def at_full_resolution(fit: Fit, full: list[Series], polish_nfev: int = 0) -> Fit:
-    """A fit found on decimated series, carried to the full ones (and polished there)."""
-    if len(fit.model.series) == len(full) and all(a is b for a, b in zip(fit.model.series, full)):
-        return fit
-    model = _model_like(fit, full)
-    nu = np.concatenate([fit.model.split(fit.nu)[0] if model.free_base else [], fit.eta])
-    if polish_nfev:
-        nu, stderr, sol = _least_squares(model, nu, max_nfev=polish_nfev)
-    else:
-        sol, stderr = model.solve(nu), fit.stderr
-    return Fit(list(fit.causes), model, nu, stderr, sol)
-
-
-def fit_base(series: list[Series], params: ModelParameters) -> Fit:
-    """The base model on all runs: identification's alpha/beta polished with the rest."""
-    model = ExtendedModel(series, params, [], free_base=True, base_bounds=base_bounds(series, params))
-    nu, stderr, sol = _least_squares(model, model.start(), max_nfev=JOINT_NFEV)
-    return Fit([], model, nu, stderr, sol)
-
-
 def screen(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
     """Fit base + causes with the base's alpha/beta held: the last cause's parameter scanned,
     then the effect parameters refined (cheap: only the linear parameters move with them)."""
@@ -356,8 +233,7 @@ def screen(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit
     prev = current.eta
     trials = [np.concatenate([prev, row]) for row in causes[-1].starts(series)]
     rss = [model.solve(eta).rss() for eta in trials]
-    nu, stderr, sol = _least_squares(model, trials[int(np.argmin(rss))], max_nfev=SCREEN_NFEV)
-    return Fit(list(causes), model, nu, stderr, sol)
+    return Fit.of(list(causes), model, varpro(model, trials[int(np.argmin(rss))], max_nfev=SCREEN_NFEV))
 
 
 def fit_joint(series: list[Series], start: Fit, current: Fit, max_nfev: int | None = None) -> Fit:
@@ -370,7 +246,7 @@ def fit_joint(series: list[Series], start: Fit, current: Fit, max_nfev: int | No
     see starts from a visible size of its effect (both signs if it has two), and
     alpha/beta unbend as it grows.
     """
-    model = _model_like(start, series, free_base=True)
+    model = model_like(start, series, free_base=True)
     if start.model.free_base:                 # continue a joint fit
         starts = [start.nu]
     else:
@@ -386,14 +262,14 @@ def fit_joint(series: list[Series], start: Fit, current: Fit, max_nfev: int | No
                 starts.append(model.start(eta0))
     best = None
     for nu0 in starts:
-        nu, stderr, sol = _least_squares(model, nu0, max_nfev=max_nfev or JOINT_NFEV)
-        if best is None or sol.rss() < best[2].rss():
-            best = (nu, stderr, sol)
-    if best[2].rss() > start.rss:
+        optimum = varpro(model, nu0, max_nfev=max_nfev or JOINT_NFEV)
+        if best is None or optimum.solution.rss() < best.solution.rss():
+            best = optimum
+    if best.solution.rss() > start.rss:
         # every start from a visible size ended in a worse local minimum than the screening
         # (a lag of seconds): the screening's fit is the extension's best, keep it
         return start
-    return Fit(list(start.causes), model, *best)
+    return Fit.of(list(start.causes), model, best)
 
 
 def without_last(series: list[Series], fit: Fit) -> Fit:
@@ -404,22 +280,19 @@ def without_last(series: list[Series], fit: Fit) -> Fit:
                           base_bounds=base_bounds(series, fit.params), masks=contact_of(fit, series))
     k = len(m.effect_types[-1].fitted_parameters())
     eta = fit.eta[:len(fit.eta) - k]
-    nu, stderr, sol = _least_squares(model, model.start(eta), max_nfev=POLISH_NFEV)
-    return Fit(list(fit.causes[:-1]), model, nu, stderr, sol)
+    return Fit.of(list(fit.causes[:-1]), model, varpro(model, model.start(eta), max_nfev=POLISH_NFEV))
 
 
-def reidentify(series: list[Series], fit: Fit, eta: np.ndarray | None = None,
+def reidentify(ref: PreparedRun, series: list[Series], fit: Fit, eta: np.ndarray | None = None,
                max_nfev: int = RESTART_NFEV) -> Fit:
     """The fit restarted from identification run on the data with its effects taken out.
 
     A base model that has bent its alpha/beta to mimic an effect sits in a local
     minimum the joint fit cannot leave; identification's own multi-start search on
     the corrected data (measured minus what the effects add, at the fit's values or
-    at ``eta``) finds the base the effect leaves behind, and the joint fit continues
-    from there.
+    at ``eta``; the reference run as prepared, its force replaced) finds the base the
+    effect leaves behind, and the joint fit continues from there.
     """
-    from foamlab.identification.fit import fit_run
-
     model = fit.model
     theta = fit.solution.theta
     phi = model.split(fit.nu)[0]
@@ -427,23 +300,26 @@ def reidentify(series: list[Series], fit: Fit, eta: np.ndarray | None = None,
     base_part = phi if model.free_base else []
     with_effects, without = (model.predict(theta, np.concatenate([base_part, e]))
                              for e in (eta, np.zeros(model.n_eta)))
-    ref = series[0]
-    x = ref.x if ref.x_measured is None else ref.x_measured
-    corrected = RunData(ref.t, x, ref.y - (with_effects[0] - without[0]), source=ref.name)
-    lay = layout_of(fit.params)
+    # the prediction is on the series' samples: the reference run's when not decimated
+    effect = np.zeros(len(ref.series))
+    effect[series[0].samples] = with_effects[0] - without[0]
+    if series[0].obs is not None:                 # decimated: the effect between its samples
+        effect = np.interp(ref.series.t, series[0].t, with_effects[0] - without[0])
+    lay = fit.params.layout
     try:
-        params = fit_run(corrected, orders=(lay.N, lay.M, lay.P), x_scale_mm=fit.params.x_scale_mm).params
+        corrected = ref.with_force(ref.series.y - effect)
+        orders = Orders(N=lay.N, M=lay.M, P=lay.P)
+        params = search_start(corrected, orders, paper_steps(corrected, orders).start)
     except FoamlabError:
         return fit
     restart = ExtendedModel(series, params, model.effect_types, model.settings, free_base=True,
                             effect_bounds=model.effect_bounds,
                             base_bounds=base_bounds(series, params), masks=contact_of(fit, series))
-    nu, stderr, sol = _least_squares(restart, restart.start(eta), max_nfev=max_nfev)
-    out = Fit(list(fit.causes), restart, nu, stderr, sol)
+    out = Fit.of(list(fit.causes), restart, varpro(restart, restart.start(eta), max_nfev=max_nfev))
     return out if out.rss < fit.rss else fit
 
 
-def probe(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
+def probe(ref: PreparedRun, series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
     """A short fit of base + causes: screening, a joint probe and, for a last cause that
     identification's staged fit absorbs, a restart from identification with the effect
     taken out at a visible size (on the side the screening leaned to)."""
@@ -456,7 +332,7 @@ def probe(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
         for size in (abs(cause.joint_start(series)), abs(cause.scale(series))):
             eta = fit.eta.copy()
             eta[-1] = float(np.clip(side * size, lo[0], hi[0]))
-            fit = reidentify(series, fit, eta)
+            fit = reidentify(ref, series, fit, eta)
     return fit
 
 
@@ -520,8 +396,7 @@ def _refit_without(fit: Fit, keep: list[np.ndarray]) -> Solution:
                               effect_bounds=model.effect_bounds, masks=contact_of(fit, model.series))
     if not model.n_eta:
         return model.solve((), keep)
-    _, _, sol = _least_squares(model, fit.eta, keep, max_nfev=HELDOUT_NFEV)
-    return sol
+    return varpro(model, fit.eta, keep, max_nfev=HELDOUT_NFEV).solution
 
 
 def _before_with_contact_of(before: Fit, fit: Fit) -> Solution:
@@ -564,19 +439,20 @@ def _compare(cands: list[Candidate], before: Fit) -> None:
 
 # ----------------------------------------------------------------------------- diagnose
 
-def diagnose_series(series: list[Series], params: ModelParameters,
-                    causes: list[str] | None = None) -> Diagnosis:
+def diagnose_prepared(runs: list[PreparedRun], base: Fit, causes: list[str] | None = None) -> Diagnosis:
+    """Diagnose prepared runs (the first the reference) from a base model fitted on all of them
+    (identification's core fit for one run, analysis.solve.polish for several)."""
     with threadpool_limits(1, user_api="blas"):    # small dense solves: threads only contend
-        return _diagnose(series, params, causes)
+        return _diagnose(runs, base, causes)
 
 
-def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] | None) -> Diagnosis:
+def _diagnose(runs: list[PreparedRun], base: Fit, causes: list[str] | None) -> Diagnosis:
     t0 = time.perf_counter()
     names = list(CAUSES) if causes is None else list(causes)
+    ref, series = runs[0], [r.series for r in runs]
     sigma = series_noise_sigma([s.y for s in series])
     k = decimation(series)
     coarse = [x.decimated(k) for x in series]
-    base = at_full_resolution(fit_base(coarse, params), series, POLISH_NFEV if k > 1 else 0)
     skipped = {}
     remaining: list[type[Cause]] = []
     for name in names:
@@ -601,7 +477,7 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
         current_coarse = at_full_resolution(current, coarse) if k > 1 else current
         # search on the decimated runs: every cause fitted with the base's alpha/beta held
         # (screen), then a short joint probe; the best probes are fitted to convergence
-        probes = sorted((probe(coarse, current_coarse, accepted + [cause]) for cause in remaining),
+        probes = sorted((probe(ref, coarse, current_coarse, accepted + [cause]) for cause in remaining),
                         key=lambda f: f.rss)
         coarse_fits = [fit_joint(coarse, f, current_coarse) if i < JOINT_CANDIDATES else f
                        for i, f in enumerate(probes)]
@@ -628,7 +504,7 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
         for c in sorted(polished, key=lambda c: -c.delta_bic):
             if c.delta_bic <= 0 or whiteness(c.fit.solution.residual).min_p >= WHITE_P:
                 break
-            c.fit = reidentify(series, c.fit)
+            c.fit = reidentify(ref, series, c.fit)
             _compare([c], current)
             if whiteness(c.fit.solution.residual).min_p >= WHITE_P:
                 break
@@ -747,6 +623,6 @@ def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] |
     return Diagnosis(
         verdict=verdict, findings=findings, partial=partial, tested=tested, skipped=skipped, base=base, final=final,
         base_analysis=base_analysis, final_analysis=final_analysis, final_whiteness=white_final,
-        explained_share=float(share), noise_sigma=sigma, series=series, params=params,
+        explained_share=float(share), noise_sigma=sigma, series=series, params=base.params,
         seconds=time.perf_counter() - t0,
     )

@@ -1,8 +1,10 @@
 """fit_run: the whole identification of one run (docs/identification.md).
 
-segment -> the paper's three steps (start values, Table 5 per step) -> joint
-refinement (decimated variable projection, full-resolution polish) -> the
-model's own evaluation at every sample -> statistics, uncertainty, checks.
+prepare (foamlab.analysis) -> the paper's three steps (start values, Table 5 per step)
+-> joint refinement (global search of alpha and beta on the decimated run) -> the
+analysis core's polish on every sample (foamlab.analysis.solve: all parameters, the
+contact set, the load cell's zero; the fit diagnosis extends) -> the model's own
+evaluation at every sample -> statistics, uncertainty, checks.
 """
 
 from __future__ import annotations
@@ -13,9 +15,10 @@ from typing import Callable
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from foamlab.identification.data import FitData, Orders, model_response, prepare
-from foamlab.identification.joint import JointFit, joint_fit
-from foamlab.identification.paper import BETA_HI, BETA_LO, nonlinear_bounds, paper_steps
+from foamlab.analysis.prepared import PreparedRun, model_response, prepare
+from foamlab.analysis.solve import Fit, polish
+from foamlab.identification.joint import MIN_CENSORED, JointFit, evaluable, joint_fit
+from foamlab.identification.paper import paper_steps
 from foamlab.identification.result import FitResult
 from foamlab.identification.statistics import (
     GoodnessOfFit,
@@ -24,6 +27,7 @@ from foamlab.identification.statistics import (
     parameter_uncertainty,
 )
 from foamlab.model import thermodynamic_checks
+from foamlab.model.layout import BETA_HI, BETA_LO, Orders, nonlinear_bounds
 from foamlab.rundata import RunData
 
 Progress = Callable[[str, float], None]
@@ -41,20 +45,33 @@ def fit_run(run: RunData, orders: Orders | str | tuple = Orders(), progress: Pro
     x_scale_mm: the elastic polynomial's scale (default: the run's largest compression).
     Raises FoamlabError (one line, what is missing) for runs that cannot be identified.
     """
+    report = progress or (lambda stage, fraction: None)
+    report("segmenting the run", 0.0)
+    return fit_prepared(prepare(run, x_scale_mm=x_scale_mm), orders, progress)
+
+
+def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple = Orders(),
+                 progress: Progress | None = None) -> FitResult:
+    """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run."""
     orders = _orders(orders)
     report = progress or (lambda stage, fraction: None)
     started = time.perf_counter()
     # The matrices here are small: BLAS threads would only contend (and on a busy
     # machine they slow the fit down many times over).
     with threadpool_limits(1, user_api="blas"):
-        report("segmenting the run", 0.0)
-        fd = prepare(run, x_scale_mm=x_scale_mm)
         report("the paper's three steps", 0.1)
         paper = paper_steps(fd, orders)
         report("joint refinement", 0.3)
         jf = joint_fit(fd, orders, paper.start, report)
+        report("polish on every sample", 0.8)
+        base = polish([fd.series], jf.params)
+        polished = _from_core(fd, jf, base)
+        if polished is not None:
+            jf = polished
+        else:
+            base = None
         report("statistics", 0.9)
-        result = _result(fd, orders, paper, jf, started)
+        result = _result(fd, orders, paper, jf, started, base)
     report("done", 1.0)
     return result
 
@@ -67,7 +84,51 @@ def _orders(orders) -> Orders:
     return Orders(*orders)
 
 
-def _result(fd: FitData, orders: Orders, paper, jf: JointFit, started: float) -> FitResult:
+#: A damping mode whose Im alpha ends below this fraction of its Re alpha stays real (fixed).
+REAL_MODE_RATIO = 1e-6
+
+
+def _from_core(fd: PreparedRun, jf: JointFit, base: Fit) -> JointFit | None:
+    """The core's polished base in identification's terms (canonical order, the zero offset in
+    k0, the Jacobian of every free parameter at the solution); None when the polish found no
+    better optimum, or one the model's own evaluation cannot reproduce (see evaluable)."""
+    lay = jf.layout
+    sol = base.solution
+    # the rows identification reports on: the cycles' samples the path determines
+    rows = np.intersect1d(fd.observed, np.flatnonzero(fd.series.used))
+    residual = sol.residuals[0][rows]
+    if not np.mean(residual ** 2) < np.mean(jf.residual ** 2):
+        return None
+    theta, phi = sol.theta, base.model.split(base.nu)[0].copy()
+    L = lay.n_linear
+    fixed = np.zeros(lay.n_nonlinear, bool)
+    im = np.arange(1, 2 * lay.N, 2)
+    fixed[im] = jf.fixed_nonlinear[im] & (phi[im] <= REAL_MODE_RATIO * phi[im - 1])
+    phi[fixed] = 0.0
+    design = sol.designs[0][0][rows]                              # k, a, r columns, then the zero
+    deriv = base.model.prediction_derivatives(base.nu, sol)[rows]
+    out_of_contact = int(np.count_nonzero(~sol.masks[0][rows]))
+    zero_fitted = out_of_contact >= MIN_CENSORED
+    lin = theta[:L].copy()
+    zero = float(theta[L])
+    lin[0] += zero                       # identification's convention: reading = max(model, zero)
+    perm = lay.canonical_permutation(lin, phi)
+    nl_perm = perm[L:] - L
+    columns = np.hstack([design[:, :L], deriv])[:, perm]
+    keep = np.concatenate([np.ones(L, bool), ~fixed[nl_perm]])
+    jacobian = columns[:, keep]
+    if zero_fitted:
+        jacobian = np.hstack([jacobian, design[:, L:L + 1]])
+    lin, phi, fixed = lin[perm[:L]], phi[nl_perm], fixed[nl_perm]
+    params = jf.params.with_vector(lay.to_flat(lin, phi))
+    polished = JointFit(params, lay, lin, phi, fixed, zero, zero_fitted, jacobian, residual,
+                        jacobian.shape[1], jf.nfev, jf.starts + ["polish on every sample (analysis core)"],
+                        base.status, base.message)
+    return polished if evaluable(fd, polished, rows) else None
+
+
+def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float,
+            base: Fit | None = None) -> FitResult:
     lay = jf.layout
     params = jf.params
     names = params.names()
@@ -89,6 +150,10 @@ def _result(fd: FitData, orders: Orders, paper, jf: JointFit, started: float) ->
     stderr[order] = unc.stderr[:len(order)]
     corr = np.full((len(names), len(names)), np.nan)
     corr[np.ix_(order, order)] = unc.correlation[:len(order), :len(order)]
+    flat_lower, flat_upper = np.full(len(names), -np.inf), np.full(len(names), np.inf)
+    flat_lower[nl_idx], flat_upper[nl_idx] = lower, upper
+    varied = np.ones(len(names), bool)
+    varied[nl_idx[jf.fixed_nonlinear]] = False
     notes = [f"{names[i]} = 0 (fixed): the data do not support an oscillation of damping mode "
              f"{names[i][5:-3]} (BIC), so it is a real mode" for i in nl_idx[jf.fixed_nonlinear]]
 
@@ -122,6 +187,9 @@ def _result(fd: FitData, orders: Orders, paper, jf: JointFit, started: float) ->
         observed=fd.observed, paper=paper, source=fd.run.source,
         elapsed_s=time.perf_counter() - started, starts=jf.starts,
         run_time_s=fd.t, run_displacement_mm=fd.run.displacement_mm, run_force_N=fd.f,
+        lower=flat_lower, upper=flat_upper, varied=varied,
+        status=jf.status, message=jf.message,
+        noise_N=fd.noise_N, prepared=fd, core_fit=base,
     )
 
 
