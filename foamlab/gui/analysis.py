@@ -97,7 +97,9 @@ def stored_diagnosis(path: str | Path) -> dict | None:
     return None
 
 
-def predicted_force(fit: FitResult, run: RunData) -> np.ndarray | None:
-    """The fitted model's force at the run's samples (what the plot overlays)."""
-    predicted = np.asarray(fit.predicted_force_N, dtype=float)
-    return predicted if predicted.shape == run.force_N.shape else None
+def fit_curve(fit: FitResult) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The fitted force at the samples the fit used (time, displacement, force): what the plot
+    overlays. Samples taken off the sampling schedule are not among them."""
+    if fit.run_time_s is None or fit.run_displacement_mm is None:
+        return None
+    return fit.run_time_s, fit.run_displacement_mm, np.asarray(fit.predicted_force_N, dtype=float)

@@ -628,7 +628,7 @@ class MainWindow(QtWidgets.QMainWindow):
             if a.fit is not None:
                 report.fit_note = ""
                 report.set_fit(a.fit)
-                self._overlay_fit(a.fit, a.run)
+                self._overlay_fit(a.fit)
             elif fit:
                 report.fit_note = a.fit_error
             self.results.show_report(report)
@@ -643,12 +643,12 @@ class MainWindow(QtWidgets.QMainWindow):
 
         self.analysis.submit(work, done, failed)
 
-    def _overlay_fit(self, fit, run) -> None:
-        from foamlab.gui.analysis import predicted_force
+    def _overlay_fit(self, fit) -> None:
+        from foamlab.gui.analysis import fit_curve
 
-        predicted = predicted_force(fit, run)
-        if predicted is not None:
-            self.plots.show_fit(run.time_s, run.displacement_mm, predicted)
+        curve = fit_curve(fit)
+        if curve is not None:
+            self.plots.show_fit(*curve)
 
     def _maybe_diagnose(self, analysis: pipeline.Analysis, report: Report, generation: int,
                         stored: dict | None = None) -> None:
