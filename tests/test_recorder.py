@@ -159,3 +159,33 @@ def test_foamlab_run_refuses_an_unwritable_folder_in_one_line(tmp_path, capsys):
     code = cli.main(["run", "--speedup", "10", "--out", str(blocker / "runs"), "--quiet"])
     err = capsys.readouterr().err
     assert code == 2 and len(err.strip().splitlines()) == 1 and "cannot write run files in" in err
+
+
+@pytest.mark.gui
+@pytest.mark.hil
+@pytest.mark.timeout(60)
+def test_the_window_refuses_a_run_it_could_not_record(qtbot, tmp_path):
+    os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+    from PySide6 import QtCore
+
+    from foamlab.gui.window import MainWindow
+
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    w = MainWindow(speedup=SPEEDUP, out_dir=blocker / "runs")
+    qtbot.addWidget(w)
+    try:
+        qtbot.mouseClick(w.connect_button, QtCore.Qt.MouseButton.LeftButton)
+        qtbot.waitUntil(lambda: w.connected, timeout=20_000)
+        form = w.specimen_form
+        for edit, value in ((form.label_edit, "nowhere"), (form.edits["height_mm"], "72.5")):
+            edit.clear()
+            qtbot.keyClicks(edit, value)
+        assert not w.start_run() and w.engine is None
+        assert "cannot write run files in" in w.specimen_form.message.text()
+        status = w.link.connection.simulator.crosshead_status()
+        assert not status["moving"]
+    finally:
+        w.link.shutdown()
+        w.analysis.shutdown(wait=True)
+        w.estop_queue.shutdown(wait=True)
