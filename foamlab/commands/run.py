@@ -303,18 +303,20 @@ def _report(result, method, out_dir: Path, fit: bool = True, diagnose: bool = Tr
             analysis.fit_error = "skipped (Ctrl-C)"
         if analysis.fit is not None:
             print("fit:")
-            print("  " + analysis.fit.summary().replace("\n", "\n  "))
+            # the short summary, as `foamlab fit` prints it; the whole report is in the fit file
+            print("  " + analysis.fit.brief().replace("\n", "\n  "))
         else:
             print(f"fit: not available: {analysis.fit_error}")
+    pipeline.files_stage(analysis)      # the fit file now: a skipped diagnosis does not hold it up
+    if analysis.fit_path:
+        print(f"  fit file: {analysis.fit_path}")
     if fit and diagnose and analysis.fit is not None:
         print("diagnosing the run (Ctrl-C skips it)...", flush=True)
         try:
             pipeline.diagnose_stage(analysis)
         except KeyboardInterrupt:
             analysis.diagnosis_error = "skipped (Ctrl-C)"
-    pipeline.files_stage(analysis)
-    if analysis.fit_path:
-        print(f"  fit file: {analysis.fit_path}")
+        pipeline.files_stage(analysis)
     if analysis.diagnosis is not None:
         where = f" ({analysis.diagnosis_path})" if analysis.diagnosis_path else ""
         print(f"diagnosis: {analysis.verdict}{where}")
