@@ -143,6 +143,22 @@ def test_disk_full_mid_run_stops_the_crosshead_and_keeps_the_samples(tmp_path, s
     assert on_disk.displacement_mm[-1] > 0.5     # the run was well under way
 
 
+@pytest.mark.timeout(60)
+def test_a_folder_that_turns_unwritable_before_the_file_opens_stops_the_run(tmp_path, sim):
+    def refused(*args, **kwargs):     # the check passed; by contact the folder is read-only
+        raise PermissionError(errno.EACCES, os.strerror(errno.EACCES))
+
+    approach(machine_for(sim))
+    recorder = Recorder(tmp_path / "runs", opener=refused)
+    engine = RunEngine(machine_for(sim), load_method(short_method(tmp_path)), SPECIMEN, tmp_path / "runs",
+                       speedup=SPEEDUP, recorder=recorder)
+    result = engine.run()
+    assert result.status == "aborted" and result.end == "storage"
+    assert "\n" not in result.reason and "Permission denied" in result.reason
+    assert result.path is None and result.n_samples == 0
+    assert not sim.machine.crosshead_status().moving and result.park.startswith("parked at")
+
+
 def test_an_unwritable_folder_refuses_the_run_before_any_motion(tmp_path, sim):
     blocker = tmp_path / "a-file"
     blocker.write_text("not a folder")
