@@ -61,7 +61,8 @@ def main() -> int:
                 # The README shows a finished, fitted run; a busy computer can make the sped-up
                 # simulated machine abort (watchdog, timeouts): run again, or lower --speedup.
                 raise SystemExit(f"screenshot_gui: the run did not finish ({result.reason}); not written")
-            # Fit and diagnosis results arrive after the run; give the diagnosis its time.
+            # The pipeline's fit arrives after the run, then its diagnosis: give each its time.
+            wait_for(app, lambda: window.shown_analysis is not None, 120, "the fit")
             wait_for(app, lambda: "running" not in window.results.verdict.text(), 300, "the diagnosis")
             app.processEvents()
             out = Path(args.out)

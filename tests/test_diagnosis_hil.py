@@ -49,7 +49,7 @@ def record(tmp_path, transport: str, speedup: float, effects: dict | None, seed:
     method = load_method(short_method(tmp_path, strain=STRAIN, speed=SPEED_MM_MIN, cycles=3))
     with simulated(transport, speedup=speedup, effects=effects, seed=seed) as sim:
         approach(machine_for(sim))
-        engine = make_engine(sim, method, tmp_path, speedup=speedup, fit=False)
+        engine = make_engine(sim, method, tmp_path, speedup=speedup)
         engine.start()
         result = engine.wait(60)
         assert result is not None, "the run did not end"

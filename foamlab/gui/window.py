@@ -1,5 +1,7 @@
-"""The technician's main window. It drives foamlab.engine.RunEngine and shows what
-the engine reports; it holds no test logic of its own.
+"""The technician's main window. It drives foamlab.acquisition.RunEngine, shows what
+the engine reports and analyses each run with foamlab.pipeline (the stages `foamlab run`
+uses: the fit shown first, the diagnosis after it in the background); it holds no test
+logic of its own.
 
 Threads: the GUI thread only draws. Machine I/O runs on the MachineLink's thread
 (idle polling, jog, zero/tare, starting a run), e-stops on a thread of their own
@@ -9,16 +11,14 @@ file loading on an analysis thread. Results come back as queued Qt signals.
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from foamlab import FoamlabError
+from foamlab import FoamlabError, pipeline
 from foamlab.gui.background import BackgroundQueue
 from foamlab.gui.bridge import EngineBridge
 from foamlab.gui.forms import ERROR_STYLE, LimitsForm, SpecimenForm
@@ -41,13 +41,6 @@ STATE_TEXT = {
     "aborted": "aborted",
 }
 PHASE_OF_ACTION = {"compress": LOADING, "return": UNLOADING, "dwell": "dwell"}
-
-
-def _has_module(name: str) -> bool:
-    try:
-        return importlib.util.find_spec(name) is not None
-    except ModuleNotFoundError:
-        return False
 
 
 def _clock(seconds: float) -> str:
@@ -80,6 +73,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.bridge: EngineBridge | None = None
         self.last_result = None
         self.shown_run = None                  # RunData on display (finished run or opened file)
+        self.shown_analysis: pipeline.Analysis | None = None   # its pipeline results so far
         self._phase_of_step: dict[int, str] = {}
         self._close_requested = False
         self._analysis_generation = 0
@@ -372,7 +366,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.link.connect_machine(self.profile_combo.currentText(), self.speedup)
 
     def _on_connected(self, conn: Connection) -> None:
-        from foamlab.engine import Limits
+        from foamlab.acquisition import Limits
 
         self.connect_button.setText("Disconnect")
         self._link_trouble = False
@@ -464,7 +458,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self._status("start refused: the specimen entry is not valid", error=True)
             return False
         try:
-            from foamlab.engine import Limits, RunEngine
+            from foamlab.acquisition import Limits, RunEngine
             from foamlab.methods import load_method
 
             method = load_method(self.method_combo.currentText())
@@ -581,21 +575,13 @@ class MainWindow(QtWidgets.QMainWindow):
 
         report = Report()
         report.run = self._run_rows(result)
-        if result.results is not None:
-            report.set_method_results(result.results)
-        if result.fit is not None:
-            report.set_fit(result.fit)
-        elif result.fit_error:
-            report.fit_note = result.fit_error
-        elif not ok:
-            report.fit_note = "not fitted (the run did not finish)"
+        report.fit_note = "fitting…" if ok else "not fitted (the run did not finish)"
         self.shown_run = result.run
+        self.shown_analysis = None
         self.results.show_report(report)
-        if result.fit is not None and result.run is not None:
-            self._overlay_fit(result.fit, result.run)
-        self.browser.refresh()
-        if result.run is not None and len(result.run) and ok:
-            self._maybe_diagnose(result.run, report, self._analysis_generation)
+        if result.run is not None:
+            self._analyse(pipeline.Analysis(result.run, result.path), report, self._analysis_generation,
+                          fit=ok and len(result.run) > 0)
         if self._close_requested:
             self.close()
 
@@ -612,68 +598,108 @@ class MainWindow(QtWidgets.QMainWindow):
         rows = [("status", result.status + (f" ({result.reason})" if result.reason else "")),
                 ("file", str(result.path) if result.path else "–"),
                 ("samples", f"{result.n_samples} ({result.missed} missed)")]
-        if getattr(result, "park", ""):
+        if result.park:
             rows.append(("crosshead", result.park))
-        timing = getattr(result, "timing", None)
+        timing = result.timing
         if timing is not None and timing.samples:
             rows.append(("schedule", f"lateness p50 {timing.lateness_p50_ms:.2f} ms, p99 {timing.lateness_p99_ms:.2f} ms"))
         return rows
 
-    # ================================================================ fit overlay, diagnosis
-    def _overlay_fit(self, fit: Any, run) -> None:
-        try:
-            from foamlab.gui.analysis import predicted_force
+    # ================================================================ analysis (foamlab.pipeline)
+    def _analyse(self, analysis: pipeline.Analysis, report: Report, generation: int, fit: bool = True,
+                 stored: dict | None = None) -> None:
+        """Method results and the fit on the analysis thread (files beside the run, catalog), then
+        the diagnosis of that same fit: stored, automatic or on request."""
+        folder = self.out_dir
 
-            predicted = predicted_force(fit, run)
-        except Exception as exc:
-            log.warning("no fitted curve to draw: %s", exc)
-            return
-        if predicted is not None:
-            self.plots.show_fit(run.time_s, run.displacement_mm, predicted)
+        def work() -> pipeline.Analysis:
+            if analysis.method_results is None and not analysis.method_error:
+                pipeline.method_stage(analysis)
+            if fit:
+                pipeline.fit_stage(analysis)
+            return pipeline.catalog_stage(pipeline.files_stage(analysis), folder)
 
-    def _maybe_diagnose(self, run, report: Report, generation: int, stored: dict | None = None) -> None:
+        def done(a: pipeline.Analysis) -> None:
+            if generation != self._analysis_generation:
+                return
+            self.shown_analysis = a
+            if a.method_results is not None:
+                report.set_method_results(a.method_results)
+            if a.fit is not None:
+                report.fit_note = ""
+                report.set_fit(a.fit)
+                self._overlay_fit(a.fit)
+            elif fit:
+                report.fit_note = a.fit_error
+            self.results.show_report(report)
+            self.browser.refresh()
+            if a.fit is not None:
+                self._maybe_diagnose(a, report, generation, stored)
+
+        def failed(message: str) -> None:
+            if generation == self._analysis_generation:
+                report.fit_note = f"failed: {message}"
+                self.results.show_report(report)
+
+        self.analysis.submit(work, done, failed)
+
+    def _overlay_fit(self, fit) -> None:
+        from foamlab.gui.analysis import fit_curve
+
+        curve = fit_curve(fit)
+        if curve is not None:
+            self.plots.show_fit(*curve)
+
+    def _maybe_diagnose(self, analysis: pipeline.Analysis, report: Report, generation: int,
+                        stored: dict | None = None) -> None:
         """Show a stored diagnosis, else diagnose now when automatic diagnosis is on."""
         if stored:
             report.set_diagnosis(stored)
             report.diagnosis_note = "stored with the run"
             self.results.show_report(report)
         elif self.auto_diagnose_action.isChecked():
-            self._start_diagnosis(run, report, generation)
+            self._start_diagnosis(analysis, report, generation)
         else:
             report.diagnosis_note = "not run (Analysis > Diagnose the shown run)"
             self.results.show_report(report)
 
     def diagnose_shown_run(self) -> None:
-        if self.running or self.shown_run is None or not len(self.shown_run):
+        if self.shown_run is not None and self.shown_analysis is None and not self.running:
+            self._status("the fit is still being made: the diagnosis extends it, try again when it shows",
+                         error=True)
+            return
+        if self.running or self.shown_analysis is None or not len(self.shown_analysis.run):
             self._status("no run to diagnose: finish a run or open a file first", error=True)
             return
-        self._start_diagnosis(self.shown_run, self.results.report, self._analysis_generation)
+        self._start_diagnosis(self.shown_analysis, self.results.report, self._analysis_generation)
 
-    def _start_diagnosis(self, run, report: Report, generation: int) -> None:
-        if not _has_module("foamlab.diagnosis"):
-            report.diagnosis_note = "not available in this installation"
-            self.results.show_report(report)
-            return
-        from foamlab.gui.analysis import diagnose_run
-
+    def _start_diagnosis(self, analysis: pipeline.Analysis, report: Report, generation: int) -> None:
+        """The pipeline's diagnosis stage (it extends the run's fit), its file and catalog entry."""
         report.diagnosis_note = "running…"
         self.results.show_report(report)
+        folder = self.out_dir
 
-        def done(diagnosis) -> None:
+        def work() -> pipeline.Analysis:
+            pipeline.diagnose_stage(analysis)
+            return pipeline.catalog_stage(pipeline.files_stage(analysis), folder)
+
+        def done(a: pipeline.Analysis) -> None:
             if generation != self._analysis_generation:
                 return
-            report.set_diagnosis(diagnosis)
-            report.diagnosis_note = ""
+            if a.diagnosis is not None:
+                report.set_diagnosis(a.diagnosis)
+                report.diagnosis_note = ""
+            else:
+                report.diagnosis_note = f"failed: {a.diagnosis_error}"
             self.results.show_report(report)
             self.browser.refresh()      # the verdict is in the catalog now
 
         def failed(message: str) -> None:
-            if generation != self._analysis_generation:
-                return
-            report.diagnosis_note = f"failed: {message}"
-            self.results.show_report(report)
+            if generation == self._analysis_generation:
+                report.diagnosis_note = f"failed: {message}"
+                self.results.show_report(report)
 
-        self.analysis.submit(lambda: diagnose_run(run), done, failed)
+        self.analysis.submit(work, done, failed)
 
     # ================================================================ files
     def open_file(self, path: str | Path | None = None) -> None:
@@ -717,27 +743,10 @@ class MainWindow(QtWidgets.QMainWindow):
         if loaded.stored_diagnosis:
             report.set_diagnosis(loaded.stored_diagnosis)
             report.diagnosis_note = "stored with the run"
+        self.shown_analysis = None
         self.results.show_report(report)
         self._status(f"opened {run.source}", timeout_ms=5000)
-        from foamlab.gui.analysis import fit_for_display
-
-        def fitted(fit) -> None:
-            if generation != self._analysis_generation:
-                return
-            report.fit_note = ""
-            report.set_fit(fit)
-            self.results.show_report(report)
-            self._overlay_fit(fit, run)
-            self._maybe_diagnose(run, report, generation, loaded.stored_diagnosis)
-
-        def not_fitted(message: str) -> None:
-            if generation != self._analysis_generation:
-                return
-            report.fit_note = message
-            self.results.show_report(report)
-            self._maybe_diagnose(run, report, generation, loaded.stored_diagnosis)
-
-        self.analysis.submit(lambda: fit_for_display(loaded), fitted, not_fitted)
+        self._analyse(loaded.analysis, report, generation, stored=loaded.stored_diagnosis)
 
     def export_png(self, path: str | Path | None = None) -> Path | None:
         if path is None:

@@ -30,7 +30,7 @@ import os
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, TextIO
 
 from foamlab import FoamlabError, __version__
 from foamlab.rundata import RunData, Specimen
@@ -110,6 +110,8 @@ def _json_safe(value: Any) -> Any:
 def _format(value: Any) -> str:
     if value is None:
         return ""
+    if isinstance(value, int):          # labels (step, cycle) stay integers in the file
+        return str(value)
     v = float(value)
     return repr(v) if math.isfinite(v) else "nan"
 
@@ -123,12 +125,13 @@ class RunWriter:
     key is kept as free metadata. ``columns`` are the CSV columns: the three base
     columns first, extra ones (default ``rtt_ms``) after.
 
-    The file must not exist yet: a run never overwrites another.
+    The file must not exist yet: a run never overwrites another. ``opener`` opens it
+    (``open``'s signature; tests pass one whose writes fail, as a full disk's do).
     """
 
     def __init__(self, path: str | Path, header: dict[str, Any],
                  columns: tuple[str, ...] | list[str] | None = None,
-                 fsync_interval_s: float = 0.5) -> None:
+                 fsync_interval_s: float = 0.5, opener: Callable[..., TextIO] = open) -> None:
         columns = tuple(columns or header.get("columns") or DEFAULT_COLUMNS)
         if columns[:3] != BASE_COLUMNS:
             raise ValueError(f"run file columns must start with {','.join(BASE_COLUMNS)}")
@@ -140,7 +143,7 @@ class RunWriter:
         self._lock = threading.Lock()
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = open(self.path, "x", encoding="utf-8", newline="\n")
+            self._file = opener(self.path, "x", encoding="utf-8", newline="\n")
         except FileExistsError:
             raise FoamlabError(f"{self.path}: already exists; a run file is never overwritten") from None
         except OSError as exc:
@@ -183,6 +186,17 @@ class RunWriter:
             self.closed = True
 
     close = finish
+
+    def abandon(self) -> None:
+        """Close without a trailer after a failed write (full disk); the file is left as it is."""
+        with self._lock:
+            if self.closed:
+                return
+            self.closed = True
+            try:
+                self._file.close()          # may retry the failed flush and fail again
+            except OSError:
+                pass
 
     def _sync(self) -> None:
         self._file.flush()
