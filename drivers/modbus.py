@@ -43,14 +43,17 @@ from .base import (
     LoadCellStatus,
     Machine,
 )
-from .profile import REGISTER_TYPES, WORD_ORDERS
 
 # pymodbus logs every timeout at ERROR; we raise DeviceError instead, so keep its log
 # records away from logging's last-resort stderr handler (an application may still
 # attach its own handler to "pymodbus").
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())
 
+#: Word orders of 32-bit values a profile may set (`word_order`): vendors differ.
+WORD_ORDERS = ("big", "little")
+
 _DATATYPE = ModbusClientMixin.DATATYPE
+#: Register types a register map may use, and how pymodbus converts each.
 _DATATYPES = {
     "uint16": _DATATYPE.UINT16,
     "int16": _DATATYPE.INT16,
@@ -58,7 +61,6 @@ _DATATYPES = {
     "int32": _DATATYPE.INT32,
     "float32": _DATATYPE.FLOAT32,
 }
-assert set(_DATATYPES) == set(REGISTER_TYPES)
 
 #: Standard Modbus exception codes (Modbus Application Protocol v1.1b3, section 7).
 MODBUS_EXCEPTIONS = {
