@@ -144,13 +144,6 @@ class Segmentation:
                 halves.append(cycle.unloading)
         return halves
 
-    def half_cycle(self, cycle: int, direction: str) -> HalfCycle:
-        for half in self.half_cycles:
-            if half.cycle == cycle and half.direction == direction:
-                return half
-        raise FoamlabError(f"run has no {direction} half-cycle in cycle {cycle} "
-                           f"({self.n_cycles} cycles)")
-
     def arrays(self, half: HalfCycle, *, in_contact_only: bool = False) -> HalfCycleData:
         """Time, displacement and force of one half-cycle (copies).
 

@@ -136,8 +136,6 @@ class MachineSettings:
     # specimen
     specimen_top_mm: float = 5.0
     specimen_height_mm: float = 72.5
-    specimen_width_mm: float = 100.0
-    specimen_depth_mm: float = 100.0
     # physics step (virtual s); None = from the speedup (see SimulatedMachine)
     max_step_s: float | None = None
 
