@@ -198,8 +198,9 @@ class _SerialClient(ModbusSerialClient):
 
     pyserial's socket:// `in_waiting` is 1 when anything is readable, and pymodbus polls
     `in_waiting` every millisecond until it stops growing - so it would read an RTU reply
-    one byte per poll (~12 ms for a 9-byte reply, and timeouts mid-frame under load).
-    FIONREAD gives the real count; other ports (ttys, ptys) keep pyserial's answer.
+    one byte per poll (slow, and timeouts mid-frame under load: measured in
+    docs/protocols.md#rtu-waiting-for-a-reply-without-polling). FIONREAD gives the real
+    count; other ports (ttys, ptys) keep pyserial's answer.
     """
 
     def _in_waiting(self) -> int:
@@ -220,10 +221,11 @@ class _SerialClient(ModbusSerialClient):
         """Wake when the reply's bytes arrive instead of polling the port every millisecond.
 
         pymodbus waits for a reply by sleeping 1 ms, checking `in_waiting`, until the count
-        stops growing: >= 2 ms per request whatever the line's speed, 5-6 ms per sample of
-        force and position. Here select() wakes on the first byte and returns what has come;
-        pymodbus' framer keeps a partial frame and asks again for the rest (each wait bounded
-        by the timeout, an empty return meaning "no reply").
+        stops growing: milliseconds per request whatever the line's speed (measured:
+        docs/protocols.md#rtu-waiting-for-a-reply-without-polling). Here select() wakes on
+        the first byte and returns what has come; pymodbus' framer keeps a partial frame and
+        asks again for the rest (each wait bounded by the timeout, an empty return meaning
+        "no reply").
         """
         fd = self._readable_fd() if size is None and self.socket else None
         if fd is None:
