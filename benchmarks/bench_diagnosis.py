@@ -35,8 +35,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import numpy as np  # noqa: E402
-
 from _table import publish  # noqa: E402
 from foamlab.diagnosis import diagnose  # noqa: E402
 from foamlab.diagnosis.synthetic import NOISE_N, hidden_effect_run  # noqa: E402

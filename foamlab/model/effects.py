@@ -426,8 +426,8 @@ def first_order_response(t, u, tau: float) -> np.ndarray:
 
     u: (n,) or (n, k), time along axis 0. The recursion y_i = a_i y_{i-1} + g_i is summed as
     y_i = sum_j exp(-(t_i - t_j)/tau) g_j, in stretches of at most _CHUNK_TAUS tau (so the
-    exponentials neither overflow nor lose precision), vectorised: a plain loop over 18 000
-    samples costs ~50 ms per call, and a fit calls it hundreds of times."""
+    exponentials neither overflow nor lose precision), vectorised because a fit calls it
+    hundreds of times (a plain loop's cost: docs/model.md#measured-costs-behind-implementation-choices)."""
     u = np.asarray(u, float)
     t = np.asarray(t, float)
     if tau <= 0 or len(t) < 2:

@@ -33,21 +33,15 @@ from pathlib import Path
 from typing import Any, Callable, TextIO
 
 from foamlab import FoamlabError, __version__
+from foamlab.importers import plain_csv
+from foamlab.importers._text import read_text
 from foamlab.rundata import RunData, Specimen
+from foamlab.runformat import BASE_COLUMNS, MAGIC, META_PREFIX, SPECIMEN_FIELDS, is_run_file
 
-MAGIC = "# foamlab run file v1"
-BASE_COLUMNS = ("time_s", "displacement_mm", "force_N")
 DEFAULT_COLUMNS = BASE_COLUMNS + ("rtt_ms",)
-META_PREFIX = "meta."
-
-#: Header keys that map onto RunData fields (the rest is metadata).
-RUN_FIELDS = ("method", "machine", "started_at", "finished_at", "status", "abort_reason")
-SPECIMEN_FIELDS = {"specimen_label": "label", "specimen_height_mm": "height_mm",
-                   "specimen_width_mm": "width_mm", "specimen_depth_mm": "depth_mm"}
 #: Written in this order at the top of the file, when present.
 HEADER_ORDER = ("method", "specimen_label", "specimen_height_mm", "specimen_width_mm",
                 "specimen_depth_mm", "machine", "software", "started_at", "sampling_hz")
-NO_TRAILER_REASON = "the file has no status line: the run was interrupted (or is still being written)"
 
 
 def now_iso() -> str:
@@ -231,46 +225,8 @@ def write_run_file(path: str | Path, run: RunData, extra: dict[str, Any] | None 
     return writer.path
 
 
-def runfile_fields(header: dict[str, str]) -> dict[str, Any]:
-    """RunData keyword arguments from ``# key: value`` lines (run files and plain CSVs)."""
-    fields: dict[str, Any] = {}
-    specimen: dict[str, Any] = {}
-    metadata: dict[str, Any] = {}
-    for key, value in header.items():
-        if key in RUN_FIELDS:
-            fields[key] = value
-        elif key in SPECIMEN_FIELDS:
-            name = SPECIMEN_FIELDS[key]
-            if name == "label":
-                specimen[name] = value
-            else:
-                try:
-                    number = float(value)
-                except ValueError:
-                    number = None
-                specimen[name] = number if number is not None and math.isfinite(number) else None
-        elif key.startswith(META_PREFIX):
-            try:
-                metadata[key[len(META_PREFIX):]] = json.loads(value)
-            except ValueError:
-                metadata[key[len(META_PREFIX):]] = value
-        else:
-            metadata[key] = value
-    if specimen:
-        fields["specimen"] = Specimen(**specimen)
-    fields["metadata"] = metadata
-    return fields
-
-
-def is_run_file(first_line: str) -> bool:
-    return first_line.lstrip("\ufeff").startswith("# foamlab run file")
-
-
 def read_run_file(path: str | Path) -> RunData:
     """A run file back as RunData (extra columns are listed in metadata['extra_columns'])."""
-    from foamlab.importers import plain_csv  # noqa: PLC0415 (importers use this module)
-    from foamlab.importers._text import read_text  # noqa: PLC0415
-
     text_file = read_text(path)
     lines = text_file.lines
     if not lines or not is_run_file(lines[0]):
