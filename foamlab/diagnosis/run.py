@@ -5,7 +5,8 @@ from __future__ import annotations
 from foamlab import FoamlabError
 from foamlab.analysis.prepared import prepare
 from foamlab.analysis.solve import polish
-from foamlab.diagnosis.core import Diagnosis, diagnose_prepared
+from foamlab.diagnosis.core import diagnose_prepared
+from foamlab.diagnosis.result import Diagnosis
 from foamlab.identification import FitResult, fit_run
 from foamlab.rundata import RunData
 
