@@ -40,8 +40,7 @@ def exact_history(x: np.ndarray) -> bool:
     An exact history bends only at its corners; a measured one at many samples (resolution,
     timing). A noise level of zero does not tell them apart: a 1 um encoder read on a regular
     clock has zero second differences at most samples, so its robust noise level is 0 too
-    (measured: serial recordings at speedup 2; its 1 um staircase through the residual's
-    near-derivative cost 0.015 N rms, and clean runs were named a cause).
+    (docs/analysis.md, "The path").
     """
     x = np.asarray(x, float)
     if len(x) < 5:
@@ -153,8 +152,7 @@ def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, b
     A drive that reverses from rest arrives at a turning point between two samples,
     waits, and leaves between two samples; the straight lines through the samples cut
     both corners, and the residual's near-derivative memory responds to exactly that
-    (measured: 0.7-1.4 N at the first samples after a turning point, 16 Hz, default
-    specimen). extremes: (first, last, is_maximum) samples at each turning point. A
+    (docs/analysis.md, "The path"). extremes: (first, last, is_maximum) samples at each turning point. A
     stop is seen when there are several samples at the extreme or the one there is off
     both stretches' straight lines (by more than tol); then the arrival is where
     that line reaches the extreme and the departure where the outgoing line leaves it,
@@ -228,10 +226,7 @@ def path_determined(t: np.ndarray, x: np.ndarray, force: np.ndarray, nodes: Path
     (it decelerates and accelerates), the samples do not say. Near a turning point the
     model's force changes by several newtons within a sample step (the damping stops, the
     residual's near-derivative memory starts), so there it depends on instants the data
-    cannot resolve: measured on 16 Hz runs with the simulator's crosshead (acceleration
-    ramps, random dwells), the true model driven by the estimated path misses the sample at
-    the extreme by 5-9 N rms, the next two by 0.5-3 N and 0.1-0.3 N, and every other sample
-    by less than the load cell's noise. Where the force is steady around a corner (the plate
+    cannot resolve (docs/analysis.md, "The path"). Where the force is steady around a corner (the plate
     off the specimen at the end of an unloading) the instant does not matter: kept.
     These samples are predicted but not used as evidence (fits, statistics, held-out
     checks). An exact (synthetic) history has its corners at its samples: all are evidence.

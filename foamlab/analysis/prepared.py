@@ -335,10 +335,8 @@ def on_schedule(run: RunData) -> tuple[RunData, int]:
 
     A request that stalls leaves a gap, then samples bunched; the instant of the samples
     around the stall is unsure by the stall (S x its wall time on a machine run at speedup
-    S). Measured on a recording with one 0.17 s stall at speedup 3: the sample after it was
-    stamped 0.17 s early (its position 0.34 mm off the crosshead's line), which bent the
-    estimated displacement path for a second around it and a cause was named on a clean run.
-    Samples whose interval to a neighbour is off the sampling step by more than OFF_SCHEDULE
+    S): one such sample bends the estimated path for a second around it (docs/analysis.md,
+    "The path"). Samples whose interval to a neighbour is off the sampling step by more than OFF_SCHEDULE
     of it are left out - only when they are rare (a regular clock that stalled): a clock
     irregular by design (logging on change) is kept as it is.
     """

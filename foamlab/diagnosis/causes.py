@@ -130,8 +130,7 @@ class CycleSoftening(Cause):
 class DampingCycleChange(Cause):
     effect = fx.DampingCycleChange
     # identification takes the damping from the first loading and gives the later loadings'
-    # change to the residual terms of the earlier cycles (measured: an effect 50 x the noise
-    # fitted at a tenth of its size from identification's base, at its size from a restart)
+    # change to the residual terms of the earlier cycles (docs/analysis.md, "Restarts")
     absorbed_by_identification = True
 
     @classmethod

@@ -27,11 +27,8 @@ EXPLAINED_SHARE_MIN = 0.5
 PARTIAL_SHARE_MIN = 0.1
 #: Contiguous blocks of each run in the held-out check.
 HELDOUT_FOLDS = 6
-#: ...each made of blocks of about this many samples spread over the run (at least 8 per fold).
-#: Short blocks: a long block left out just after a turning point leaves that cycle's fast
-#: residual terms to be extrapolated backwards from later samples; measured on 16 Hz runs of
-#: ~900 samples, with blocks of 18 samples that one block decided the check (the right
-#: extension's held-out RMSE 0.40 N in it, 0.055 N in the other folds), with ~5-9 none did.
+#: ...each made of blocks of about this many samples spread over the run (at least 8 per fold):
+#: short, so no block just after a turning point decides the check alone (docs/analysis.md).
 HELDOUT_BLOCK_SAMPLES = 10
 HELDOUT_BLOCKS_PER_FOLD = 8
 #: Iterations of the refit without the held-out blocks.
@@ -47,8 +44,7 @@ def folds(series: list[Series], n_folds: int = HELDOUT_FOLDS,
     what was fitted. Samples measured off the specimen stay in every fit: their force is
     the unloaded reading whatever the model, so they carry no information on its
     parameters, only where the plate leaves the specimen - a fit without them is free to
-    put contact there (measured on the real file: blocks at the end of an unloading,
-    predicted 5-11 N where the plate was off, decided the check for every model alike)."""
+    put contact there (docs/analysis.md, "Held-out blocks")."""
     out = []
     for k in range(n_folds):
         masks = []
@@ -105,8 +101,7 @@ def _before_with_contact_of(before: Fit, fit: Fit) -> Solution:
     """The model without the candidate's effect, solved from the candidate's contact set (the
     better of that and its own solution). The active-set iteration ends in a fixed point that
     depends on its start: an extension that merely found a better contact set would
-    otherwise be credited with it (measured on clean recordings: every candidate at ~0
-    effect 17-41 BIC points better than the base, and one of them named)."""
+    otherwise be credited with it (docs/analysis.md, "The acceptance rules")."""
     if not all(a is b for a, b in zip(before.model.series, fit.model.series)):
         return before.solution
     m = before.model

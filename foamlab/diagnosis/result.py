@@ -52,8 +52,7 @@ class Candidate:
 
         The optimum lies beyond what the effect can physically be (a damping change that
         would make a later cycle's damping vanish): the data ask for something else, which
-        this effect imitates at its limit (measured: a cycle_softening of 10 %/cycle through
-        a driver fitted as damping_cycle_change at its -0.45 bound, dBIC 337 vs 330).
+        this effect imitates at its limit (docs/analysis.md, "The acceptance rules").
         """
         lo, hi = self.cause.bounds()
         v = self.values["values"]
