@@ -58,9 +58,11 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple = Orders(),
     Where the crosshead turned without a stop, the samples cannot say whether it turned at
     the sample at the extreme (a polyline of samples) or between two (a real machine): the
     model switches at the turn, so the samples next to it show which. When they are off by
-    more than TURN_NOISE_MULTIPLE noise levels, the other is fitted too and the better kept."""
+    more than TURN_MISFIT_MULTIPLE times the noise and their neighbours, the other is fitted too
+    and the better kept."""
     result = _fit_prepared(fd, orders, progress)
-    if _misfit_at_turns(result, fd) > TURN_NOISE_MULTIPLE * fd.noise_N:
+    at_turns, around = _misfit_at_turns(result, fd)
+    if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around):
         other = _fit_prepared(fd.other_turns(), orders, progress)
         where = "between samples" if other.prepared.nodes.between_samples else "at the sample at the extreme"
         if other.rmse < result.rmse:
@@ -70,20 +72,21 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple = Orders(),
     return result
 
 
-#: Misfit (RMS over the samples next to turns without a stop) that calls for the other turn.
-TURN_NOISE_MULTIPLE = 3.0
+#: The samples next to turns without a stop misfit by more than this many times the noise
+#: and the samples around them: the turn is at the other place.
+TURN_MISFIT_MULTIPLE = 3.0
 
 
-def _misfit_at_turns(result: FitResult, fd: PreparedRun) -> float:
-    """RMS misfit of the samples within one step of a turn without a stop (0: none)."""
+def _misfit_at_turns(result: FitResult, fd: PreparedRun) -> tuple[float, float]:
+    """RMS misfit of the samples within one step of a turn without a stop, and of the samples
+    2-6 steps from one (an effect near the turns, e.g. a lag, misfits both alike)."""
     turns = fd.nodes.turns_between
     if not len(turns):
-        return 0.0
-    near = np.zeros(len(fd.t), bool)
-    for tc in turns:
-        near |= np.abs(fd.t - tc) <= fd.native_step_s
-    r = (fd.f - result.predicted_force_N)[near]
-    return float(np.sqrt(np.mean(r ** 2))) if len(r) else 0.0
+        return 0.0, 0.0
+    distance = np.min(np.abs(fd.t[:, None] - turns[None, :]), axis=1) / fd.native_step_s
+    r = fd.f - result.predicted_force_N
+    rms = lambda m: float(np.sqrt(np.mean(r[m] ** 2))) if np.any(m) else 0.0
+    return rms(distance <= 1.0), rms((distance > 2.0) & (distance <= 6.0))
 
 
 def _fit_prepared(fd: PreparedRun, orders, progress: Progress | None) -> FitResult:
