@@ -29,14 +29,13 @@ import time
 
 from threadpoolctl import threadpool_limits
 
-from foamlab.analysis.noise import series_noise_sigma, whiteness
+from foamlab.analysis.noise import WHITE_P, series_noise_sigma, whiteness
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import POLISH_NFEV, Fit, at_full_resolution, decimation
 from foamlab.diagnosis.causes import CAUSES, Cause
 from foamlab.diagnosis.evidence import (
     DELTA_BIC_MIN,
     EXPLAINED_SHARE_MIN,
-    WHITE_P,
     compare,
     explained_share,
     explains,

@@ -9,7 +9,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from foamlab.analysis.design import ExtendedModel, Series, Solution
-from foamlab.analysis.noise import ArWhitener, whiteness
+from foamlab.analysis.noise import WHITE_P, ArWhitener, whiteness
 from foamlab.analysis.solve import Fit, contact_of, varpro
 from foamlab.diagnosis.result import Candidate
 
@@ -19,8 +19,6 @@ DELTA_BIC_MIN = 10.0
 #: recordings the base's alpha/beta can improve in an extension's fit, at its effect's expense
 #: (docs/findings.md, "The acceptance rules").
 EFFECT_Z_MIN = 3.0
-#: Whiteness tests below this p-value mean structure.
-WHITE_P = 1e-3
 #: Share of the structure left above the noise an extension must explain to be named when
 #: its residuals are still not white; at least PARTIAL_SHARE_MIN to be reported as partial.
 EXPLAINED_SHARE_MIN = 0.5

@@ -16,9 +16,16 @@ from typing import Callable
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from foamlab.analysis.noise import WHITE_P, whiteness
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
 from foamlab.analysis.solve import Fit, polish
-from foamlab.identification.joint import MIN_CENSORED, JointFit, evaluable, joint_fit
+from foamlab.identification.joint import (
+    MIN_CENSORED,
+    JointFit,
+    alternative_starts,
+    evaluable,
+    joint_fit,
+)
 from foamlab.identification.paper import paper_steps
 from foamlab.identification.result import FitResult
 from foamlab.identification.statistics import (
@@ -102,6 +109,13 @@ def _fit_prepared(fd: PreparedRun, orders, progress: Progress | None) -> FitResu
         jf = joint_fit(fd, orders, paper.start, report)
         report("polish on every sample", 0.8)
         base = polish([fd.series], jf.params)
+        if not _at_the_noise(base, fd):
+            # the data call for another start: the search's next best optimum, polished alike
+            report("polish from a second start", 0.85)
+            for params in alternative_starts(fd, orders, paper.start, count=EXTRA_STARTS):
+                other = polish([fd.series], params)
+                if other.rss < base.rss:
+                    base = other
         polished = _from_core(fd, jf, base)
         if polished is not None:
             jf = polished
@@ -111,6 +125,17 @@ def _fit_prepared(fd: PreparedRun, orders, progress: Progress | None) -> FitResu
         result = _result(fd, orders, paper, jf, started, base)
     report("done", 1.0)
     return result
+
+
+#: A polished fit further than this from the noise level, with structure left in its
+#: residuals, is polished again from the search's next best start(s).
+AT_NOISE_RATIO = 1.05
+EXTRA_STARTS = 1
+
+
+def _at_the_noise(base: Fit, fd: PreparedRun) -> bool:
+    rmse = base.rmse
+    return rmse <= AT_NOISE_RATIO * fd.noise_N or whiteness(base.solution.residual).min_p >= WHITE_P
 
 
 def _orders(orders) -> Orders:

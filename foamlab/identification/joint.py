@@ -258,6 +258,17 @@ def search_start(fd: PreparedRun, orders: Orders, start: ModelParameters | None 
     return _template(fd, lay).with_vector(lay.to_flat(fit.linear, fit.nonlinear))
 
 
+def alternative_starts(fd: PreparedRun, orders: Orders, start: ModelParameters | None, count: int = 1):
+    """The search's next best optima after the first (the one joint_fit continued), as
+    parameters: starts for another polish when the first leaves structure."""
+    lay = _layout(fd, orders)
+    for rank, (fit, *_) in enumerate(_ranked_searches(fd, orders, start, None)):
+        if rank > count:
+            return
+        if rank:
+            yield _template(fd, lay).with_vector(lay.to_flat(fit.linear, fit.nonlinear))
+
+
 def joint_fit(fd: PreparedRun, orders: Orders, start: ModelParameters | None,
               progress: Callable[[str, float], None] | None = None) -> JointFit:
     lay = _layout(fd, orders)
