@@ -32,8 +32,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _table import publish  # noqa: E402
 
 from foamlab.identification import Orders, fit_run  # noqa: E402
-from foamlab.identification.basis import Layout, ModelBasis  # noqa: E402
-from foamlab.identification.data import prepare  # noqa: E402
+from foamlab.analysis.basis import ModelBasis  # noqa: E402
+from foamlab.model.layout import Layout  # noqa: E402
+from foamlab.analysis.prepared import prepare  # noqa: E402
 from foamlab.importers import load_run  # noqa: E402
 from foamlab.model import ModelParameters, evaluate, triangular_history  # noqa: E402
 from foamlab.rundata import RunData  # noqa: E402

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from drivers.base import DeviceError  # noqa: E402
 from drivers.profile import open_machine  # noqa: E402
-from foamlab.engine import RunEngine  # noqa: E402
+from foamlab.acquisition import RunEngine  # noqa: E402
 from foamlab.methods import parse_method  # noqa: E402
 from foamlab.rundata import Specimen  # noqa: E402
 from simulator.process import start_simulator_process  # noqa: E402
@@ -75,7 +75,7 @@ def one_run(transport: str, speedup: float, seconds: float, out: Path, realtime:
     with start_simulator_process(transport, speedup=speedup) as sim:
         approach(sim)
         machine = open_machine(sim.profile, connect=False, **sim.profile_overrides)
-        engine = RunEngine(machine, method(seconds), SPECIMEN, out, speedup=speedup, fit=False,
+        engine = RunEngine(machine, method(seconds), SPECIMEN, out, speedup=speedup,
                            realtime=realtime)
         result = engine.run()
     if result.status != "finished":

@@ -138,11 +138,9 @@ class Machine(abc.ABC):
         1 um into ~0.05 N. So the position is read just before and just after the force and
         interpolated to the force reading's instant (its request's midpoint): the two
         position readings bracket the force reading, so whatever delays a request within a
-        sample (the host's or the device's scheduling) shifts all three alike. Measured at
-        speedup 4 over Modbus TCP: interpolating from the previous sample's position instead
-        (one request fewer) left 0.069 N rms between the recording and the true specimen,
-        autocorrelated (lag-1 0.29), and clean runs were named a cause; bracketed, 0.051 N
-        (the load cell's noise 0.05 N), white.
+        sample (the host's or the device's scheduling) shifts all three alike. Reusing the
+        previous sample's position instead left structured residuals that diagnosis took for
+        a cause (measured: docs/protocols.md#reading-a-sample-the-position-brackets-the-force).
         """
         t0 = time.monotonic()
         before = self.crosshead.read_position()

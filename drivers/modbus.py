@@ -43,14 +43,17 @@ from .base import (
     LoadCellStatus,
     Machine,
 )
-from .profile import REGISTER_TYPES, WORD_ORDERS
 
 # pymodbus logs every timeout at ERROR; we raise DeviceError instead, so keep its log
 # records away from logging's last-resort stderr handler (an application may still
 # attach its own handler to "pymodbus").
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())
 
+#: Word orders of 32-bit values a profile may set (`word_order`): vendors differ.
+WORD_ORDERS = ("big", "little")
+
 _DATATYPE = ModbusClientMixin.DATATYPE
+#: Register types a register map may use, and how pymodbus converts each.
 _DATATYPES = {
     "uint16": _DATATYPE.UINT16,
     "int16": _DATATYPE.INT16,
@@ -58,7 +61,6 @@ _DATATYPES = {
     "int32": _DATATYPE.INT32,
     "float32": _DATATYPE.FLOAT32,
 }
-assert set(_DATATYPES) == set(REGISTER_TYPES)
 
 #: Standard Modbus exception codes (Modbus Application Protocol v1.1b3, section 7).
 MODBUS_EXCEPTIONS = {
@@ -196,8 +198,9 @@ class _SerialClient(ModbusSerialClient):
 
     pyserial's socket:// `in_waiting` is 1 when anything is readable, and pymodbus polls
     `in_waiting` every millisecond until it stops growing - so it would read an RTU reply
-    one byte per poll (~12 ms for a 9-byte reply, and timeouts mid-frame under load).
-    FIONREAD gives the real count; other ports (ttys, ptys) keep pyserial's answer.
+    one byte per poll (slow, and timeouts mid-frame under load: measured in
+    docs/protocols.md#rtu-waiting-for-a-reply-without-polling). FIONREAD gives the real
+    count; other ports (ttys, ptys) keep pyserial's answer.
     """
 
     def _in_waiting(self) -> int:
@@ -218,10 +221,11 @@ class _SerialClient(ModbusSerialClient):
         """Wake when the reply's bytes arrive instead of polling the port every millisecond.
 
         pymodbus waits for a reply by sleeping 1 ms, checking `in_waiting`, until the count
-        stops growing: >= 2 ms per request whatever the line's speed, 5-6 ms per sample of
-        force and position. Here select() wakes on the first byte and returns what has come;
-        pymodbus' framer keeps a partial frame and asks again for the rest (each wait bounded
-        by the timeout, an empty return meaning "no reply").
+        stops growing: milliseconds per request whatever the line's speed (measured:
+        docs/protocols.md#rtu-waiting-for-a-reply-without-polling). Here select() wakes on
+        the first byte and returns what has come; pymodbus' framer keeps a partial frame and
+        asks again for the rest (each wait bounded by the timeout, an empty return meaning
+        "no reply").
         """
         fd = self._readable_fd() if size is None and self.socket else None
         if fd is None:

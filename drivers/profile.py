@@ -22,15 +22,15 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from .ascii import AsciiMachine, CommandSet
 from .base import Machine
+from .modbus import WORD_ORDERS, ModbusCrosshead, ModbusLoadCell, ModbusMachine, RegisterMap
 
 #: The repository's machine profiles (used when no directory is given).
 MACHINES_DIR = Path(__file__).resolve().parent.parent / "configs" / "machines"
 
 PROTOCOLS = ("modbus", "ascii")
 TRANSPORTS = ("tcp", "rtu")
-WORD_ORDERS = ("big", "little")
-REGISTER_TYPES = ("uint16", "int16", "uint32", "int32", "float32")
 PARITIES = ("N", "E", "O", "M", "S")
 
 #: Connection keys `open_machine(**overrides)` accepts, with their expected type.
@@ -210,7 +210,6 @@ def _validate_modbus(profile: dict, c: _Checker) -> None:
     if watchdog is not None and not 0 <= watchdog <= 0xFFFF:
         c.fail("[crosshead]", f"`watchdog_ms` must be 0..65535, got {watchdog}")
     # The register map itself: building it checks every entry (drivers.modbus owns the format).
-    from .modbus import ModbusCrosshead, ModbusLoadCell, RegisterMap  # local import: modbus imports this module
     for device, driver in (("load_cell", ModbusLoadCell), ("crosshead", ModbusCrosshead)):
         try:
             driver.checked_map(RegisterMap.from_toml(profile["wire"], device))
@@ -223,7 +222,6 @@ def _validate_ascii(profile: dict, c: _Checker) -> None:
     if not isinstance(connection.get("port_url"), str) or not connection["port_url"]:
         c.fail("[connection]", "`port_url` must be a pyserial URL or device path")
     c.number(connection, "baudrate", "[connection]", integer=True, positive=True)
-    from .ascii import CommandSet  # local import: ascii imports this module
     try:
         CommandSet.from_toml(profile["wire"])
     except ValueError as exc:
@@ -267,10 +265,8 @@ def open_machine(profile: dict | str | Path, *, connect: bool = True, **override
         profile = load_profile(profile)
     profile = apply_overrides(profile, **overrides)
     if profile["protocol"] == "modbus":
-        from .modbus import ModbusMachine
         machine: Machine = ModbusMachine(profile)
     else:
-        from .ascii import AsciiMachine
         machine = AsciiMachine(profile)
     if connect:
         machine.connect()

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from foamlab import FoamlabError
+from foamlab.segmentation import Segmentation, segment
 
 
 @dataclass
@@ -75,8 +76,6 @@ class RunData:
             metadata=dict(self.metadata),
         )
 
-    def segments(self):
+    def segments(self) -> Segmentation:
         """Cycles and half-cycles of this run (see foamlab.segmentation)."""
-        from foamlab.segmentation import segment
-
         return segment(self)

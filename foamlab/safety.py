@@ -71,7 +71,7 @@ def check_run_fits(method, specimen, limits, position_mm: float | None) -> None:
     specimen lies beyond the lower travel limit, counted from where the crosshead stands
     (the contact search starts there and only goes down). `position_mm` None: unknown,
     counted from the upper travel limit. (method: foamlab.methods.Method, specimen:
-    foamlab.rundata.Specimen, limits: foamlab.engine.Limits.)"""
+    foamlab.rundata.Specimen, limits: foamlab.acquisition.Limits.)"""
     stroke = method.max_strain * specimen.height_mm
     start = limits.travel_upper_mm if position_mm is None else position_mm
     room = limits.travel_lower_mm - start

@@ -33,13 +33,12 @@ What is found, and how (every threshold comes from the data, none from the file)
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import numpy as np
 from scipy import signal
 
 from foamlab import FoamlabError
-from foamlab.rundata import RunData
 
 LOADING = "loading"
 UNLOADING = "unloading"
@@ -56,6 +55,18 @@ LINEAR_NOISE_MULTIPLE = 1.5
 LINEAR_RELATIVE_RMS = 0.005
 #: Contact threshold above the unloaded reading, in multiples of its noise.
 CONTACT_NOISE_MULTIPLE = 5.0
+
+
+class Samples(Protocol):
+    """What segment() reads: a foamlab.rundata.RunData, or anything with these arrays.
+
+    Structural, so that this module needs nothing of RunData's (RunData.segments()
+    calls segment(); the dependency points from rundata to here only).
+    """
+
+    time_s: np.ndarray
+    displacement_mm: np.ndarray
+    force_N: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -106,7 +117,7 @@ class HalfCycleData(NamedTuple):
 
 @dataclass
 class Segmentation:
-    run: RunData = field(repr=False)
+    run: Samples = field(repr=False)
     turning_points: np.ndarray          # sample index of each reversal, in time order
     cycles: list[Cycle]
     contact_lost: np.ndarray            # bool per sample
@@ -132,13 +143,6 @@ class Segmentation:
             if cycle.unloading is not None:
                 halves.append(cycle.unloading)
         return halves
-
-    def half_cycle(self, cycle: int, direction: str) -> HalfCycle:
-        for half in self.half_cycles:
-            if half.cycle == cycle and half.direction == direction:
-                return half
-        raise FoamlabError(f"run has no {direction} half-cycle in cycle {cycle} "
-                           f"({self.n_cycles} cycles)")
 
     def arrays(self, half: HalfCycle, *, in_contact_only: bool = False) -> HalfCycleData:
         """Time, displacement and force of one half-cycle (copies).
@@ -169,14 +173,14 @@ class Segmentation:
         return 0
 
 
-def segment(run: RunData) -> Segmentation:
+def segment(run: Samples) -> Segmentation:
     """Turning points, cycles, contact loss and first-cycle linear region of a run."""
     # absurd magnitudes (1e300) overflow in squares; the result is still defined
     with np.errstate(over="ignore", invalid="ignore"):
         return _segment(run)
 
 
-def _segment(run: RunData) -> Segmentation:
+def _segment(run: Samples) -> Segmentation:
     x = np.asarray(run.displacement_mm, dtype=float)
     f = np.asarray(run.force_N, dtype=float)
     n = len(x)

@@ -74,7 +74,8 @@ def main() -> int:
                 # lower --speedup.
                 raise SystemExit(f"screenshot_gui: the run did not finish cleanly ({result.reason or 'gaps'}); "
                                  "not written")
-            # Fit and diagnosis results arrive after the run; give the diagnosis its time.
+            # The pipeline's fit arrives after the run, then its diagnosis: give each its time.
+            wait_for(app, lambda: window.shown_analysis is not None, 120, "the fit")
             wait_for(app, lambda: "running" not in window.results.verdict.text(), 300, "the diagnosis")
             app.processEvents()
             out_dir = Path(args.out_dir)

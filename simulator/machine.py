@@ -68,11 +68,11 @@ TICK_CHUNK_STEPS = 2            # physics steps per lock hold in the ticker
 MAX_STEPS_PER_ADVANCE = 200     # beyond this backlog, steps grow (bounded lock time, no runaway)
 RANDOM_OVERLOAD_S = 1.0         # duration of one random overload event (virtual s)
 MIN_STEP_S = 1e-6               # shorter steps would differentiate rounding errors (rates ~ dx/h)
-# Every read brings the physics to its instant, in steps of at most max_step_s: a host
-# sampling at 16 Hz then costs ~3 steps per sample (a finer step costs the host latency:
-# at 2 ms, 30 steps of ~0.1 ms per sample). Coarse steps lose nothing: the crosshead's
-# path is piecewise linear between breakpoints, on which the model's operators are exact,
-# and the effects' loops are stable at any step (tests/test_effects.py).
+# Every read brings the physics to its instant, in steps of at most max_step_s; a finer
+# step costs the host latency in every reply (docs/simulator_wire.md#the-physics-step).
+# Coarse steps lose nothing: the crosshead's path is piecewise linear between breakpoints,
+# on which the model's operators are exact, and the effects' loops are stable at any step
+# (tests/test_effects.py).
 MIN_AUTO_STEP_S = 0.02
 READ_STALENESS_S = 1e-3         # a read sees the machine at most this long ago (virtual s; a 1 kHz indicator)
 SPECIMEN_T_MAX_S = 1e6          # memory operators stay accurate over this much virtual time
@@ -136,8 +136,6 @@ class MachineSettings:
     # specimen
     specimen_top_mm: float = 5.0
     specimen_height_mm: float = 72.5
-    specimen_width_mm: float = 100.0
-    specimen_depth_mm: float = 100.0
     # physics step (virtual s); None = from the speedup (see SimulatedMachine)
     max_step_s: float | None = None
 

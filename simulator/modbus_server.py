@@ -87,7 +87,6 @@ class DeviceMap:
     block: Block | None = None
     status_bits: dict[str, int] = field(default_factory=dict)
     codes: dict[str, int] = field(default_factory=dict)  # [x.commands] / [x.triggers]
-    fault_codes: dict[str, int] = field(default_factory=dict)
 
     @classmethod
     def from_wire(cls, wire: dict, device: str) -> "DeviceMap":
@@ -109,7 +108,6 @@ class DeviceMap:
             block=block,
             status_bits=dict(section.get("status_bits", {})),
             codes=dict(section.get("commands", section.get("triggers", {}))),
-            fault_codes=dict(section.get("fault_codes", {})),
         )
 
 
@@ -370,7 +368,6 @@ class _SimRequestHandler(ServerRequestHandler):
                 self._reply_exception(pdu, ExcCodes.GATEWAY_NO_RESPONSE)
             return  # on a serial line, nobody answers for a unit that is not there
         fault = sim.next_wire_fault()
-        sim.requests += 1
         if fault == "drop":
             sim.drop_link(self)
             return
@@ -450,7 +447,6 @@ class ModbusSimServer:
         self.host, self.port = host, port
         self.framer = FramerType.SOCKET if transport == "tcp" else FramerType.RTU
         self.rng = random.Random(seed)
-        self.requests = 0  #: requests addressed to our units (faulted ones included)
         self.drops = 0
         wire, word_order = profile["wire"], profile["word_order"]
         lc, ch = profile["load_cell"], profile["crosshead"]

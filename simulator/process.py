@@ -66,16 +66,16 @@ def _child(conn, transport: str, kwargs: dict, realtime: bool) -> None:
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
     if not realtime:
-        # A real device answers within its firmware's fixed time. Here the answering thread
-        # blocks on the wire and computes ~1 ms per request, so it may preempt other jobs
-        # (on a loaded 2-core computer an ordinary thread waited up to ~20 ms for a CPU)
-        # without starving anything; the physics ticker, which can run long, stays normal.
+        # A real device answers within its firmware's fixed time: the short-lived answering
+        # thread may preempt other jobs without starving anything (an ordinary one waited
+        # for a CPU: docs/simulator_wire.md#the-simulator-in-its-own-process-simulatorprocesspy);
+        # the physics ticker, which can run long, stays normal.
         try:
             os.sched_setscheduler(sim.server_thread_id, os.SCHED_FIFO, os.sched_param(SERVER_PRIORITY))
         except (AttributeError, OSError, TypeError):
             pass
-    # the imports' objects out of the collector's way: a full collection of them takes
-    # ~20 ms, a reply that late costs the host several samples at high speedups
+    # the imports' objects out of the collector's way: a full collection of them delays a
+    # reply by several samples at high speedups (docs/simulator_wire.md, same section)
     gc.collect()
     gc.freeze()
     try:
@@ -186,9 +186,9 @@ def start_simulator_process(transport: str, *, realtime: bool = False, **kwargs)
     """Start simulator.launch.start_simulator(transport, **kwargs) in a child process.
 
     `realtime`: ask for SCHED_FIFO priority in the child (ignored when not permitted). Off by
-    default: measured here, a real-time simulator (always busy at high speedups) starves the
-    kernel's normal-priority softirq thread that moves loopback packets, and replies then
-    stall for up to ~100 ms (12 lost replies in 8000 at speedup 40, none without it).
+    default: a real-time simulator (always busy at high speedups) starves the kernel's
+    softirq thread that moves loopback packets, and replies stall (measured:
+    docs/simulator_wire.md#the-simulator-in-its-own-process-simulatorprocesspy).
     Raises ValueError with the child's message when it cannot start (bad specimen,
     effect or fault spec, address in use) and TimeoutError when it does not answer.
     """

@@ -227,7 +227,6 @@ class _AsciiProtocol(asyncio.Protocol):
             return  # a bare CR: nothing asked, nothing answered
         srv = self.server
         fault = srv.next_wire_fault()
-        srv.requests += 1
         if fault == "drop":
             self.transport = None  # lines still buffered were lost with the line
             self._buffer.clear()
@@ -285,7 +284,6 @@ class AsciiSimServer:
         self.commands = CommandSet(profile["wire"])
         self.stand = Stand(machine, profile)
         self.rng = random.Random(seed)
-        self.requests = 0  #: command lines received (faulted ones included)
         self.drops = 0
         self.pty: PtyPort | None = None
         self._transport: PtyTransport | None = None

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from drivers.base import DeviceError
 from drivers.profile import open_machine
-from foamlab.engine import RunEngine
+from foamlab.acquisition import RunEngine
 from foamlab.methods import load_method
 from foamlab.rundata import Specimen
 from simulator.process import start_simulator_process
@@ -92,7 +92,7 @@ def wait_at_rest(sim, timeout_s: float = 5.0) -> dict:
 def assert_keeps_the_schedule(result):
     """The engine keeps up with the schedule; the computer may cost a few deadlines.
 
-    The engine's own work per sample (engine.SampleSchedule.work_s: the time between two
+    The engine's own work per sample (acquisition.SampleSchedule.work_s: the time between two
     deadlines' samples minus the device's replies) must stay a small part of the period at
     p99 - per-sample work that grows is the engine's failure, whatever the computer does. A
     miss is a deadline whose whole period passed: a reply stalled by the computer, a read with

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from foamlab.diagnosis import CAUSES, diagnose
-from foamlab.diagnosis.design import ExtendedModel, Series
-from foamlab.diagnosis.noise import ArWhitener, noise_sigma, whiteness
+from foamlab.analysis.design import ExtendedModel, Series
+from foamlab.analysis.noise import ArWhitener, noise_sigma, whiteness
 from foamlab.diagnosis.synthetic import hidden_effect_run
 from foamlab.importers import load_run
 from foamlab.model import ModelParameters, label_history, triangular_history

@@ -8,10 +8,10 @@ fitted size near the hidden one and a lower held-out RMSE than the base model's.
 
 What makes these runs harder than the offline ones: the crosshead decelerates, waits and
 reverses between samples (those samples are predicted but not evidence, see
-foamlab.diagnosis.data.path_determined); positions are read at 1 um; a sample is stamped
+foamlab.analysis.path.path_determined); positions are read at 1 um; a sample is stamped
 at the force reading's instant, which a transport knows to a fraction of its round trip -
 S round trips of machine time at speedup S - and a stalled request stamps the samples
-around it out of place (left out: foamlab.diagnosis.data.on_schedule). Over Modbus the
+around it out of place (left out: foamlab.analysis.prepared.on_schedule). Over Modbus the
 position comes from a second device: it is read just before and just after the force and
 interpolated to the force's instant (drivers.base.Machine.read_sample); interpolated from
 the previous sample's position instead, clean runs at speedup 4 were `unexplained` or named
@@ -49,7 +49,7 @@ def record(tmp_path, transport: str, speedup: float, effects: dict | None, seed:
     method = load_method(short_method(tmp_path, strain=STRAIN, speed=SPEED_MM_MIN, cycles=3))
     with simulated(transport, speedup=speedup, effects=effects, seed=seed) as sim:
         approach(machine_for(sim))
-        engine = make_engine(sim, method, tmp_path, speedup=speedup, fit=False)
+        engine = make_engine(sim, method, tmp_path, speedup=speedup)
         engine.start()
         result = engine.wait(60)
         assert result is not None, "the run did not end"

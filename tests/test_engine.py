@@ -8,7 +8,7 @@ import pytest
 
 from drivers.profile import load_profile, open_machine
 from foamlab import FoamlabError
-from foamlab.engine import Limits, RunEngine, SampleSchedule, ScheduleStats
+from foamlab.acquisition import Limits, RunEngine, SampleSchedule, ScheduleStats
 from foamlab.methods import load_method
 from foamlab.rundata import Specimen
 

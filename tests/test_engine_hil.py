@@ -9,7 +9,8 @@ import threading
 import numpy as np
 import pytest
 
-from foamlab.engine import Limits
+from foamlab import pipeline
+from foamlab.acquisition import Limits
 from foamlab.storage.runfile import read_run_file
 from tests.hil_support import approach, machine_for, make_engine, short_method, simulated, wait_at_rest
 
@@ -47,8 +48,7 @@ class StopAfter:
 def test_operator_stop_keeps_the_data_and_parks(tmp_path):
     with simulated(speedup=SPEEDUP) as sim:
         approach(machine_for(sim))
-        engine = make_engine(sim, short_method(tmp_path, strain=0.2, cycles=1), tmp_path, speedup=SPEEDUP,
-                             fit=False)
+        engine = make_engine(sim, short_method(tmp_path, strain=0.2, cycles=1), tmp_path, speedup=SPEEDUP)
         listener = StopAfter(5.0, lambda: engine.request_stop("stopped by the test"))
         engine.add_listener(listener)
         result = engine.run()
@@ -59,14 +59,13 @@ def test_operator_stop_keeps_the_data_and_parks(tmp_path):
     assert 5.0 <= result.run.displacement_mm.max() < 6.0    # stopped right after the request
     assert listener.samples == result.n_samples
     _assert_file_matches(result)
-    assert result.results is not None                    # computed for what was run
+    assert pipeline.method_stage(pipeline.Analysis(result.run, result.path), engine.method).method_results is not None
 
 
 def test_emergency_stop_latches_and_does_not_park(tmp_path):
     with simulated(speedup=SPEEDUP) as sim:
         approach(machine_for(sim))
-        engine = make_engine(sim, short_method(tmp_path, strain=0.2, cycles=1), tmp_path, speedup=SPEEDUP,
-                             fit=False)
+        engine = make_engine(sim, short_method(tmp_path, strain=0.2, cycles=1), tmp_path, speedup=SPEEDUP)
         engine.add_listener(StopAfter(4.0, engine.emergency_stop))
         result = engine.run()
         status = wait_at_rest(sim)
@@ -84,7 +83,7 @@ def test_force_limit_stops_at_once_and_marks_the_run(tmp_path):
     with simulated(speedup=SPEEDUP) as sim:
         approach(machine_for(sim))
         engine = make_engine(sim, short_method(tmp_path, strain=0.5, speed=100.0, cycles=1), tmp_path,
-                             speedup=SPEEDUP, limits=limits, fit=False)
+                             speedup=SPEEDUP, limits=limits)
         result = engine.run()
         wait_at_rest(sim)
     assert result.status == "aborted" and result.end == "limit"
@@ -99,7 +98,7 @@ def test_travel_limit_refuses_a_method_that_would_cross_it(tmp_path):
     with simulated(speedup=SPEEDUP) as sim:
         approach(machine_for(sim))
         engine = make_engine(sim, short_method(tmp_path, strain=0.5, cycles=1), tmp_path, speedup=SPEEDUP,
-                             limits=limits, fit=False)
+                             limits=limits)
         result = engine.run()
         wait_at_rest(sim)
     assert result.status == "aborted" and result.end == "limit"
@@ -116,7 +115,7 @@ def test_a_broken_listener_does_not_stop_the_run(tmp_path, caplog):
     with simulated(speedup=SPEEDUP) as sim:
         approach(machine_for(sim))
         engine = make_engine(sim, short_method(tmp_path, strain=0.02, speed=100.0, cycles=1), tmp_path,
-                             speedup=SPEEDUP, fit=False)
+                             speedup=SPEEDUP)
         engine.add_listener(Broken())
         engine.add_listener(type("L", (), {"on_finished": lambda self, r: finished.append(r)})())
         result = engine.run()

@@ -21,7 +21,7 @@ def test_16_hz_schedule_in_real_time(tmp_path):
     method = load_method(short_method(tmp_path, strain=0.04, speed=100.0, cycles=1))
     with simulated("modbus-tcp", speedup=1.0) as sim:
         approach(machine_for(sim))
-        engine = make_engine(sim, method, tmp_path, speedup=1.0, fit=False)
+        engine = make_engine(sim, method, tmp_path, speedup=1.0)
         result = engine.wait(40) if engine.start() is None else None
         assert result is not None, "the run did not end"
         wait_at_rest(sim)

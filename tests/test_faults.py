@@ -52,8 +52,7 @@ CASES = [
 def test_fault_stops_the_crosshead_and_keeps_the_samples(tmp_path, transport, fault, words, end):
     with simulated(transport, speedup=SPEEDUP, faults=[fault]) as sim:
         approach(machine_for(sim))
-        engine = make_engine(sim, short_method(tmp_path, strain=0.3, cycles=1), tmp_path, speedup=SPEEDUP,
-                             fit=False)
+        engine = make_engine(sim, short_method(tmp_path, strain=0.3, cycles=1), tmp_path, speedup=SPEEDUP)
         result = engine.wait(45) if engine.start() is None else None
         assert result is not None, "the run did not end"
         status = wait_at_rest(sim)                   # the simulator itself: not moving

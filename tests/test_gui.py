@@ -102,8 +102,11 @@ def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
     np.testing.assert_allclose(w.plots.buffer.force_N[: result.n_samples], on_disk.force_N, atol=1e-3)
     assert w.progress.value() == w.progress.maximum()
     assert "100%" in w.progress.text()
+    # The pipeline's method results and fit follow the run (foamlab.pipeline, analysis thread).
+    qtbot.waitUntil(lambda: w.shown_analysis is not None, timeout=RUN_TIMEOUT_MS)
+    analysis = w.shown_analysis
     # Method results are shown and exported with the run summary.
-    assert w.results.method_results.rowCount() == len(result.results) > 0
+    assert w.results.method_results.rowCount() == len(analysis.method_results) > 0
     png = w.export_png(tmp_path / "plot.png")
     assert png.exists() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     out = w.export_csv(tmp_path / "results.csv")
@@ -111,14 +114,14 @@ def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
     assert rows[0][0] == "section"
     sections = {r[0] for r in rows[1:]}
     assert {"run", "method_result"} <= sections
-    # The fit table and the fitted curve come with the engine's fit (foamlab.identification).
-    fitted = result.fit is not None
+    # The fit table and the fitted curve come with the pipeline's fit (foamlab.identification).
+    fitted = analysis.fit is not None
     if fitted:
         assert w.results.parameters.rowCount() > 0
         assert w.results.statistics.rowCount() > 0
         assert w.plots.fit_fd is not None
         x_fit, _ = w.plots.fit_fd.getData()
-        assert len(x_fit) == result.n_samples
+        assert len(x_fit) == len(analysis.fit.predicted_force_N) >= 0.99 * result.n_samples
         rows = list(csv.reader(w.export_csv(tmp_path / "results.csv").open(encoding="utf-8")))
         assert {"parameter", "statistic"} <= {r[0] for r in rows[1:]}
         # Then the diagnosis verdict (foamlab.diagnosis), computed off the GUI thread. A run
@@ -129,7 +132,7 @@ def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
             w.diagnose_shown_run()
         qtbot.waitUntil(lambda: bool(w.results.report.verdict) or "failed" in w.results.verdict.text(),
                         timeout=90_000)
-        assert w.results.verdict.text().startswith("<b>Verdict:</b>"), w.results.verdict.text()
+        assert w.results.verdict.text().startswith("<b>Diagnosis verdict:</b>"), w.results.verdict.text()
         side = result.path.with_name(result.path.stem + ".diagnosis.json")
         assert side.exists()                       # kept with the run, so the browser shows it
         assert w.results.report.verdict in (
@@ -159,7 +162,7 @@ def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
     if fitted:   # the stored diagnosis is shown at once, not recomputed
         assert w.results.report.verdict == verdict and "stored with the run" in w.results.report.diagnosis_note
     if not fitted:
-        pytest.skip(f"no fit to show: {result.fit_error or 'foamlab.identification not installed'}")
+        pytest.skip(f"no fit to show: {analysis.fit_error}")
     qtbot.waitUntil(lambda: w.results.parameters.rowCount() > 0, timeout=30_000)
 
 
@@ -325,8 +328,9 @@ def test_open_measured_file_shows_curves(qtbot, window):
     # The fit comes from the analysis thread: parameters, statistics and the fitted curve.
     qtbot.waitUntil(lambda: "fitting" not in w.results.summary.text(), timeout=30_000)
     assert w.results.parameters.rowCount() > 0 and w.results.statistics.rowCount() > 0
-    x_fit, f_fit = w.plots.fit_fd.getData()
-    assert len(x_fit) == len(run) and np.isfinite(f_fit).all()
+    x_fit, f_fit = w.plots.fit_fd.getData()   # the fit's samples: those taken on schedule
+    assert len(x_fit) == len(w.shown_analysis.fit.predicted_force_N) >= 0.99 * len(run)
+    assert np.isfinite(f_fit).all()
     assert "not run" in w.results.verdict.text()
 
 

@@ -76,7 +76,7 @@ def test_an_ambiguous_thousands_separator_is_shown_not_guessed(qtbot, form):
 
 
 def test_limits_are_read_as_typed_never_725(qtbot):
-    from foamlab.engine import Limits
+    from foamlab.acquisition import Limits
     from foamlab.gui.forms import LimitsForm
 
     limits = LimitsForm(locale=ENGLISH)

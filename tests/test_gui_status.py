@@ -20,7 +20,7 @@ from test_gui import (
     wait_mid_run,
 )
 
-from foamlab.engine import RunResult
+from foamlab.acquisition import RunResult
 from foamlab.gui.forms import ERROR_STYLE
 from foamlab.gui.status import WARNING_STYLE
 from foamlab.gui.window import MainWindow

@@ -16,21 +16,18 @@ the period, <= 0.5 % missed): ~3.7 min each over Modbus, ~2 min over ASCII.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 
 import numpy as np
 import pytest
 
-from foamlab import cli
+from foamlab import cli, pipeline
 from foamlab.methods import cycle_spans, load_method
 from foamlab.storage.runfile import read_run_file
 from tests.hil_support import (approach, assert_keeps_the_schedule, machine_for, make_engine,
                                simulated, wait_at_rest)
 
 pytestmark = [pytest.mark.hil]
-
-HAVE_FIT = importlib.util.find_spec("foamlab.identification") is not None
 
 #: Speedup per transport for the full protocol (see the module docstring).
 FULL_SPEEDUP = {"modbus-tcp": 4.0, "serial": 8.0, "modbus-rtu-pty": 4.0}
@@ -81,11 +78,10 @@ def test_paper_protocol_through_foamlab_run(tmp_path, capsys):
     assert expected <= n_samples + missed <= 1.01 * expected + 20
     assert missed <= 0.03 * expected, summary_line
     assert "hysteresis_loss (cycle 1)" in printed.out
-    if HAVE_FIT:
-        fit_file = run_file.with_name(f"{run_file.stem}.fit.json")
-        assert fit_file.is_file() and "fit:" in printed.out
-        fit = json.loads(fit_file.read_text())
-        assert fit["rmse"] < 0.05 * run.force_N.max()
+    fit_file = run_file.with_name(f"{run_file.stem}.fit.json")
+    assert fit_file.is_file() and "fit:" in printed.out
+    fit = json.loads(fit_file.read_text())
+    assert fit["rmse"] < 0.05 * run.force_N.max()
     from foamlab.storage.catalog import Catalog
 
     with Catalog.for_folder(out, sync=False) as catalog:
@@ -99,14 +95,14 @@ def test_full_paper_protocol_through_each_transport(tmp_path, transport):
     method = load_method("paper-3cycle")
     with simulated(transport, speedup=speedup) as sim:
         approach(machine_for(sim))
-        engine = make_engine(sim, method, tmp_path, speedup=speedup, fit=HAVE_FIT)
+        engine = make_engine(sim, method, tmp_path, speedup=speedup)
         result = engine.wait(350) if engine.start() is None else None
         assert result is not None, "the run did not end"
         wait_at_rest(sim)
     _check_run(result, method, cycles=3)
     expected = _expected(method)
     assert expected <= result.n_samples + result.missed <= 1.01 * expected + 20
-    if HAVE_FIT:
-        assert result.fit is not None, result.fit_error
-        assert result.fit.rmse < 0.05 * result.run.force_N.max()
+    analysis = pipeline.fit_stage(pipeline.Analysis(result.run, result.path))
+    assert analysis.fit is not None, analysis.fit_error
+    assert analysis.fit.rmse < 0.05 * result.run.force_N.max()
     assert_keeps_the_schedule(result)

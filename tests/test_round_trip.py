@@ -132,7 +132,7 @@ def test_fit_simulate_run_fit_agrees(tmp_path):
 
     with simulated("modbus-tcp", speedup=SPEEDUP, specimen=str(sidecar), seed=2) as sim:
         approach(machine_for(sim))
-        engine = make_engine(sim, method, tmp_path, speedup=SPEEDUP, specimen=SPECIMEN, fit=False)
+        engine = make_engine(sim, method, tmp_path, speedup=SPEEDUP, specimen=SPECIMEN)
         engine.start()
         result = engine.wait(90)
         assert result is not None, "the run did not end"

@@ -12,7 +12,8 @@ HELP = "identify the model's parameters from a run (paper's three steps + joint 
 
 EXAMPLES = """\
 examples:
-  foamlab fit run.csv                         # table: Table-5 statistics, parameters, checks, warnings
+  foamlab fit run.csv                         # short: fit quality, determined parameters, main warnings
+  foamlab fit run.csv --full                  # the whole report: Table-5 statistics, every parameter, checks, warnings
   foamlab fit Specimen_RawData_6.csv --json   # one JSON object (parameters, statistics, rmse, constraints)
   foamlab fit run.csv --plot fit.png          # measured vs fitted per cycle, residuals below
   foamlab fit run.csv --orders 2,3,7          # N damping modes, M residual terms per cycle, P elastic order
@@ -38,6 +39,8 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true",
                    help="print one JSON object: parameters (value, stderr), statistics per step "
                         "(sse, r2, adj_r2, rmse), rmse of the whole run, constraints")
+    p.add_argument("--full", action="store_true",
+                   help="print the whole report (Table-5 statistics, every parameter, checks, all warnings)")
     p.add_argument("--plot", metavar="OUT.png", help="draw measured vs fitted force per cycle, residuals below")
     p.add_argument("--orders", metavar="N,M,P", default="3,3,7",
                    help="damping modes N, residual terms per cycle M, elastic order P (default 3,3,7, the paper's)")
@@ -75,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
         for note in notes:
             print(f"foamlab fit: {note}", file=sys.stderr)
     else:
-        print(result.summary())
+        print(result.summary() if args.full else result.brief())
         for note in notes:
             print(note)
     if compare:

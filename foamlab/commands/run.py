@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import importlib
 import logging
-import importlib.util
 import math
 import sys
 import tomllib
@@ -162,9 +160,10 @@ class ProgressLine:
 
 def run(args) -> int:
     from drivers.profile import ProfileError, load_profile, open_machine
-    from foamlab.engine import RunEngine
+    from foamlab.acquisition import RunEngine
     from foamlab.methods import load_method
     from foamlab.rundata import Specimen
+    from foamlab.storage.recorder import Recorder
 
     for name in ("speedup", "specimen_height", "width", "depth"):
         _positive("--" + name.replace("_", "-"), getattr(args, name))
@@ -196,6 +195,7 @@ def run(args) -> int:
         raise FoamlabError("--specimen-height is required (the measured specimen height, mm)")
     specimen = Specimen(args.specimen_label, height, width, depth)
     out_dir = data_dir(args.out)
+    Recorder(out_dir).check_folder()     # before the simulator starts; the engine checks again
 
     sim = None
     try:
@@ -207,7 +207,7 @@ def run(args) -> int:
             machine = open_machine(profile, connect=False, **overrides)
         except ProfileError as exc:
             raise FoamlabError(str(exc)) from None
-        engine = RunEngine(machine, method, specimen, out_dir, speedup=args.speedup, fit=not args.no_fit)
+        engine = RunEngine(machine, method, specimen, out_dir, speedup=args.speedup)
         where = f"built-in simulated machine ({sim.transport} at {sim.address})" if sim else profile["name"]
         if not args.quiet:
             print(f"foamlab run: {method.describe()} on {where}; specimen {height:g} mm"
@@ -220,7 +220,7 @@ def run(args) -> int:
     finally:
         if sim is not None:
             sim.stop()
-    return _report(result, method, out_dir, args.no_diagnose)
+    return _report(result, method, out_dir, fit=not args.no_fit, diagnose=not args.no_diagnose)
 
 
 #: Wall-clock silence the built-in machine's drive watchdog tolerates at any speedup (s).
@@ -277,12 +277,58 @@ def _wait(engine):
                 engine.emergency_stop()
 
 
-def _report(result, method, out_dir: Path, no_diagnose: bool = False) -> int:
+def _report(result, method, out_dir: Path, fit: bool = True, diagnose: bool = True) -> int:
+    """Say how the run went, then analyse it (foamlab.pipeline: the window's stages too)."""
+    from foamlab import pipeline
+
+    analysis = pipeline.Analysis(result.run, result.path) if result.run is not None else None
     if result.status != "finished":
         kept = f"; {result.n_samples} samples kept in {result.path}" if result.path else ""
         print(f"foamlab run: aborted: {result.reason}{kept}", file=sys.stderr)
-        _register(result, out_dir)
+        if analysis is not None:
+            _warn_catalog(pipeline.catalog_stage(analysis, out_dir))
         return 130 if "Ctrl-C" in result.reason else 1
+    _print_acquisition(result, method)
+    pipeline.method_stage(analysis, method)
+    if analysis.method_results is not None and len(analysis.method_results):
+        print("results:")
+        for value in analysis.method_results:
+            print(f"  {value.format()}")
+    elif analysis.method_error:
+        print(f"results: not available: {analysis.method_error}")
+    if fit:
+        try:
+            pipeline.fit_stage(analysis)
+        except KeyboardInterrupt:   # the run is saved; the fit can be made later (foamlab fit)
+            analysis.fit_error = "skipped (Ctrl-C)"
+        if analysis.fit is not None:
+            print("fit:")
+            # the short summary, as `foamlab fit` prints it; the whole report is in the fit file
+            print("  " + analysis.fit.brief().replace("\n", "\n  "))
+        else:
+            print(f"fit: not available: {analysis.fit_error}")
+    pipeline.files_stage(analysis)      # the fit file now: a skipped diagnosis does not hold it up
+    if analysis.fit_path:
+        print(f"  fit file: {analysis.fit_path}")
+    if fit and diagnose and analysis.fit is not None:
+        print("diagnosing the run (Ctrl-C skips it)...", flush=True)
+        try:
+            pipeline.diagnose_stage(analysis)
+        except KeyboardInterrupt:
+            analysis.diagnosis_error = "skipped (Ctrl-C)"
+        pipeline.files_stage(analysis)
+    if analysis.diagnosis is not None:
+        where = f" ({analysis.diagnosis_path})" if analysis.diagnosis_path else ""
+        print(f"diagnosis: {analysis.verdict}{where}")
+    elif analysis.diagnosis_error:
+        print(f"diagnosis: {analysis.diagnosis_error}")
+    if analysis.files_error:
+        print(f"foamlab run: warning: {analysis.files_error}", file=sys.stderr)
+    _warn_catalog(pipeline.catalog_stage(analysis, out_dir))
+    return 0
+
+
+def _print_acquisition(result, method) -> None:
     timing = result.timing
     waiting = f", {timing.missed_waiting_device} of them waiting for replies" if result.missed else ""
     print(f"foamlab run: finished: {result.n_samples} samples, {result.missed} missed{waiting} "
@@ -294,57 +340,8 @@ def _report(result, method, out_dir: Path, no_diagnose: bool = False) -> int:
               f"answered in {timing.rtt_p99_ms:.1f} ms (p99) for a {timing.period_s * 1e3:.2f} ms period; "
               f"a lower --speedup keeps every sample")
     print(f"  run file: {result.path}")
-    if result.fit_path:
-        print(f"  fit file: {result.fit_path}")
-    if result.results is not None and len(result.results):
-        print("results:")
-        for value in result.results:
-            print(f"  {value.format()}")
-    if result.fit is not None:
-        summary = getattr(result.fit, "summary", None)
-        print("fit:")
-        print("  " + (summary() if callable(summary) else str(result.fit)).replace("\n", "\n  "))
-    elif result.fit_error:
-        print(f"fit: not available: {result.fit_error}")
-    verdict, diagnosis_path = ("", None) if no_diagnose else _diagnose(result)
-    if verdict:
-        print(f"diagnosis: {verdict}" + (f" ({diagnosis_path})" if diagnosis_path else ""))
-    _register(result, out_dir, diagnosis_path, verdict)
-    return 0
 
 
-def _diagnose(result) -> tuple[str, Path | None]:
-    """The diagnosis verdict when foamlab.diagnosis exists (and its sidecar file)."""
-    if result.run is None or result.fit is None or importlib.util.find_spec("foamlab.diagnosis") is None:
-        return "", None
-    print("diagnosing the run (Ctrl-C skips it)...", flush=True)
-    try:
-        from foamlab.diagnosis import diagnose
-        from foamlab.diagnosis.store import store_diagnosis
-
-        report = diagnose([result.run], params=result.fit.params)
-        path = store_diagnosis(report.to_dict(), result.path).path
-    except KeyboardInterrupt:
-        return "skipped (Ctrl-C)", None
-    except FoamlabError as exc:
-        return f"not available: {exc}", None
-    except Exception as exc:   # the run is done and saved; a diagnosis bug must not hide that
-        return f"failed: {type(exc).__name__}: {exc}", None
-    return report.verdict, path
-
-
-def _register(result, out_dir: Path, diagnosis_path: Path | None = None, verdict: str = "") -> None:
-    """Index the run (its fit, its diagnosis) in the data folder's catalog."""
-    if result.path is None:
-        return
-    try:
-        from foamlab.storage.catalog import Catalog
-
-        with Catalog.for_folder(out_dir, sync=False) as catalog:
-            catalog.add_run(result.path, result.run)
-            if result.fit_path is not None:
-                catalog.add_fit(result.path, result.fit_path)
-            if diagnosis_path is not None:
-                catalog.add_diagnosis(result.path, diagnosis_path, verdict=verdict)
-    except Exception as exc:   # the run file is the record; `foamlab catalog rebuild` recovers
-        print(f"foamlab run: warning: run not added to the catalog: {exc}", file=sys.stderr)
+def _warn_catalog(analysis) -> None:
+    if analysis.catalog_error:   # the run file is the record; `foamlab catalog rebuild` recovers
+        print(f"foamlab run: warning: run {analysis.catalog_error}", file=sys.stderr)

@@ -55,16 +55,15 @@ def register(subparsers) -> None:
 
 
 def parse_effects(items: list[str]) -> dict[str, float]:
+    """--effect NAME=MAGNITUDE options as {name: magnitude}; FoamlabError on a bad one."""
+    from foamlab.model.effects import parse_effect_option  # keep `foamlab --help` fast
+
     effects: dict[str, float] = {}
     for item in items:
-        name, sep, magnitude = item.partition("=")
-        name = name.strip()
         try:
-            value = float(magnitude)
-        except ValueError:
-            value = math.nan
-        if not sep or not name or not math.isfinite(value):
-            raise FoamlabError(f"--effect {item!r}: expected NAME=MAGNITUDE, e.g. cycle_softening=0.1")
+            name, value = parse_effect_option(item)
+        except ValueError as exc:
+            raise FoamlabError(f"--{exc}") from None
         effects[name] = value
     return effects
 

@@ -11,7 +11,8 @@ model, residuals.py for the residual map and noise.py for the statistics.
 """
 
 from foamlab.diagnosis.causes import CAUSES, Cause, register
-from foamlab.diagnosis.core import Diagnosis, diagnose_series
-from foamlab.diagnosis.run import base_parameters, diagnose
+from foamlab.diagnosis.core import diagnose_prepared
+from foamlab.diagnosis.result import Diagnosis
+from foamlab.diagnosis.run import diagnose
 
-__all__ = ["CAUSES", "Cause", "Diagnosis", "base_parameters", "diagnose", "diagnose_series", "register"]
+__all__ = ["CAUSES", "Cause", "Diagnosis", "diagnose", "diagnose_prepared", "register"]

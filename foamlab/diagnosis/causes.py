@@ -1,9 +1,10 @@
-"""Candidate causes: one small class each, registered by name.
+"""Candidate causes: how diagnosis tests each effect of foamlab.model.effects.
 
-A cause names one effect of foamlab.model.effects (the one definition of its
-physics), says when it can be tested, on what scale its parameter lives for this
-data (the starting grid of the fit), and how to say the fitted value in words.
-A new cause is an Effect subclass in foamlab.model.effects plus one class here.
+The effect is the one definition of a cause: its physics, its name, what it means and
+how it shows (Effect.name / meaning / signature). A cause adds only the diagnosis'
+strategy: when it can be tested, on what scale its parameter lives for this data (the
+starting grid of the fit), and how to say the fitted value in words. A new cause is an
+Effect subclass in foamlab.model.effects (listed in EFFECTS) plus one class here.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from foamlab.diagnosis.design import Series
+from foamlab.analysis.design import Series
 from foamlab.model import effects as fx
 
 CAUSES: dict[str, type["Cause"]] = {}
@@ -22,20 +23,31 @@ SCAN_MULTIPLES = (0.003, 0.03, 0.3, 1.0)
 
 
 def register(cls: type["Cause"]) -> type["Cause"]:
+    """A cause for one of the model's effects (foamlab.model.effects.EFFECTS), by its name."""
+    if fx.EFFECTS.get(cls.name) is not cls.effect:
+        raise ValueError(f"cause {cls.__name__}: its effect {cls.name!r} is not in foamlab.model.effects.EFFECTS")
     CAUSES[cls.name] = cls
     return cls
 
 
 class Cause:
-    name: ClassVar[str]
+    """How diagnosis tests one effect of foamlab.model.effects: its name, its meaning and its
+    signature are the effect's own (one definition); the cause adds when it can be tested,
+    the scale of its parameter on these runs and how to say its fitted value in words."""
+
     effect: ClassVar[type[fx.Effect]]
-    meaning: ClassVar[str]                # what it is, physically (one line)
-    signature: ClassVar[str]              # how it shows in the residuals of the base model
+    name: ClassVar[str]                   # the effect's
+    meaning: ClassVar[str]                # the effect's: what it is, physically (one line)
+    signature: ClassVar[str]              # the effect's: how it shows in the base model's residuals
     min_speeds: ClassVar[int] = 1         # runs at this many distinct speeds are needed
     #: Identification's staged fit (the paper's method) takes this effect into the base
     #: model's own terms, so an extension fitted from that base stays near zero: its fit is
     #: also restarted from identification on the data with the effect taken out.
     absorbed_by_identification: ClassVar[bool] = False
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        cls.name, cls.meaning, cls.signature = cls.effect.name, cls.effect.meaning, cls.effect.signature
 
     @classmethod
     def applicable(cls, series: list[Series]) -> str | None:
@@ -96,11 +108,7 @@ def distinct_speeds(series: list[Series], rel_tol: float = 0.1) -> list[float]:
 
 @register
 class CycleSoftening(Cause):
-    name = "cycle_softening"
     effect = fx.CycleSoftening
-    meaning = ("the elastic force softens from cycle to cycle (Mullins-type stress softening): "
-               "the model's assumption (c) of one elastic curve for every cycle does not hold")
-    signature = "later cycles lie below the model on loading and unloading, more at large displacement"
 
     @classmethod
     def applicable(cls, series):
@@ -120,14 +128,9 @@ class CycleSoftening(Cause):
 
 @register
 class DampingCycleChange(Cause):
-    name = "damping_cycle_change"
     effect = fx.DampingCycleChange
-    meaning = ("the damping force differs between loading half-cycles: the model's assumption (b) "
-               "of one damping force for every loading does not hold")
-    signature = "later loadings differ from the model by a loading-only, rate-like amount"
     # identification takes the damping from the first loading and gives the later loadings'
-    # change to the residual terms of the earlier cycles (measured: an effect 50 x the noise
-    # fitted at a tenth of its size from identification's base, at its size from a restart)
+    # change to the residual terms of the earlier cycles (docs/analysis.md, "Restarts")
     absorbed_by_identification = True
 
     @classmethod
@@ -148,10 +151,7 @@ class DampingCycleChange(Cause):
 
 @register
 class ChannelLag(Cause):
-    name = "channel_lag"
     effect = fx.ChannelLag
-    meaning = "force and displacement are sampled out of step (the force channel is late or early)"
-    signature = "extra hysteresis on loading and unloading alike, growing with the force's slope"
 
     @classmethod
     def scale(cls, series):
@@ -174,10 +174,7 @@ class ChannelLag(Cause):
 
 @register
 class ForceZeroDrift(Cause):
-    name = "force_zero_drift"
     effect = fx.ForceZeroDrift
-    meaning = "the load cell's zero drifts during the run (temperature, bridge creep)"
-    signature = "an error growing linearly in time, seen also where the plate is off the specimen"
 
     @classmethod
     def scale(cls, series):
@@ -192,10 +189,7 @@ class ForceZeroDrift(Cause):
 
 @register
 class MachineCompliance(Cause):
-    name = "machine_compliance"
     effect = fx.MachineCompliance
-    meaning = "the frame and load train deflect: part of the measured displacement is the machine's"
-    signature = "the stiff (high-force) part of the curve is softer than the model and the peak is rounded"
 
     @classmethod
     def scale(cls, series):
@@ -211,10 +205,7 @@ class MachineCompliance(Cause):
 
 @register
 class DirectionFriction(Cause):
-    name = "direction_friction"
     effect = fx.DirectionFriction
-    meaning = "a constant force opposes the motion (platen or guide friction)"
-    signature = "loading above and unloading below the model by the same force, independent of x"
 
     @classmethod
     def scale(cls, series):
@@ -238,11 +229,7 @@ class DirectionFriction(Cause):
 
 @register
 class RateDependence(Cause):
-    name = "rate_dependence"
     effect = fx.RateDependence
-    meaning = ("the damping depends on the crosshead rate beyond the model's kernel: a model "
-               "identified at one speed mispredicts another")
-    signature = "the runs at other speeds miss the model by a loading-only amount that grows with the speed ratio"
     min_speeds = 2
 
     @classmethod
@@ -261,13 +248,7 @@ class RateDependence(Cause):
 
 @register
 class MemoryLag(Cause):
-    name = "memory_lag"
     effect = fx.MemoryLag
-    meaning = ("the specimen's memory forces (damping and residual) follow the loading history with "
-               "a relaxation time: at a turning point, where the paper's model passes from the loading "
-               "to the unloading branch at once, the specimen releases its force over that time")
-    signature = ("after each reversal the measured force falls over a few tenths of a second where the "
-                 "model drops at once; the elastic force is not delayed (unlike channel_lag)")
 
     @classmethod
     def scale(cls, series):

@@ -1,76 +1,62 @@
-"""Diagnosis: fit the base model, test each candidate cause as an extension, decide.
+"""Diagnosis: extend identification's fit by each candidate cause, and decide, in stages.
 
-Procedure (a nested-model test that does not cry wolf):
+The base model is identification's fit (the analysis core's polish on every sample). Each
+round of the search (``Procedure.round``) runs these stages:
 
-1. Base model: identification's fit, its alpha/beta polished together with k, a, r
-   and the load cell's zero on all runs at once (contact clipping included).
-2. Each applicable cause is fitted as an extension: first with the base's
-   alpha/beta held (a scan of the effect's parameter, then least squares: cheap),
-   then the most promising (JOINT_CANDIDATES) with everything free -- the base
-   model may have bent its alpha/beta to mimic the effect. Variable projection
-   throughout: the linear parameters are re-solved at every step.
-3. Evidence, on the same prewhitened scale for every model (an AR(p) filter fitted
-   to the best model's residuals): Delta BIC = n ln(RSS_before/RSS_after) - q ln n and
-   the likelihood-ratio p-value. A candidate with Delta BIC > DELTA_BIC_MIN is
-   checked on held-out data: each run is cut into contiguous blocks, held out
-   HELDOUT_FOLDS interleaved groups at a time, each group predicted by the model
-   refitted (all its parameters) without it; the candidate passes if its held-out
-   RMSE is below the model's without it.
-4. The best passing candidate is accepted; the others are tried again on top of it
-   (up to MAX_FINDINGS findings).
-5. Verdict: `none` when no candidate passes and the base residuals are white;
-   the first finding's name when the accepted extension leaves white residuals or
-   explains at least EXPLAINED_SHARE_MIN of the structure the base model left
-   above the noise; `unexplained` otherwise (structure, and where it is).
+1. search (extend.py): every applicable cause fitted on the decimated runs as an extension
+   of the current model - screened with the base's alpha/beta held, probed jointly, and
+   the JOINT_CANDIDATES best fitted jointly to convergence;
+2. compare (evidence.compare): Delta BIC and the likelihood-ratio p-value of each, on one
+   prewhitened scale (an AR(p) filter fitted to the best model's residuals);
+3. polish: the best and every strong candidate carried to every sample;
+4. restart: an extension that leaves structure restarted from identification on the data
+   with its effect taken out (the base may have bent its alpha/beta to mimic it);
+5. fair comparison: the model without the new effect refitted from each strong
+   extension's start, so the gain measured is the effect's, not the optimiser's luck;
+6. decide: the acceptance rules (evidence.py, each returns its reason) in order -
+   evidence, not pinned at a limit, effect determined, explains the structure, held-out
+   prediction better; the best candidate passing all is a finding.
+
+The others are tried again on top of a finding (up to MAX_FINDINGS). Verdict: `none` when
+nothing passes and the base residuals are white; the first finding when the extension
+leaves white residuals or explains most of the structure above the noise; `unexplained`
+otherwise (structure, and where it is).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 
-import numpy as np
-from scipy.optimize import least_squares
-from scipy.stats import chi2
 from threadpoolctl import threadpool_limits
 
-from foamlab import FoamlabError
+from foamlab.analysis.noise import WHITE_P, series_noise_sigma, whiteness
+from foamlab.analysis.prepared import PreparedRun
+from foamlab.analysis.solve import POLISH_NFEV, Fit, at_full_resolution, decimation
 from foamlab.diagnosis.causes import CAUSES, Cause
-from foamlab.diagnosis.design import ExtendedModel, Series, Solution, layout_of
-from foamlab.identification.data import Orders
-from foamlab.identification.paper import nonlinear_bounds
-from foamlab.diagnosis.noise import ArWhitener, Whiteness, series_noise_sigma, whiteness
-from foamlab.diagnosis.residuals import ResidualAnalysis, analyse
-from foamlab.model import ModelParameters
-from foamlab.rundata import RunData
+from foamlab.diagnosis.evidence import (
+    DELTA_BIC_MIN,
+    EXPLAINED_SHARE_MIN,
+    compare,
+    explained_share,
+    explains,
+    heldout_rmse,
+    rule_effect_determined,
+    rule_evidence,
+    rule_explains,
+    rule_heldout,
+    rule_not_pinned,
+)
+from foamlab.diagnosis.extend import (
+    PROBE_NFEV,
+    fit_joint,
+    probe,
+    reidentify,
+    screen,
+    without_last,
+)
+from foamlab.diagnosis.residuals import analyse
+from foamlab.diagnosis.result import Candidate, Diagnosis
 
-#: A candidate must improve BIC (prewhitened residuals) by more than this ("very strong" evidence).
-DELTA_BIC_MIN = 10.0
-#: ...and its effect's (first) parameter must lie this many standard errors from zero. Measured
-#: on clean recordings through the drivers: extensions 17-40 BIC points better than the base
-#: with their effect at 0.4-3 standard errors (the base's alpha/beta improved in their fit);
-#: the hidden effects named there lie 14-140 standard errors from zero.
-EFFECT_Z_MIN = 3.0
-#: ...and not end within this fraction of its range of a non-zero limit (see Candidate.pinned).
-PINNED_FRACTION = 0.01
-#: Whiteness tests below this p-value mean structure.
-WHITE_P = 1e-3
-#: Share of the base model's excess over the noise an extension must explain to be named
-#: when its residuals are still not white.
-EXPLAINED_SHARE_MIN = 0.5
-#: ...a cause explaining at least this share (and passing the tests) is reported as partial.
-PARTIAL_SHARE_MIN = 0.1
-#: Contiguous blocks of each run in the held-out check.
-HELDOUT_FOLDS = 6
-#: ...each made of blocks of about this many samples spread over the run (at least 8 per fold).
-#: Short blocks: a long block left out just after a turning point leaves that cycle's fast
-#: residual terms to be extrapolated backwards from later samples; measured on 16 Hz runs of
-#: ~900 samples, with blocks of 18 samples that one block decided the check (the right
-#: extension's held-out RMSE 0.40 N in it, 0.055 N in the other folds), with ~5-9 none did.
-HELDOUT_BLOCK_SAMPLES = 10
-HELDOUT_BLOCKS_PER_FOLD = 8
-#: Iterations of the refit without the held-out blocks.
-HELDOUT_NFEV = 3
 #: Candidates (by Delta BIC) that get the held-out check in each round.
 HELDOUT_CANDIDATES = 3
 MAX_FINDINGS = 3
@@ -81,672 +67,209 @@ NEAR_NOISE = 0.1
 JOINT_CANDIDATES = 2
 #: ...and of those, this many carried to full resolution (the others are judged on the search's samples).
 FULL_CANDIDATES = 2
-#: Iteration budgets of the screening (effect parameters only) and of the joint fits.
-SCREEN_NFEV, PROBE_NFEV, JOINT_NFEV = 10, 4, 20
-#: Samples per run in the parameter search (decimated; the decision is made at full resolution).
-SEARCH_SAMPLES = 3000
-#: Iterations of the full-resolution polish of the base and of the best candidates.
-POLISH_NFEV = 6
-#: Iterations of the joint fit restarted from identification on corrected data.
-RESTART_NFEV = 12
 
 
-@dataclass
-class Fit:
-    """A model (base or extension) fitted to all the data."""
-
-    causes: list[type[Cause]]
-    model: ExtendedModel
-    nu: np.ndarray                     # [phi if the base was free, effect parameters]
-    stderr: np.ndarray                 # of the effect parameters
-    solution: Solution
-    heldout_rmse: float | None = None
-
-    @property
-    def name(self) -> str:
-        return self.causes[-1].name if self.causes else "base"
-
-    @property
-    def eta(self) -> np.ndarray:
-        return self.model.split(self.nu)[1]
-
-    @property
-    def rss(self) -> float:
-        return self.solution.rss()
-
-    @property
-    def n(self) -> int:
-        return len(self.solution.residual)
-
-    @property
-    def rmse(self) -> float:
-        return float(np.sqrt(self.rss / self.n))
-
-    @property
-    def params(self) -> ModelParameters:
-        """The base model's parameters in this fit (effects aside)."""
-        return self.model.parameters(self.nu, self.solution.theta)
-
-    def effect_values(self) -> list[dict]:
-        """Fitted values of each effect in the chain, with standard errors."""
-        out, i = [], 0
-        for cls, e in zip(self.model.effect_types, self.model.effects(self.eta)):
-            names = [p.name for p in cls.fitted_parameters()]
-            se = dict(zip(names, self.stderr[i:i + len(names)]))
-            out.append({"effect": cls.name, "values": dict(e.values), "stderr": se})
-            i += len(names)
-        return out
-
-
-@dataclass
-class Candidate:
-    cause: type[Cause]
-    fit: Fit
-    before: Fit
-    coarse_fit: Fit | None = None      # the same model on the decimated search samples
-    share: float = float("nan")        # of the structure left above the noise it explains
-    delta_bic: float = float("nan")
-    lr_p: float = float("nan")
-    passed: bool = False
-    reason: str = ""
-
-    @property
-    def name(self) -> str:
-        return self.cause.name
-
-    @property
-    def values(self) -> dict:
-        return self.fit.effect_values()[-1]
-
-    @property
-    def z_score(self) -> float:
-        """The effect's first parameter in standard errors from zero (nan: undetermined)."""
-        v = self.values
-        name = self.cause.effect.fitted_parameters()[0].name
-        se = v["stderr"].get(name, float("nan"))
-        return abs(v["values"][name]) / se if se and np.isfinite(se) and se > 0 else float("nan")
-
-    @property
-    def pinned(self) -> str:
-        """'' - or which fitted parameter ended on a limit of its range other than zero.
-
-        The optimum lies beyond what the effect can physically be (a damping change that
-        would make a later cycle's damping vanish): the data ask for something else, which
-        this effect imitates at its limit (measured: a cycle_softening of 10 %/cycle through
-        a driver fitted as damping_cycle_change at its -0.45 bound, dBIC 337 vs 330).
-        """
-        lo, hi = self.cause.bounds()
-        v = self.values["values"]
-        for p, a, b in zip(self.cause.effect.fitted_parameters(), lo, hi):
-            tol = PINNED_FRACTION * (b - a)
-            for limit in (a, b):
-                if limit != 0 and abs(v[p.name] - limit) <= tol:
-                    return f"{p.name} = {v[p.name]:.4g} at the limit of its range ({limit:g})"
-        return ""
-
-    def description(self) -> str:
-        v = self.values
-        return self.cause.describe(v["values"], v["stderr"])
-
-    def gain(self) -> dict:
-        return {
-            "rmse_before": self.before.rmse,
-            "rmse_after": self.fit.rmse,
-            "heldout_rmse_before": self.before.heldout_rmse,
-            "heldout_rmse_after": self.fit.heldout_rmse,
-            "delta_bic": self.delta_bic,
-        }
-
-
-@dataclass
-class Diagnosis:
-    verdict: str
-    findings: list[Candidate]
-    partial: list[Candidate]               # pass the tests but explain only part of the structure
-    tested: list[list[Candidate]]          # every candidate of every round
-    skipped: dict[str, str]                # cause -> why it was not tested
-    base: Fit
-    final: Fit
-    base_analysis: ResidualAnalysis
-    final_analysis: ResidualAnalysis
-    final_whiteness: Whiteness
-    explained_share: float
-    noise_sigma: float
-    series: list[Series]
-    params: ModelParameters
-    seconds: float = 0.0
-    notes: list[str] = field(default_factory=list)
-
-    def to_dict(self) -> dict:
-        """The JSON object of `foamlab diagnose --json` (see docs/DESIGN: verdict, findings)."""
-        findings = []
-        if self.verdict == "unexplained":
-            findings.append({
-                "effect": "unexplained",
-                "gain": {"rmse_before": self.base.rmse, "rmse_after": self.final.rmse,
-                         "heldout_rmse_before": self.base.heldout_rmse,
-                         "heldout_rmse_after": self.final.heldout_rmse, "delta_bic": 0.0},
-                "where": self.final_analysis.where(),
-                "residuals": self.final_analysis.to_dict(),
-                "explained_share": self.explained_share,
-            })
-        for i, c in enumerate(self.findings + self.partial):
-            findings.append({
-                "effect": c.name,
-                "gain": c.gain(),
-                "parameters": {k: {"value": v, "stderr": c.values["stderr"].get(k)}
-                               for k, v in c.values["values"].items()},
-                "description": c.description(),
-                "meaning": c.cause.meaning,
-                "p_value": c.lr_p,
-                "rank": i + 1,
-                "named": self.verdict == c.name,
-                "explained_share": c.share,
-            })
-        return {"verdict": self.verdict, "findings": _jsonable(findings)}
-
-
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if np.isfinite(v) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
-
-
-# ----------------------------------------------------------------------------- fitting
-
-def _settings(causes: list[type[Cause]], series: list[Series]) -> dict:
-    return {c.effect.name: c.settings(series) for c in causes}
-
-
-def loading_time_s(series: list[Series]) -> float:
-    """Median duration of the reference run's loading half-cycles."""
-    s = series[0].source
-    d = [s.t[p] - s.t[a] for a, p in zip(s.labels.starts, s.labels.peaks) if p > a]
-    return float(np.median(d)) if d else float(s.t[-1] - s.t[0])
-
-
-def base_bounds(series: list[Series], params: ModelParameters) -> tuple[np.ndarray, np.ndarray]:
-    """Identification's bounds of alpha and beta (from the loading time), widened to hold params."""
-    lay = layout_of(params)
-    lo, hi = nonlinear_bounds(Orders(N=lay.N, M=lay.M, P=lay.P), lay.C, loading_time_s(series))
-    phi = lay.from_flat(params.to_vector())[1]
-    return np.minimum(lo, phi), np.maximum(hi, phi)
-
-
-def _least_squares(model: ExtendedModel, nu0: np.ndarray, keep: list[np.ndarray] | None = None,
-                   max_nfev: int | None = None) -> tuple[np.ndarray, np.ndarray, Solution]:
-    """Variable projection on nu (trust-region reflective, Kaufman's Jacobian)."""
-    lo, hi = model.bounds()
-    nu0 = np.clip(np.asarray(nu0, float), lo, hi)
-    fun, jac = model.residual_fn(keep)
-    r0 = fun(nu0)
-    # stop when a step gains less than a tenth of the noise variance: below what the data resolve
-    ftol = max(0.1 / max(len(r0), 1), 1e-10)
-    res = least_squares(fun, nu0, jac=jac, bounds=(lo, hi), x_scale="jac", method="trf",
-                        xtol=1e-8, ftol=ftol, max_nfev=max_nfev)
-    sol = model.solve(res.x, keep)
-    # standard errors of the effect parameters (linear parameters profiled out)
-    r = res.fun
-    dof = max(len(r) - model.n_linear - model.n_nonlinear, 1)
-    s2 = float(r @ r) / dof
-    stderr = np.full(model.n_eta, np.nan)
-    if model.n_eta:
-        try:
-            cov = np.linalg.pinv(res.jac.T @ res.jac) * s2
-            stderr = np.sqrt(np.maximum(np.diag(cov), 0.0))[model.n_phi:]
-        except np.linalg.LinAlgError:
-            pass
-    return res.x, stderr, sol
-
-
-def decimation(series: list[Series]) -> int:
-    """Decimation factor of the parameter search (about SEARCH_SAMPLES samples per run)."""
-    return max(1, int(round(max(len(x) for x in series) / SEARCH_SAMPLES)))
-
-
-def contact_of(fit: Fit, series: list[Series]) -> list[np.ndarray] | None:
-    """The fit's contact set, if it was fitted on these very series (a start for a model
-    that extends or refits it)."""
-    same = len(fit.model.series) == len(series) and all(a is b for a, b in zip(fit.model.series, series))
-    return [m.copy() for m in fit.solution.masks] if same else None
-
-
-def _model_like(fit: Fit, series: list[Series], free_base: bool | None = None) -> ExtendedModel:
-    m = fit.model
-    free = m.free_base if free_base is None else free_base
-    return ExtendedModel(series, fit.params, m.effect_types, m.settings, effect_bounds=m.effect_bounds,
-                         free_base=free,
-                         base_bounds=base_bounds(series, fit.params) if free else None,
-                         masks=contact_of(fit, series))
-
-
-def at_full_resolution(fit: Fit, full: list[Series], polish_nfev: int = 0) -> Fit:
-    """A fit found on decimated series, carried to the full ones (and polished there)."""
-    if len(fit.model.series) == len(full) and all(a is b for a, b in zip(fit.model.series, full)):
-        return fit
-    model = _model_like(fit, full)
-    nu = np.concatenate([fit.model.split(fit.nu)[0] if model.free_base else [], fit.eta])
-    if polish_nfev:
-        nu, stderr, sol = _least_squares(model, nu, max_nfev=polish_nfev)
-    else:
-        sol, stderr = model.solve(nu), fit.stderr
-    return Fit(list(fit.causes), model, nu, stderr, sol)
-
-
-def fit_base(series: list[Series], params: ModelParameters) -> Fit:
-    """The base model on all runs: identification's alpha/beta polished with the rest."""
-    model = ExtendedModel(series, params, [], free_base=True, base_bounds=base_bounds(series, params))
-    nu, stderr, sol = _least_squares(model, model.start(), max_nfev=JOINT_NFEV)
-    return Fit([], model, nu, stderr, sol)
-
-
-def screen(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
-    """Fit base + causes with the base's alpha/beta held: the last cause's parameter scanned,
-    then the effect parameters refined (cheap: only the linear parameters move with them)."""
-    model = ExtendedModel(series, current.params, [c.effect for c in causes], _settings(causes, series),
-                          effect_bounds={c.effect.name: c.bounds() for c in causes},
-                          masks=contact_of(current, series))
-    prev = current.eta
-    trials = [np.concatenate([prev, row]) for row in causes[-1].starts(series)]
-    rss = [model.solve(eta).rss() for eta in trials]
-    nu, stderr, sol = _least_squares(model, trials[int(np.argmin(rss))], max_nfev=SCREEN_NFEV)
-    return Fit(list(causes), model, nu, stderr, sol)
-
-
-def fit_joint(series: list[Series], start: Fit, current: Fit, max_nfev: int | None = None) -> Fit:
-    """Fit base + causes with everything free (alpha, beta, effect and linear parameters).
-
-    The base model can mimic an effect by bending its own alpha/beta (a fast damping
-    mode and an order-near-1 residual term together act like friction at one speed);
-    then the screening, with alpha/beta held, sees little, and a joint fit started
-    at the screening's near-zero value stays there. So a cause the screening did not
-    see starts from a visible size of its effect (both signs if it has two), and
-    alpha/beta unbend as it grows.
-    """
-    model = _model_like(start, series, free_base=True)
-    if start.model.free_base:                 # continue a joint fit
-        starts = [start.nu]
-    else:
-        eta0 = start.eta.copy()
-        starts = [model.start(eta0)]
-        seen = current.n * np.log(current.rss / start.rss) > np.log(current.n)
-        if not seen:
-            size = abs(start.causes[-1].joint_start(series))
-            lo, hi = start.causes[-1].bounds()
-            starts = []
-            for side in ((1.0, -1.0) if lo[0] < 0 < hi[0] else (1.0,)):
-                eta0[-1] = float(np.clip(side * size, lo[0], hi[0]))
-                starts.append(model.start(eta0))
-    best = None
-    for nu0 in starts:
-        nu, stderr, sol = _least_squares(model, nu0, max_nfev=max_nfev or JOINT_NFEV)
-        if best is None or sol.rss() < best[2].rss():
-            best = (nu, stderr, sol)
-    if best[2].rss() > start.rss:
-        # every start from a visible size ended in a worse local minimum than the screening
-        # (a lag of seconds): the screening's fit is the extension's best, keep it
-        return start
-    return Fit(list(start.causes), model, *best)
-
-
-def without_last(series: list[Series], fit: Fit) -> Fit:
-    """The fit's model without its last effect, refitted from the fit's alpha/beta."""
-    m = fit.model
-    model = ExtendedModel(series, fit.params, m.effect_types[:-1], m.settings, effect_bounds=m.effect_bounds,
-                          free_base=True,
-                          base_bounds=base_bounds(series, fit.params), masks=contact_of(fit, series))
-    k = len(m.effect_types[-1].fitted_parameters())
-    eta = fit.eta[:len(fit.eta) - k]
-    nu, stderr, sol = _least_squares(model, model.start(eta), max_nfev=POLISH_NFEV)
-    return Fit(list(fit.causes[:-1]), model, nu, stderr, sol)
-
-
-def reidentify(series: list[Series], fit: Fit, eta: np.ndarray | None = None,
-               max_nfev: int = RESTART_NFEV) -> Fit:
-    """The fit restarted from identification run on the data with its effects taken out.
-
-    A base model that has bent its alpha/beta to mimic an effect sits in a local
-    minimum the joint fit cannot leave; identification's own multi-start search on
-    the corrected data (measured minus what the effects add, at the fit's values or
-    at ``eta``) finds the base the effect leaves behind, and the joint fit continues
-    from there.
-    """
-    from foamlab.identification.fit import fit_run
-
-    model = fit.model
-    theta = fit.solution.theta
-    phi = model.split(fit.nu)[0]
-    eta = fit.eta if eta is None else np.asarray(eta, float)
-    base_part = phi if model.free_base else []
-    with_effects, without = (model.predict(theta, np.concatenate([base_part, e]))
-                             for e in (eta, np.zeros(model.n_eta)))
-    ref = series[0]
-    x = ref.x if ref.x_measured is None else ref.x_measured
-    corrected = RunData(ref.t, x, ref.y - (with_effects[0] - without[0]), source=ref.name)
-    lay = layout_of(fit.params)
-    try:
-        params = fit_run(corrected, orders=(lay.N, lay.M, lay.P), x_scale_mm=fit.params.x_scale_mm).params
-    except FoamlabError:
-        return fit
-    restart = ExtendedModel(series, params, model.effect_types, model.settings, free_base=True,
-                            effect_bounds=model.effect_bounds,
-                            base_bounds=base_bounds(series, params), masks=contact_of(fit, series))
-    nu, stderr, sol = _least_squares(restart, restart.start(eta), max_nfev=max_nfev)
-    out = Fit(list(fit.causes), restart, nu, stderr, sol)
-    return out if out.rss < fit.rss else fit
-
-
-def probe(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
-    """A short fit of base + causes: screening, a joint probe and, for a last cause that
-    identification's staged fit absorbs, a restart from identification with the effect
-    taken out at a visible size (on the side the screening leaned to)."""
-    screened = screen(series, current, causes)
-    fit = fit_joint(series, screened, current, PROBE_NFEV)
-    cause = causes[-1]
-    if cause.absorbed_by_identification:
-        lo, hi = cause.bounds()
-        side = -1.0 if screened.eta[-1] < 0 and lo[0] < 0 else 1.0
-        for size in (abs(cause.joint_start(series)), abs(cause.scale(series))):
-            eta = fit.eta.copy()
-            eta[-1] = float(np.clip(side * size, lo[0], hi[0]))
-            fit = reidentify(series, fit, eta)
-    return fit
-
-
-def folds(series: list[Series], n_folds: int = HELDOUT_FOLDS,
-          blocks_per_fold: int | None = None) -> list[list[np.ndarray]]:
-    """Keep-masks per fold. Each run is cut into n_folds x blocks_per_fold contiguous
-    blocks (default: blocks of ~HELDOUT_BLOCK_SAMPLES samples); fold k leaves out blocks
-    k, k + n_folds, ... (interleaved), so every cycle keeps data that determine its own
-    parameters and each held-out block is predicted, not extrapolated past the end of
-    what was fitted. Samples measured off the specimen stay in every fit: their force is
-    the unloaded reading whatever the model, so they carry no information on its
-    parameters, only where the plate leaves the specimen - a fit without them is free to
-    put contact there (measured on the real file: blocks at the end of an unloading,
-    predicted 5-11 N where the plate was off, decided the check for every model alike)."""
-    out = []
-    for k in range(n_folds):
-        masks = []
-        for s in series:
-            per_fold = blocks_per_fold or max(HELDOUT_BLOCKS_PER_FOLD,
-                                               int(round(len(s) / (n_folds * HELDOUT_BLOCK_SAMPLES))))
-            m = np.ones(len(s), dtype=bool)
-            edges = np.linspace(0, len(s), n_folds * per_fold + 1).astype(int)
-            for b in range(k, n_folds * per_fold, n_folds):
-                m[edges[b]:edges[b + 1]] = False
-            if s.no_contact is not None:
-                m |= s.no_contact
-            masks.append(m)
-        out.append(masks)
-    return out
-
-
-def heldout_rmse(fit: Fit, on: Fit | None = None, n_folds: int = HELDOUT_FOLDS) -> float:
-    """RMSE of every block predicted by the model refitted (all its parameters) without it.
-
-    on: the same model on other (decimated) samples to do it on; the result is stored
-    in ``fit``.
-    """
-    if fit.heldout_rmse is not None:
-        return fit.heldout_rmse
-    work = on or fit
-    sq, count = 0.0, 0
-    for keep in folds(work.model.series, n_folds):
-        sol = _refit_without(work, keep)
-        out = ~np.concatenate(keep) & np.concatenate(sol.used)
-        r = np.concatenate(sol.residuals)[out]
-        sq += float(r @ r)
-        count += len(r)
-    fit.heldout_rmse = float(np.sqrt(sq / max(count, 1)))
-    return fit.heldout_rmse
-
-
-def _refit_without(fit: Fit, keep: list[np.ndarray]) -> Solution:
-    """The fit redone without the held-out samples: the linear parameters exactly and the
-    effect parameters by a few trust-region steps from the full-data optimum. The base
-    model's alpha/beta stay at their full-data values, for both models alike (refitting
-    them per block would cost most of the diagnosis and moves them by a fraction of
-    their standard error)."""
-    model = fit.model
-    if model.free_base:
-        model = ExtendedModel(model.series, fit.params, model.effect_types, model.settings,
-                              effect_bounds=model.effect_bounds, masks=contact_of(fit, model.series))
-    if not model.n_eta:
-        return model.solve((), keep)
-    _, _, sol = _least_squares(model, fit.eta, keep, max_nfev=HELDOUT_NFEV)
-    return sol
-
-
-def _before_with_contact_of(before: Fit, fit: Fit) -> Solution:
-    """The model without the candidate's effect, solved from the candidate's contact set (the
-    better of that and its own solution). The active-set iteration ends in a fixed point that
-    depends on its start: an extension that merely found a better contact set would
-    otherwise be credited with it (measured on clean recordings: every candidate at ~0
-    effect 17-41 BIC points better than the base, and one of them named)."""
-    if not all(a is b for a, b in zip(before.model.series, fit.model.series)):
-        return before.solution
-    m = before.model
-    again = ExtendedModel(m.series, m.params, m.effect_types, m.settings, free_base=m.free_base,
-                          base_bounds=m.base_bounds, effect_bounds=m.effect_bounds,
-                          masks=fit.solution.masks).solve(before.nu)
-    return again if again.rss() < before.solution.rss() else before.solution
-
-
-def _compare(cands: list[Candidate], before: Fit) -> None:
-    """Delta BIC and LR p-value of each candidate against `before`, on one prewhitened scale."""
-    best = min([c.fit for c in cands] + [before], key=lambda f: f.rss)
-    whitener = ArWhitener.fit(best.solution.used_residuals)
-    for c in cands:
-        base = _before_with_contact_of(before, c.fit)
-        wb = whitener.apply(base.used_residuals)
-        rss_b, n = float(wb @ wb), len(wb)
-        we = whitener.apply(c.fit.solution.used_residuals)
-        rss_e = float(we @ we)
-        q = c.fit.model.n_eta - before.model.n_eta
-        lr = n * np.log(rss_b / rss_e) if rss_e > 0 and rss_b > 0 else 0.0
-        # the fits minimise the plain residuals: a candidate that fits them worse than the
-        # model it extends (a worse local optimum) has no evidence, whatever the filter
-        # does to it (one AR filter can favour a residual that moved its error to low
-        # frequencies); so the plain likelihood ratio bounds the prewhitened one
-        n_raw = c.fit.n
-        if c.fit.rss > 0 and base.rss() > 0:
-            lr = min(lr, n_raw * np.log(base.rss() / c.fit.rss) * n / max(n_raw, 1))
-        c.delta_bic = float(lr - q * np.log(n))
-        c.lr_p = float(chi2.sf(max(lr, 0.0), q))
-
-
-# ----------------------------------------------------------------------------- diagnose
-
-def diagnose_series(series: list[Series], params: ModelParameters,
-                    causes: list[str] | None = None) -> Diagnosis:
+def diagnose_prepared(runs: list[PreparedRun], base: Fit, causes: list[str] | None = None) -> Diagnosis:
+    """Diagnose prepared runs (the first the reference) from a base model fitted on all of them
+    (identification's core fit for one run, analysis.solve.polish for several)."""
     with threadpool_limits(1, user_api="blas"):    # small dense solves: threads only contend
-        return _diagnose(series, params, causes)
+        return Procedure(runs, base, causes).run()
 
 
-def _diagnose(series: list[Series], params: ModelParameters, causes: list[str] | None) -> Diagnosis:
-    t0 = time.perf_counter()
-    names = list(CAUSES) if causes is None else list(causes)
-    sigma = series_noise_sigma([s.y for s in series])
-    k = decimation(series)
-    coarse = [x.decimated(k) for x in series]
-    base = at_full_resolution(fit_base(coarse, params), series, POLISH_NFEV if k > 1 else 0)
-    skipped = {}
-    remaining: list[type[Cause]] = []
-    for name in names:
-        why = CAUSES[name].applicable(series)
-        if why:
-            skipped[name] = why
-        else:
-            remaining.append(CAUSES[name])
+class Procedure:
+    """One diagnosis: the runs, the model found so far, and what each round decided."""
 
-    findings: list[Candidate] = []
-    partial: list[Candidate] = []
-    first_partial: list[Candidate] = []
-    tested: list[list[Candidate]] = []
-    current = base
-    for _ in range(MAX_FINDINGS):
-        if not remaining:
-            break
-        if findings and (whiteness(current.solution.residual).min_p >= WHITE_P
-                         or current.rss / current.n < (1 + NEAR_NOISE) * sigma ** 2):
-            break        # the extended model leaves (nearly) white noise: nothing left to explain
-        accepted = [c.cause for c in findings]
-        current_coarse = at_full_resolution(current, coarse) if k > 1 else current
-        # search on the decimated runs: every cause fitted with the base's alpha/beta held
-        # (screen), then a short joint probe; the best probes are fitted to convergence
-        probes = sorted((probe(coarse, current_coarse, accepted + [cause]) for cause in remaining),
-                        key=lambda f: f.rss)
-        coarse_fits = [fit_joint(coarse, f, current_coarse) if i < JOINT_CANDIDATES else f
-                       for i, f in enumerate(probes)]
-        coarse_cands = [Candidate(f.causes[-1], f, current_coarse) for f in coarse_fits]
-        _compare(coarse_cands, current_coarse)
+    def __init__(self, runs: list[PreparedRun], base: Fit, causes: list[str] | None):
+        self.started = time.perf_counter()
+        self.ref, self.series = runs[0], [r.series for r in runs]
+        self.sigma = series_noise_sigma([s.y for s in self.series])
+        self.k = decimation(self.series)
+        self.coarse = [s.decimated(self.k) for s in self.series]
+        self.base = self.current = base
+        self.skipped: dict[str, str] = {}
+        self.remaining: list[type[Cause]] = []
+        for name in (list(CAUSES) if causes is None else list(causes)):
+            why = CAUSES[name].applicable(self.series)
+            if why:
+                self.skipped[name] = why
+            else:
+                self.remaining.append(CAUSES[name])
+        self.findings: list[Candidate] = []
+        self.partial: list[Candidate] = []
+        self.first_partial: list[Candidate] = []
+        self.tested: list[list[Candidate]] = []
+
+    # -- helpers
+    def _full(self, fit: Fit) -> Fit:
+        return at_full_resolution(fit, self.series, POLISH_NFEV if self.k > 1 else 0)
+
+    def _coarse(self, fit: Fit) -> Fit:
+        return at_full_resolution(fit, self.coarse) if self.k > 1 else fit
+
+    def _done(self) -> bool:
+        """Nothing left to explain: the extended model leaves (nearly) white noise."""
+        c = self.current
+        return bool(self.findings) and (whiteness(c.solution.residual).min_p >= WHITE_P
+                                        or c.rss / c.n < (1 + NEAR_NOISE) * self.sigma ** 2)
+
+    # -- the procedure
+    def run(self) -> Diagnosis:
+        for _ in range(MAX_FINDINGS):
+            if not self.remaining or self._done():
+                break
+            cands, current_coarse = self.round()
+            self.tested.append(cands)
+            chosen = self.decide(cands, current_coarse)
+            if chosen is None and self.partial and not self.findings:
+                # no single cause explains the structure, but some explain a real part of it:
+                # take the strongest provisionally and look for what explains the rest on top
+                # (two effects at once); the set is named only if together they explain it
+                chosen = max(self.partial, key=lambda c: c.share)
+                self.first_partial = sorted(self.partial, key=lambda c: -c.share)
+            if chosen is None:
+                break
+            self.findings.append(chosen)
+            self.current = chosen.fit
+            self.remaining = [c.cause for c in cands if c is not chosen and c.delta_bic > DELTA_BIC_MIN]
+        return self.verdict()
+
+    def round(self) -> tuple[list[Candidate], Fit]:
+        """Stages 1-5 for every remaining cause on top of the current model."""
+        current_coarse = self._coarse(self.current)
+        cands = self.search(current_coarse)
+        polished = [c for c in cands if c.before is self.current]
+        if polished:
+            compare(polished, self.current)
+        self.restart(polished)
+        if self.fair_comparison(polished):
+            current_coarse = self._coarse(self.current)
+            self.refit_from_new_base(cands, polished, current_coarse)
+        return cands, current_coarse
+
+    def search(self, current_coarse: Fit) -> list[Candidate]:
+        """Stages 1-3: every cause probed on the decimated runs, the best fitted jointly,
+        compared, and the best and every strong one carried to every sample."""
+        accepted = [c.cause for c in self.findings]
+        probes = sorted((probe(self.ref, self.coarse, current_coarse, accepted + [cause])
+                         for cause in self.remaining), key=lambda f: f.rss)
+        fits = [fit_joint(self.coarse, f, current_coarse) if i < JOINT_CANDIDATES else f
+                for i, f in enumerate(probes)]
+        coarse_cands = [Candidate(f.causes[-1], f, current_coarse) for f in fits]
+        compare(coarse_cands, current_coarse)
         coarse_cands.sort(key=lambda c: -c.delta_bic)
-        # decide at full resolution: the best candidates, and every strong one, polished there
-        # (the others keep their decimated-scale evidence, weaker than it would be at full
-        # scale); every strong one gets the fair comparison below
         cands = []
         for i, c in enumerate(coarse_cands):
             if (i < FULL_CANDIDATES and c.delta_bic > 0) or c.delta_bic > DELTA_BIC_MIN:
-                full_fit = at_full_resolution(c.fit, series, POLISH_NFEV if k > 1 else 0)
-                cands.append(Candidate(c.cause, full_fit, current, coarse_fit=c.fit))
-            else:
+                cands.append(Candidate(c.cause, self._full(c.fit), self.current, coarse_fit=c.fit))
+            else:    # keeps its decimated-scale evidence (weaker than it would be at full scale)
                 c.coarse_fit = c.fit
                 cands.append(c)
-        polished = [c for c in cands if c.before is current]
-        if polished:
-            _compare(polished, current)
-        # an extension that leaves structure may be stuck where the base model bent itself:
-        # restart it from identification on the corrected data, best first, until one
-        # leaves white residuals
+        return cands
+
+    def restart(self, polished: list[Candidate]) -> None:
+        """Stage 4: an extension that leaves structure may be stuck where the base bent itself:
+        restarted from identification on the corrected data, best first, until one leaves
+        white residuals."""
         for c in sorted(polished, key=lambda c: -c.delta_bic):
             if c.delta_bic <= 0 or whiteness(c.fit.solution.residual).min_p >= WHITE_P:
                 break
-            c.fit = reidentify(series, c.fit)
-            _compare([c], current)
+            c.fit = reidentify(self.ref, self.series, c.fit)
+            compare([c], self.current)
             if whiteness(c.fit.solution.residual).min_p >= WHITE_P:
                 break
-        # fair comparison: an extension's fit may have found a better base model too (its
-        # alpha/beta started elsewhere); the model without the new effect gets the same
-        # start, so the gain measured is the effect's, not the optimiser's luck
+
+    def fair_comparison(self, polished: list[Candidate]) -> bool:
+        """Stage 5: an extension's fit may have found a better base model too (its alpha/beta
+        started elsewhere); the model without the new effect gets the same start. True when
+        that improved the current model (which then replaces it)."""
         improved = False
         for c in polished:
             if c.delta_bic > DELTA_BIC_MIN:
-                alt = without_last(series, c.fit)
-                if alt.rss < current.rss:
-                    current, improved = alt, True
-        if improved:
-            if not findings:
-                base = current
-            current_coarse = at_full_resolution(current, coarse) if k > 1 else current
-            # a candidate fitted from the base this one replaced, and not better than it, is
-            # fitted again from it (or it would be judged against a base it never started
-            # from): the best ones by a joint fit, the other polished ones by a short one, the
-            # rest by a screening (alpha/beta held)
-            ranked = sorted(polished, key=lambda c: -c.delta_bic)
-            for i, c in enumerate(ranked):
-                if c.fit.rss >= current.rss:
-                    again = fit_joint(coarse, screen(coarse, current_coarse, accepted + [c.cause]),
-                                      current_coarse, None if i < FULL_CANDIDATES else PROBE_NFEV)
-                    c.coarse_fit = again
-                    c.fit = at_full_resolution(again, series, POLISH_NFEV if k > 1 else 0)
-                c.before = current
-            _compare(polished, current)
-            for c in cands:
-                if c not in polished:
-                    c.fit = screen(coarse, current_coarse, accepted + [c.cause])
-                    c.before = current_coarse
-            _compare([c for c in cands if c not in polished], current_coarse)
-        tested.append(cands)
-        chosen = None
-        checked = 0
-        left = current.rss - current.n * sigma ** 2     # what the current model leaves above the noise
+                alt = without_last(self.series, c.fit)
+                if alt.rss < self.current.rss:
+                    self.current, improved = alt, True
+        if improved and not self.findings:
+            self.base = self.current
+        return improved
+
+    def refit_from_new_base(self, cands: list[Candidate], polished: list[Candidate], current_coarse: Fit) -> None:
+        """A candidate fitted from the model the fair comparison replaced, and not better than
+        the new one, is fitted again from it (or it would be judged against a base it never
+        started from): the best ones jointly, the other polished ones briefly, the rest by a
+        screening (alpha/beta held)."""
+        accepted = [c.cause for c in self.findings]
+        for i, c in enumerate(sorted(polished, key=lambda c: -c.delta_bic)):
+            if c.fit.rss >= self.current.rss:
+                again = fit_joint(self.coarse, screen(self.coarse, current_coarse, accepted + [c.cause]),
+                                  current_coarse, None if i < FULL_CANDIDATES else PROBE_NFEV)
+                c.coarse_fit = again
+                c.fit = self._full(again)
+            c.before = self.current
+        compare(polished, self.current)
+        rest = [c for c in cands if c not in polished]
+        for c in rest:
+            c.fit = screen(self.coarse, current_coarse, accepted + [c.cause])
+            c.before = current_coarse
+        compare(rest, current_coarse)
+
+    def decide(self, cands: list[Candidate], current_coarse: Fit) -> Candidate | None:
+        """Stage 6: the acceptance rules, strongest candidate first; every candidate gets the
+        reason it was or was not named. Passing all but explaining only part of the structure
+        (in the first round) makes a partial finding."""
+        chosen, checked = None, 0
         for c in sorted(cands, key=lambda c: -c.delta_bic):
             if chosen is not None:
                 c.reason = "not checked: a stronger candidate passed"
                 continue
-            if c.delta_bic > DELTA_BIC_MIN and c.before is not current:
+            if c.delta_bic > DELTA_BIC_MIN and c.before is not self.current:
                 # strong on the search's samples: judge it at full resolution
-                c.fit = at_full_resolution(c.coarse_fit, series, POLISH_NFEV if k > 1 else 0)
-                c.before = current
-                _compare([c], current)
-            if c.delta_bic <= DELTA_BIC_MIN:
-                c.reason = f"delta BIC {c.delta_bic:.1f} <= {DELTA_BIC_MIN:g}"
-                continue
-            if c.pinned:
-                c.reason = f"{c.pinned}: the data ask for more than this cause can be"
-                continue
-            z = c.z_score
-            if not z >= EFFECT_Z_MIN:
-                # the fit improves, but the effect itself is not determined: the base model's
-                # alpha/beta can take its place (its standard error is that of the joint fit)
-                c.reason = f"effect not determined: {z:.2g} standard errors from zero (< {EFFECT_Z_MIN:g})"
+                c.fit, c.before = self._full(c.coarse_fit), self.current
+                compare([c], self.current)
+            c.reason = rule_evidence(c) or rule_not_pinned(c) or rule_effect_determined(c)
+            if c.reason:
                 continue
             if checked >= HELDOUT_CANDIDATES:
                 c.reason = "weaker than the candidates checked on held-out data"
                 continue
-            # a cause must explain the structure (leave white residuals, or explain most of
-            # what the model leaves above the noise), not a sliver of something else
-            c.share = share = 1.0 if left <= 0 else min((current.rss - c.fit.rss) / left, 1.0)
-            explains = share >= EXPLAINED_SHARE_MIN or whiteness(c.fit.solution.residual).min_p >= WHITE_P
-            if not explains and (findings or share < PARTIAL_SHARE_MIN):
-                c.reason = f"explains {share:.0%} of the structure left (< {EXPLAINED_SHARE_MIN:.0%})"
+            c.share = explained_share(c, self.current, self.sigma)
+            c.reason = rule_explains(c, first_round=not self.findings)
+            if c.reason:
                 continue
             checked += 1
-            # held out on the search's samples (every k-th): the same prediction error, cheaper
-            before = heldout_rmse(current, current_coarse)
-            after = heldout_rmse(c.fit, c.coarse_fit)
-            better = after < before
-            c.reason = "" if better else f"held-out RMSE not lower ({after:.4g} >= {before:.4g})"
-            if better and not explains:
-                # real but partial: a part of the structure, reported, never the verdict
-                c.reason = (f"partial: explains {share:.0%} of the structure left "
-                            f"(< {EXPLAINED_SHARE_MIN:.0%}); held-out RMSE lower")
-                partial.append(c)
+            c.reason = rule_heldout(c, self.current, current_coarse)
+            if c.reason:
                 continue
-            c.passed = better
-            if c.passed:
-                chosen = c
-        if chosen is None and partial and not findings:
-            # no single cause explains the structure, but some explain a real part of it:
-            # take the strongest provisionally and look for what explains the rest on top
-            # (two effects at once); the set is named only if together they explain it
-            chosen = max(partial, key=lambda c: c.share)
-            first_partial = sorted(partial, key=lambda c: -c.share)
-        if chosen is None:
-            break
-        findings.append(chosen)
-        current = chosen.fit
-        remaining = [c.cause for c in cands if c is not chosen and c.delta_bic > DELTA_BIC_MIN]
+            if not explains(c):
+                # real but partial: a part of the structure, reported, never the verdict
+                c.reason = (f"partial: explains {c.share:.0%} of the structure left "
+                            f"(< {EXPLAINED_SHARE_MIN:.0%}); held-out RMSE lower")
+                self.partial.append(c)
+                continue
+            c.passed = True
+            chosen = c
+        return chosen
 
-    final = current
-    base_analysis = analyse(series, base.solution.residuals, sigma)
-    final_analysis = analyse(series, final.solution.residuals, sigma) if findings else base_analysis
-    white_final = final_analysis.whiteness
-    excess = base.rss - base.n * sigma ** 2
-    removed = base.rss - final.rss
-    share = 1.0 if removed >= excess else max(removed, 0.0) / excess
-    if findings and final_analysis.whiteness.min_p < WHITE_P and share < EXPLAINED_SHARE_MIN:
-        # provisional findings that together still leave most of the structure: partial only
-        partial, findings, final = first_partial or findings, [], base
-        final_analysis = base_analysis
-    white_final = final_analysis.whiteness
-    if findings:
-        verdict = findings[0].name
-        partial = []
-    else:
-        verdict = "unexplained" if base_analysis.whiteness.min_p < WHITE_P else "none"
-        if verdict == "unexplained":
-            heldout_rmse(base, at_full_resolution(base, coarse) if k > 1 else base)
-    return Diagnosis(
-        verdict=verdict, findings=findings, partial=partial, tested=tested, skipped=skipped, base=base, final=final,
-        base_analysis=base_analysis, final_analysis=final_analysis, final_whiteness=white_final,
-        explained_share=float(share), noise_sigma=sigma, series=series, params=params,
-        seconds=time.perf_counter() - t0,
-    )
+    def verdict(self) -> Diagnosis:
+        """The verdict from the findings, and the residual analysis before and after."""
+        base, final, findings, partial = self.base, self.current, self.findings, self.partial
+        base_analysis = analyse(self.series, base.solution.residuals, self.sigma)
+        final_analysis = analyse(self.series, final.solution.residuals, self.sigma) if findings else base_analysis
+        excess = base.rss - base.n * self.sigma ** 2
+        removed = base.rss - final.rss
+        share = 1.0 if removed >= excess else max(removed, 0.0) / excess
+        if findings and final_analysis.whiteness.min_p < WHITE_P and share < EXPLAINED_SHARE_MIN:
+            # provisional findings that together still leave most of the structure: partial only
+            partial, findings, final = self.first_partial or findings, [], base
+            final_analysis = base_analysis
+        if findings:
+            verdict, partial = findings[0].name, []
+        else:
+            verdict = "unexplained" if base_analysis.whiteness.min_p < WHITE_P else "none"
+            if verdict == "unexplained":
+                heldout_rmse(base, self._coarse(base))
+        return Diagnosis(
+            verdict=verdict, findings=findings, partial=partial, tested=self.tested, skipped=self.skipped,
+            base=base, final=final, base_analysis=base_analysis, final_analysis=final_analysis,
+            final_whiteness=final_analysis.whiteness, explained_share=float(share), noise_sigma=self.sigma,
+            series=self.series, params=base.params, seconds=time.perf_counter() - self.started,
+        )

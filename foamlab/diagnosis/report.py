@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from foamlab import FoamlabError
-from foamlab.diagnosis.core import Candidate, Diagnosis, Fit
+from foamlab.analysis.solve import Fit
+from foamlab.diagnosis.result import Candidate, Diagnosis
 
 FIGURES = ("measurement", "base_simulation", "residual_map", "cause", "extended_simulation")
 
@@ -108,7 +109,6 @@ def figure_residual_map(d: Diagnosis, path: Path) -> None:
     rows = sorted({(r.run, r.cycle, r.direction) for r in an.regions}, key=lambda k: (k[0], k[1], -k[2]))
     if not rows:
         return
-    edges = sorted({(round(r.x_lo, 9), round(r.x_hi, 9)) for r in an.regions})
     n_bins = max(1, max(sum(1 for r in an.regions if (r.run, r.cycle, r.direction) == k) for k in rows))
     grid = np.full((len(rows), n_bins), np.nan)
     for i, key in enumerate(rows):

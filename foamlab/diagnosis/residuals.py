@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import signal
 
-from foamlab.diagnosis.design import Series
-from foamlab.diagnosis.noise import Whiteness, whiteness
+from foamlab.analysis.design import Series
+from foamlab.analysis.noise import Whiteness, whiteness
 
 #: Displacement bins per half-cycle in the residual map.
 X_BINS = 10

@@ -3,41 +3,38 @@
 from __future__ import annotations
 
 from foamlab import FoamlabError
-from foamlab.diagnosis.core import Diagnosis, diagnose_series
-from foamlab.diagnosis.data import on_schedule, series_from_run
-from foamlab.model import ModelParameters
+from foamlab.analysis.prepared import prepare
+from foamlab.analysis.solve import polish
+from foamlab.diagnosis.core import diagnose_prepared
+from foamlab.diagnosis.result import Diagnosis
+from foamlab.identification import FitResult, fit_run
 from foamlab.rundata import RunData
 
 
-def base_parameters(run: RunData) -> ModelParameters:
-    """The paper's model identified on one run (foamlab.identification.fit_run).
-
-    Diagnosis keeps its nonlinear parameters (alpha, beta) and re-solves the linear
-    ones jointly with each candidate's parameters.
-    """
-    from foamlab.identification.fit import fit_run
-
-    return fit_run(run).params
-
-
-def diagnose(runs: list[RunData], params: ModelParameters | None = None,
+def diagnose(runs: list[RunData], fit: FitResult | None = None,
              causes: list[str] | None = None) -> Diagnosis:
     """Diagnose one run, or several runs of the same specimen (e.g. at other speeds).
 
-    The base model is identified on the first run (the reference speed) unless
-    ``params`` is given; all runs are then fitted together.
+    fit: identification's fit of the first run (the reference speed), as the run's own
+    pipeline made it; identified here when not given. Its core fit is the base model of
+    one run; with several runs the base is polished on all of them from its parameters.
     """
     if not runs:
         raise FoamlabError("no run to diagnose")
     names = _names(runs)
-    scheduled = [on_schedule(r) for r in runs]
-    runs = [r for r, _ in scheduled]
-    series = [series_from_run(r, n) for r, n in zip(runs, names)]
-    if params is None:
-        params = base_parameters(runs[0])
-    d = diagnose_series(series, params, causes)
-    d.notes += [f"{name}: {n} samples taken off the sampling schedule left out (their instants are unsure)"
-                for name, (_, n) in zip(names, scheduled) if n]
+    if fit is None:
+        fit = fit_run(runs[0])
+    if fit.prepared is None:
+        raise FoamlabError("the fit given carries no prepared run: fit it with foamlab.identification.fit_run")
+    fit.prepared.series.name = names[0]
+    prepared = [fit.prepared] + [prepare(r, name=n) for r, n in zip(runs[1:], names[1:])]
+    if len(prepared) == 1 and fit.core_fit is not None:
+        base = fit.core_fit
+    else:
+        base = polish([p.series for p in prepared], fit.params)
+    d = diagnose_prepared(prepared, base, causes)
+    d.notes += [f"{name}: {p.off_schedule} samples taken off the sampling schedule left out "
+                "(their instants are unsure)" for name, p in zip(names, prepared) if p.off_schedule]
     return d
 
 

@@ -1,12 +1,11 @@
-"""Analysis the window asks for, run on its analysis thread: load a file for display,
-fit it, diagnose it. Thin calls into foamlab's importers, identification and
-diagnosis; nothing is computed here that those modules own.
+"""What the window shows of a file it opens, prepared on its analysis thread: the run,
+its cycles for the plot, its pipeline Analysis (method results first; the window then runs
+the fit and diagnosis stages of foamlab.pipeline) and a diagnosis stored beside it.
+Nothing is computed here that foamlab's importers or pipeline own.
 """
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import json
 import logging
 from dataclasses import dataclass, field
@@ -15,19 +14,16 @@ from typing import Any
 
 import numpy as np
 
-from foamlab import FoamlabError
+from foamlab import FoamlabError, pipeline
+from foamlab.gui.plots import labels_from_segmentation
+from foamlab.gui.report import headline_names
+from foamlab.identification import FitResult
+from foamlab.importers import load_run
+from foamlab.methods import load_method
 from foamlab.rundata import RunData
+from foamlab.storage.catalog import sidecar_path
 
 log = logging.getLogger(__name__)
-
-
-def _module(name: str, what: str):
-    try:
-        if importlib.util.find_spec(name) is None:
-            raise ModuleNotFoundError(name)
-    except ModuleNotFoundError:
-        raise FoamlabError(f"{what} is not available in this installation") from None
-    return importlib.import_module(name)
 
 
 @dataclass
@@ -36,10 +32,14 @@ class Loaded:
     cycles: Any          # per-sample cycle numbers (None: let the plot track them)
     phases: Any          # per-sample loading/unloading
     n_cycles: int
-    method_results: Any = None
+    analysis: pipeline.Analysis
     segmentation_note: str = ""
     stored_diagnosis: dict | None = None   # <run>.diagnosis.json beside the file, when there is one
     headline: list[str] = field(default_factory=list)   # the method's headline results (report.py)
+
+    @property
+    def method_results(self):
+        return self.analysis.method_results
 
     def describe(self) -> str:
         run = self.run
@@ -69,70 +69,46 @@ class Loaded:
 
 
 def load_for_display(path: str | Path) -> Loaded:
-    importers = _module("foamlab.importers", "reading measured files")
-    run = importers.load_run(path)
+    run = load_run(path)
     if not run.source:
         run.source = str(path)
     cycles = phases = None
     n_cycles, note = 0, ""
     try:
-        from foamlab.gui.plots import labels_from_segmentation
-
         segmentation = run.segments()
         cycles, phases = labels_from_segmentation(segmentation, len(run))
         n_cycles = segmentation.n_cycles
     except FoamlabError as exc:
         note = f"no cycles found: {exc}"
-    method_results, headline = None, []
+    analysis = pipeline.Analysis(run, Path(path))
+    headline: list[str] = []
     if run.method:
         try:
-            from foamlab.gui.report import headline_names
-            from foamlab.methods import load_method
-
             method = load_method(run.method)
-            method_results, headline = method.compute_results(run), headline_names(method)
+            headline = headline_names(method)
+            pipeline.method_stage(analysis, method)
         except FoamlabError as exc:
-            log.info("method results of %s not computed: %s", path, exc)
-    return Loaded(run, cycles, phases, n_cycles, method_results, note, stored_diagnosis(path), headline)
+            analysis.method_error = str(exc)
+        if analysis.method_error:
+            log.info("method results of %s not computed: %s", path, analysis.method_error)
+    return Loaded(run, cycles, phases, n_cycles, analysis, note, stored_diagnosis(path), headline)
 
 
 def stored_diagnosis(path: str | Path) -> dict | None:
     """The diagnosis kept beside a run file (catalog sidecar), if any and readable."""
     try:
-        from foamlab.storage.catalog import sidecar_path
-
         side = sidecar_path(path, "diagnosis")
         if side.is_file():
             data = json.loads(side.read_text(encoding="utf-8"))
             return data if isinstance(data, dict) and "verdict" in data else None
-    except (ImportError, OSError, ValueError) as exc:
+    except (OSError, ValueError) as exc:
         log.info("no stored diagnosis for %s: %s", path, exc)
     return None
 
 
-def fit_for_display(loaded: Loaded) -> Any:
-    identification = _module("foamlab.identification", "model fitting")
-    return identification.fit_run(loaded.run)
-
-
-def diagnose_run(run: RunData) -> Any:
-    """Diagnose one run and keep the result beside its file (and in the catalog), as
-    `foamlab diagnose` does, so the run browser shows the verdict next time."""
-    diagnosis = _module("foamlab.diagnosis", "diagnosis")
-    result = diagnosis.diagnose([run])
-    if run.source:
-        try:
-            from foamlab.diagnosis.store import store_diagnosis
-
-            stored = store_diagnosis(result.to_dict(), run.source)
-            log.info("diagnosis of %s: %s", run.source, stored.path or stored.note)
-        except (ImportError, FoamlabError, OSError) as exc:
-            log.warning("diagnosis of %s not stored: %s", run.source, exc)
-    return result
-
-
-def predicted_force(fit: Any, run: RunData) -> np.ndarray | None:
-    """The fitted model's force at the run's samples (what the plot overlays); `fit` is a
-    foamlab.identification FitResult of this run."""
-    value = np.asarray(fit.predicted_force_N, dtype=float)
-    return value if value.shape == run.force_N.shape else None
+def fit_curve(fit: FitResult) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The fitted force at the samples the fit used (time, displacement, force): what the plot
+    overlays. Samples taken off the sampling schedule are not among them."""
+    if fit.run_time_s is None or fit.run_displacement_mm is None:
+        return None
+    return fit.run_time_s, fit.run_displacement_mm, np.asarray(fit.predicted_force_N, dtype=float)

@@ -16,9 +16,9 @@ from PySide6 import QtCore
 
 
 class EngineBridge(QtCore.QObject):
-    progress = QtCore.Signal(object)      # foamlab.engine.Progress
+    progress = QtCore.Signal(object)      # foamlab.acquisition.Progress
     state = QtCore.Signal(str)
-    finished = QtCore.Signal(object)      # foamlab.engine.RunResult
+    finished = QtCore.Signal(object)      # foamlab.acquisition.RunResult
 
     def __init__(self, parent: QtCore.QObject | None = None) -> None:
         super().__init__(parent)

@@ -1,13 +1,13 @@
 """The window's Test tab: live curves, progress, the run's status line and the results view.
 
-It shows a run as it grows, a run that ended, or a run read from a file, and fits and
-diagnoses a shown run on its own analysis thread. Every new thing shown starts a new
-generation: analysis results that arrive for an older one are dropped.
+It shows a run as it grows, a run that ended, or a run read from a file, and analyses a
+shown run with foamlab.pipeline on its own analysis thread (method results and the fit
+first, then the diagnosis of that fit). Every new thing shown starts a new generation:
+analysis results that arrive for an older one are dropped.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 from pathlib import Path
 from typing import Any, Callable
@@ -15,6 +15,7 @@ from typing import Any, Callable
 import numpy as np
 from PySide6 import QtCore, QtWidgets
 
+from foamlab import pipeline
 from foamlab.gui.background import BackgroundQueue
 from foamlab.gui.plots import LOADING, LivePlots
 from foamlab.gui.report import Report
@@ -23,12 +24,7 @@ from foamlab.gui.status import end_message, missed_flag
 
 log = logging.getLogger(__name__)
 
-
-def _has_module(name: str) -> bool:
-    try:
-        return importlib.util.find_spec(name) is not None
-    except ModuleNotFoundError:
-        return False
+NOT_DIAGNOSED_GAPS = "not run: too many samples are missing (Analysis > Diagnose the shown run)"
 
 
 def clock(seconds: float) -> str:
@@ -39,7 +35,7 @@ def clock(seconds: float) -> str:
 
 
 def run_rows(result) -> list[tuple[str, str]]:
-    """The run summary of a foamlab.engine.RunResult."""
+    """The run summary of a foamlab.acquisition.RunResult."""
     rows = [("status", result.status + (f" ({result.reason})" if result.reason else "")),
             ("file", str(result.path) if result.path else "–"),
             ("samples", f"{result.n_samples} ({result.missed} missed)")]
@@ -55,12 +51,15 @@ class RunDisplay(QtWidgets.QWidget):
     message = QtCore.Signal(str, bool)       # a line for the status bar; True: an error
     catalog_changed = QtCore.Signal()        # a diagnosis was stored beside its run
 
-    def __init__(self, auto_diagnose: Callable[[], bool], parent: QtWidgets.QWidget | None = None) -> None:
+    def __init__(self, auto_diagnose: Callable[[], bool], out_dir: Path,
+                 parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__(parent)
         self._auto_diagnose = auto_diagnose
+        self.out_dir = out_dir                 # the catalog the analysed runs are indexed in
         self.analysis = BackgroundQueue("foamlab-analysis", self)
         self.generation = 0
         self.shown_run = None                  # RunData on display (finished run or opened file)
+        self.shown_analysis: pipeline.Analysis | None = None   # its pipeline results so far
         self.plots = LivePlots()
         self.progress = QtWidgets.QProgressBar()
         self.progress.setObjectName("run_progress")
@@ -92,6 +91,7 @@ class RunDisplay(QtWidgets.QWidget):
     def begin_run(self, title: str, n_cycles: int, expected_samples: int) -> None:
         self.generation += 1                   # results of an earlier file/analysis no longer apply
         self.shown_run = None
+        self.shown_analysis = None
         self.plots.clear(expected_samples=expected_samples)
         self.results.clear()
         self.progress.setValue(0)
@@ -114,8 +114,8 @@ class RunDisplay(QtWidgets.QWidget):
 
     # -- a run that ended ---------------------------------------------------------------
     def show_result(self, result, headline: list[str]) -> tuple[str, str]:
-        """A foamlab.engine.RunResult: curves, status line, results, fit; then the diagnosis.
-        Returns the run's last word and its style (for the status bar)."""
+        """A foamlab.acquisition.RunResult: curves, status line; then the pipeline's method
+        results and fit, then its diagnosis. Returns the run's last word and its style."""
         self.plots.refresh()
         ok = result.status == "finished"
         if ok:
@@ -132,23 +132,13 @@ class RunDisplay(QtWidgets.QWidget):
         report.run = run_rows(result)
         if gaps is not None:
             report.flags.append(gaps)
-        if result.results is not None:
-            report.set_method_results(result.results, headline)
-        if result.fit is not None:
-            report.set_fit(result.fit)
-        elif result.fit_error:
-            report.fit_note = result.fit_error
-        elif not ok:
-            report.fit_note = "not fitted (the run did not finish)"
-        self.shown_run = result.run
+            report.diagnosis_note = NOT_DIAGNOSED_GAPS
+        report.fit_note = "fitting…" if ok else "not fitted (the run did not finish)"
+        self.shown_run, self.shown_analysis = result.run, None
         self.results.show_report(report)
-        if result.fit is not None and result.run is not None:
-            self._overlay_fit(result.fit, result.run)
-        if gaps is not None:
-            report.diagnosis_note = "not run: too many samples are missing for a diagnosis"
-            self.results.show_report(report)
-        elif result.run is not None and len(result.run) and ok:
-            self._maybe_diagnose(result.run, report, self.generation)
+        if result.run is not None:
+            self._analyse(pipeline.Analysis(result.run, result.path), report, self.generation, headline,
+                          fit=ok and len(result.run) > 0, diagnose=gaps is None)
         return text.split(" Data:")[0], style
 
     # -- a run from a file --------------------------------------------------------------
@@ -169,7 +159,7 @@ class RunDisplay(QtWidgets.QWidget):
 
     def _show_loaded(self, loaded, generation: int) -> None:
         run = loaded.run
-        self.shown_run = run
+        self.shown_run, self.shown_analysis = run, None
         self.plots.show_run(run.time_s, run.displacement_mm, run.force_N, loaded.cycles, loaded.phases)
         self.progress.setValue(0)
         self.progress.setFormat(f"{Path(run.source).name if run.source else 'file'}: {len(run)} samples")
@@ -184,82 +174,103 @@ class RunDisplay(QtWidgets.QWidget):
             report.set_diagnosis(loaded.stored_diagnosis)
             report.diagnosis_note = "stored with the run"
         self.results.show_report(report)
-        from foamlab.gui.analysis import fit_for_display
+        self._analyse(loaded.analysis, report, generation, loaded.headline, stored=loaded.stored_diagnosis)
 
-        def fitted(fit) -> None:
+    # -- analysis (foamlab.pipeline) -------------------------------------------------------
+    def _analyse(self, analysis: pipeline.Analysis, report: Report, generation: int, headline: list[str],
+                 fit: bool = True, diagnose: bool = True, stored: dict | None = None) -> None:
+        """Method results and the fit on the analysis thread (files beside the run, catalog), then
+        the diagnosis of that same fit: stored, automatic or on request. `diagnose` False: the
+        run has gaps, it is diagnosed only on request."""
+        folder = self.out_dir
+
+        def work() -> pipeline.Analysis:
+            if analysis.method_results is None and not analysis.method_error:
+                pipeline.method_stage(analysis)
+            if fit:
+                pipeline.fit_stage(analysis)
+            return pipeline.catalog_stage(pipeline.files_stage(analysis), folder)
+
+        def done(a: pipeline.Analysis) -> None:
             if generation != self.generation:
                 return
-            report.fit_note = ""
-            report.set_fit(fit)
+            self.shown_analysis = a
+            if a.method_results is not None:
+                report.set_method_results(a.method_results, headline)
+            if a.fit is not None:
+                report.fit_note = ""
+                report.set_fit(a.fit)
+                self._overlay_fit(a.fit)
+            elif fit:
+                report.fit_note = a.fit_error
             self.results.show_report(report)
-            self._overlay_fit(fit, run)
-            self._maybe_diagnose(run, report, generation, loaded.stored_diagnosis)
+            self.catalog_changed.emit()
+            if a.fit is not None and diagnose:
+                self._maybe_diagnose(a, report, generation, stored)
 
-        def not_fitted(message: str) -> None:
-            if generation != self.generation:
-                return
-            report.fit_note = message
-            self.results.show_report(report)
-            self._maybe_diagnose(run, report, generation, loaded.stored_diagnosis)
+        def failed(message: str) -> None:
+            if generation == self.generation:
+                report.fit_note = f"failed: {message}"
+                self.results.show_report(report)
 
-        self.analysis.submit(lambda: fit_for_display(loaded), fitted, not_fitted)
+        self.analysis.submit(work, done, failed)
 
-    # -- fit overlay, diagnosis ---------------------------------------------------------
-    def _overlay_fit(self, fit: Any, run) -> None:
-        try:
-            from foamlab.gui.analysis import predicted_force
+    def _overlay_fit(self, fit) -> None:
+        from foamlab.gui.analysis import fit_curve
 
-            predicted = predicted_force(fit, run)
-        except Exception as exc:
-            log.warning("no fitted curve to draw: %s", exc)
-            return
-        if predicted is not None:
-            self.plots.show_fit(run.time_s, run.displacement_mm, predicted)
+        curve = fit_curve(fit)
+        if curve is not None:
+            self.plots.show_fit(*curve)
 
-    def _maybe_diagnose(self, run, report: Report, generation: int, stored: dict | None = None) -> None:
+    def _maybe_diagnose(self, analysis: pipeline.Analysis, report: Report, generation: int,
+                        stored: dict | None = None) -> None:
         """Show a stored diagnosis, else diagnose now when automatic diagnosis is on."""
         if stored:
             report.set_diagnosis(stored)
             report.diagnosis_note = "stored with the run"
             self.results.show_report(report)
         elif self._auto_diagnose():
-            self._start_diagnosis(run, report, generation)
+            self._start_diagnosis(analysis, report, generation)
         else:
             report.diagnosis_note = "not run (Analysis > Diagnose the shown run)"
             self.results.show_report(report)
 
-    def diagnose_shown(self) -> bool:
-        """Diagnose the run on display; False when there is none."""
-        if self.shown_run is None or not len(self.shown_run):
-            return False
-        self._start_diagnosis(self.shown_run, self.results.report, self.generation)
-        return True
+    def diagnose_shown(self) -> str:
+        """Diagnose the run on display; '' once started, else why not."""
+        if self.shown_run is not None and self.shown_analysis is None:
+            return "the fit is still being made: the diagnosis extends it, try again when it shows"
+        if self.shown_analysis is None or not len(self.shown_analysis.run):
+            return "no run to diagnose: finish a run or open a file first"
+        self._start_diagnosis(self.shown_analysis, self.results.report, self.generation)
+        return ""
 
-    def _start_diagnosis(self, run, report: Report, generation: int) -> None:
-        if not _has_module("foamlab.diagnosis"):
-            report.diagnosis_note = "not available in this installation"
-            self.results.show_report(report)
-            return
-        from foamlab.gui.analysis import diagnose_run
-
+    def _start_diagnosis(self, analysis: pipeline.Analysis, report: Report, generation: int) -> None:
+        """The pipeline's diagnosis stage (it extends the run's fit), its file and catalog entry."""
         report.diagnosis_note = "running…"
         self.results.show_report(report)
+        folder = self.out_dir
 
-        def done(diagnosis) -> None:
+        def work() -> pipeline.Analysis:
+            pipeline.diagnose_stage(analysis)
+            return pipeline.catalog_stage(pipeline.files_stage(analysis), folder)
+
+        def done(a: pipeline.Analysis) -> None:
             if generation != self.generation:
                 return
-            report.set_diagnosis(diagnosis)
-            report.diagnosis_note = ""
+            if a.diagnosis is not None:
+                report.set_diagnosis(a.diagnosis)
+                report.diagnosis_note = ""
+            else:
+                report.diagnosis_note = f"failed: {a.diagnosis_error}"
             self.results.show_report(report)
             self.catalog_changed.emit()      # the verdict is in the catalog now
 
         def failed(message: str) -> None:
-            if generation != self.generation:
-                return
-            report.diagnosis_note = f"failed: {message}"
-            self.results.show_report(report)
+            if generation == self.generation:
+                report.diagnosis_note = f"failed: {message}"
+                self.results.show_report(report)
 
-        self.analysis.submit(lambda: diagnose_run(run), done, failed)
+        self.analysis.submit(work, done, failed)
 
     # -- export ---------------------------------------------------------------------------
     def export_png(self, path: Path) -> Path | None:

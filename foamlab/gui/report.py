@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import csv
 import math
-import re
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -61,16 +60,6 @@ def number(value: float | None, digits: int = 4) -> str:
     return f"{v:.{digits - 1}e}"
 
 
-def parameter_unit(name: str) -> str:
-    """Units of the model's parameters (foamlab.model.params)."""
-    for pattern, unit in ((r"k\d+$", "N"), (r"a\d+$", "N/(mm·s)"), (r"alpha\d+_(re|im)$", "1/s"),
-                          (r"r\d+_\d+$", "N·s^β/mm"), (r"beta\d+_\d+$", "–"), (r".*_N$", "N"),
-                          (r".*_mm$", "mm")):
-        if re.match(pattern, name):
-            return unit
-    return ""
-
-
 def headline_names(method: "Method") -> list[str]:
     """The results a method is run for: its declared values (CV40, CFD); a method without
     any (the paper's protocol) is read by its hysteresis loss."""
@@ -92,8 +81,9 @@ class ResultRow:
 class ParameterRow:
     name: str
     value: float
-    stderr: float | None
+    stderr: float | None        # None: the data do not determine it
     unit: str
+    varied: bool = True         # False: held fixed by the fit
 
 
 @dataclass(frozen=True)
@@ -132,8 +122,8 @@ class Report:
         self.headline = list(headline or [])
 
     def set_fit(self, fit: "FitResult") -> None:
-        self.parameters = [ParameterRow(n, float(v), None if math.isnan(s) else float(s), parameter_unit(n))
-                           for n, v, s in zip(fit.names, fit.values, fit.stderr)]
+        self.parameters = [ParameterRow(p.name, p.value, p.stderr, p.unit or "–", p.varied)
+                           for p in fit.parameters.values()]
         self.statistics = [(step, st.sse, st.r2, st.adj_r2, st.rmse) for step, st in fit.statistics.items()
                            if st is not None]
         self.constraints = list(fit.constraints.items())

@@ -155,8 +155,8 @@ class ResultsPanel(QtWidgets.QTabWidget):
         self.headline.setVisible(bool(cells))
 
     def _show_verdict(self, report: Report) -> None:
-        text = report.verdict_text()
-        self.verdict.setText(f"<b>Verdict:</b> {html.escape(text)}" if text else "")
+        text = html.escape(report.verdict_text())
+        self.verdict.setText(f"<b>Diagnosis verdict:</b> {text}" if report.verdict else text)
         self.verdict.setStyleSheet(GOOD_STYLE if report.verdict == "none" else
                                    (f"color: {FLAG_COLOUR};" if report.verdict else ""))
 
@@ -170,8 +170,8 @@ class ResultsPanel(QtWidgets.QTabWidget):
         params = []
         for p in report.parameters:
             rel = f"{abs(p.stderr / p.value):.1%}" if p.stderr is not None and p.value else "–"
-            params.append((p.name, number(p.value), number(p.stderr, 2) if p.stderr is not None
-                           else "not determined", rel, p.unit))
+            error = number(p.stderr, 2) if p.stderr is not None else ("fixed" if not p.varied else "not determined")
+            params.append((p.name, number(p.value), error, rel, p.unit))
         _fill(self.parameters, params, numeric={1, 2, 3})
         stats = [(STEP_NAMES.get(step, step), _opt(sse), _r2(r2), _r2(adj), _opt(rmse))
                  for step, sse, r2, adj, rmse in report.statistics]

@@ -1,5 +1,7 @@
-"""The technician's main window. It drives foamlab.engine.RunEngine and shows what
-the engine reports; it holds no test logic of its own.
+"""The technician's main window. It drives foamlab.acquisition.RunEngine, shows what
+the engine reports and analyses each run with foamlab.pipeline (the stages `foamlab run`
+uses: the fit shown first, the diagnosis after it in the background; foamlab.gui.display);
+it holds no test logic of its own.
 
 Threads: the GUI thread only draws. Machine I/O runs on the MachineLink's thread
 (idle polling, jog, zero/tare, starting a run), e-stops on a thread of their own
@@ -124,7 +126,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.diagnose_action = analysis_menu.addAction("&Diagnose the shown run")
 
         # Right: the live test (plots, progress, results) and the run browser.
-        d = self.display = RunDisplay(self.auto_diagnose_action.isChecked)
+        d = self.display = RunDisplay(self.auto_diagnose_action.isChecked, self.out_dir)
         self.plots, self.progress, self.run_status, self.results, self.analysis = (
             d.plots, d.progress, d.run_status, d.results, d.analysis)
         from foamlab.gui.browser import RunBrowser
@@ -200,6 +202,11 @@ class MainWindow(QtWidgets.QMainWindow):
     def shown_run(self, run) -> None:
         self.display.shown_run = run
 
+    @property
+    def shown_analysis(self):
+        """The shown run's foamlab.pipeline Analysis once its fit is done, else None."""
+        return self.display.shown_analysis
+
     def _update_controls(self) -> None:
         self.controls.set_state(self.connected, self.running, self._close_requested)
         self.open_action.setEnabled(not self.running)
@@ -222,7 +229,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._update_controls()
 
     def _on_connected(self, conn: Connection) -> None:
-        from foamlab.engine import Limits
+        from foamlab.acquisition import Limits
 
         self._link_trouble = False
         self.controls.show_connected(conn.name, conn.speedup)
@@ -316,7 +323,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self._status("start refused: the specimen entry is not valid", error=True)
             return False
         try:
-            from foamlab.engine import Limits, RunEngine
+            from foamlab.acquisition import Limits, RunEngine
             from foamlab.methods import load_method
 
             method = load_method(self.method_combo.currentText())
@@ -409,7 +416,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.show_finished(result)
 
     def show_finished(self, result) -> None:
-        """Everything the window says about a run that ended (a foamlab.engine.RunResult)."""
+        """Everything the window says about a run that ended (a foamlab.acquisition.RunResult)."""
         self._drain_samples()
         self.last_result = result
         if result.contact_position_mm is not None and self.link.connection is not None:
@@ -432,8 +439,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self._update_controls()
 
     def diagnose_shown_run(self) -> None:
-        if self.running or not self.display.diagnose_shown():
-            self._status("no run to diagnose: finish a run or open a file first", error=True)
+        problem = ("no run to diagnose: finish a run or open a file first" if self.running
+                   else self.display.diagnose_shown())
+        if problem:
+            self._status(problem, error=True)
 
     # ================================================================ files
     def open_file(self, path: str | Path | None = None) -> None:

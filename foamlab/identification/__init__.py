@@ -4,8 +4,8 @@
 model (foamlab.model) from one run; see docs/identification.md.
 """
 
-from foamlab.identification.data import Orders
 from foamlab.identification.fit import fit_run
 from foamlab.identification.result import FitResult
+from foamlab.model.layout import Orders
 
 __all__ = ["FitResult", "Orders", "fit_run"]

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from foamlab.identification.data import Orders
 from foamlab.identification.fit import fit_run
 from foamlab.identification.result import FitResult
+from foamlab.model.layout import Orders
 from foamlab.rundata import RunData
 
 

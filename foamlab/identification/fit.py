@@ -1,21 +1,32 @@
 """fit_run: the whole identification of one run (docs/identification.md).
 
-segment -> the paper's three steps (start values, Table 5 per step) -> joint
-refinement (decimated variable projection, full-resolution polish) -> the
-model's own evaluation at every sample -> statistics, uncertainty, checks.
+prepare (foamlab.analysis) -> the paper's three steps (start values, Table 5 per step)
+-> joint refinement (global search of alpha and beta on the decimated run) -> the
+analysis core's polish on every sample (foamlab.analysis.solve: all parameters, the
+contact set, the load cell's zero; the fit diagnosis extends) -> the model's own
+evaluation at every sample -> statistics, uncertainty, checks.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from foamlab.identification.data import FitData, Orders, model_response, prepare
-from foamlab.identification.joint import JointFit, joint_fit
-from foamlab.identification.paper import BETA_HI, BETA_LO, nonlinear_bounds, paper_steps
+from foamlab.analysis.noise import WHITE_P, whiteness
+from foamlab.analysis.prepared import PreparedRun, model_response, prepare
+from foamlab.analysis.solve import Fit, polish
+from foamlab.identification.joint import (
+    MIN_CENSORED,
+    JointFit,
+    alternative_starts,
+    evaluable,
+    joint_fit,
+)
+from foamlab.identification.paper import paper_steps
 from foamlab.identification.result import FitResult
 from foamlab.identification.statistics import (
     GoodnessOfFit,
@@ -24,6 +35,7 @@ from foamlab.identification.statistics import (
     parameter_uncertainty,
 )
 from foamlab.model import thermodynamic_checks
+from foamlab.model.layout import BETA_HI, BETA_LO, Orders, nonlinear_bounds
 from foamlab.rundata import RunData
 
 Progress = Callable[[str, float], None]
@@ -41,22 +53,89 @@ def fit_run(run: RunData, orders: Orders | str | tuple = Orders(), progress: Pro
     x_scale_mm: the elastic polynomial's scale (default: the run's largest compression).
     Raises FoamlabError (one line, what is missing) for runs that cannot be identified.
     """
+    report = progress or (lambda stage, fraction: None)
+    report("segmenting the run", 0.0)
+    return fit_prepared(prepare(run, x_scale_mm=x_scale_mm), orders, progress)
+
+
+def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple = Orders(),
+                 progress: Progress | None = None) -> FitResult:
+    """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run.
+
+    Where the crosshead turned without a stop, the samples cannot say whether it turned at
+    the sample at the extreme (a polyline of samples) or between two (a real machine): the
+    model switches at the turn, so the samples next to it show which. When they are off by
+    more than TURN_MISFIT_MULTIPLE times the noise and their neighbours, the other is fitted too
+    and the better kept."""
+    result = _fit_prepared(fd, orders, progress)
+    at_turns, around = _misfit_at_turns(result, fd)
+    if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around):
+        other = _fit_prepared(fd.other_turns(), orders, progress)
+        where = "between samples" if other.prepared.nodes.between_samples else "at the sample at the extreme"
+        if other.rmse < result.rmse:
+            other.notes.append(f"turning points without a stop placed {where}: the samples next to "
+                               f"them fit {result.rmse:.4g} N the other way")
+            return other
+    return result
+
+
+#: The samples next to turns without a stop misfit by more than this many times the noise
+#: and the samples around them: the turn is at the other place.
+TURN_MISFIT_MULTIPLE = 3.0
+
+
+def _misfit_at_turns(result: FitResult, fd: PreparedRun) -> tuple[float, float]:
+    """RMS misfit of the samples within one step of a turn without a stop, and of the samples
+    2-6 steps from one (an effect near the turns, e.g. a lag, misfits both alike)."""
+    turns = fd.nodes.turns_between
+    if not len(turns):
+        return 0.0, 0.0
+    distance = np.min(np.abs(fd.t[:, None] - turns[None, :]), axis=1) / fd.native_step_s
+    r = fd.f - result.predicted_force_N
+    rms = lambda m: float(np.sqrt(np.mean(r[m] ** 2))) if np.any(m) else 0.0
+    return rms(distance <= 1.0), rms((distance > 2.0) & (distance <= 6.0))
+
+
+def _fit_prepared(fd: PreparedRun, orders, progress: Progress | None) -> FitResult:
     orders = _orders(orders)
     report = progress or (lambda stage, fraction: None)
     started = time.perf_counter()
     # The matrices here are small: BLAS threads would only contend (and on a busy
     # machine they slow the fit down many times over).
     with threadpool_limits(1, user_api="blas"):
-        report("segmenting the run", 0.0)
-        fd = prepare(run, x_scale_mm=x_scale_mm)
         report("the paper's three steps", 0.1)
         paper = paper_steps(fd, orders)
         report("joint refinement", 0.3)
         jf = joint_fit(fd, orders, paper.start, report)
+        report("polish on every sample", 0.8)
+        base = polish([fd.series], jf.params)
+        if not _at_the_noise(base, fd):
+            # the data call for another start: the search's next best optimum, polished alike
+            report("polish from a second start", 0.85)
+            for params in alternative_starts(fd, orders, paper.start, count=EXTRA_STARTS):
+                other = polish([fd.series], params)
+                if other.rss < base.rss:
+                    base = other
+        polished = _from_core(fd, jf, base)
+        if polished is not None:
+            jf = polished
+        else:
+            base = None
         report("statistics", 0.9)
-        result = _result(fd, orders, paper, jf, started)
+        result = _result(fd, orders, paper, jf, started, base)
     report("done", 1.0)
     return result
+
+
+#: A polished fit further than this from the noise level, with structure left in its
+#: residuals, is polished again from the search's next best start(s).
+AT_NOISE_RATIO = 1.05
+EXTRA_STARTS = 1
+
+
+def _at_the_noise(base: Fit, fd: PreparedRun) -> bool:
+    rmse = base.rmse
+    return rmse <= AT_NOISE_RATIO * fd.noise_N or whiteness(base.solution.residual).min_p >= WHITE_P
 
 
 def _orders(orders) -> Orders:
@@ -67,7 +146,61 @@ def _orders(orders) -> Orders:
     return Orders(*orders)
 
 
-def _result(fd: FitData, orders: Orders, paper, jf: JointFit, started: float) -> FitResult:
+#: Samples this many steps from a corner of the path are not in the evaluation check.
+CORNER_STEPS = 2.0
+#: A damping mode whose Im alpha ends below this fraction of its Re alpha stays real (fixed).
+REAL_MODE_RATIO = 1e-6
+
+
+def _from_core(fd: PreparedRun, jf: JointFit, base: Fit) -> JointFit | None:
+    """The core's polished base in identification's terms (canonical order, the zero offset in
+    k0, the Jacobian of every free parameter at the solution); None when the polish found no
+    better optimum, or one the model's own evaluation cannot reproduce (see evaluable)."""
+    lay = jf.layout
+    sol = base.solution
+    # the rows identification reports on: the cycles' samples the path determines
+    rows = np.intersect1d(fd.observed, np.flatnonzero(fd.series.used))
+    residual = sol.residuals[0][rows]
+    if not np.mean(residual ** 2) < np.mean(jf.residual ** 2):
+        return None
+    theta, phi = sol.theta, base.model.split(base.nu)[0].copy()
+    L = lay.n_linear
+    fixed = np.zeros(lay.n_nonlinear, bool)
+    im = np.arange(1, 2 * lay.N, 2)
+    fixed[im] = jf.fixed_nonlinear[im] & (phi[im] <= REAL_MODE_RATIO * phi[im - 1])
+    phi[fixed] = 0.0
+    design = sol.designs[0][0][rows]                              # k, a, r columns, then the zero
+    deriv = base.model.prediction_derivatives(base.nu, sol)[rows]
+    out_of_contact = int(np.count_nonzero(~sol.masks[0][rows]))
+    zero_fitted = out_of_contact >= MIN_CENSORED
+    lin = theta[:L].copy()
+    zero = float(theta[L])
+    lin[0] += zero                       # identification's convention: reading = max(model, zero)
+    perm = lay.canonical_permutation(lin, phi)
+    nl_perm = perm[L:] - L
+    columns = np.hstack([design[:, :L], deriv])[:, perm]
+    keep = np.concatenate([np.ones(L, bool), ~fixed[nl_perm]])
+    jacobian = columns[:, keep]
+    if zero_fitted:
+        jacobian = np.hstack([jacobian, design[:, L:L + 1]])
+    lin, phi, fixed = lin[perm[:L]], phi[nl_perm], fixed[nl_perm]
+    params = jf.params.with_vector(lay.to_flat(lin, phi))
+    polished = JointFit(params, lay, lin, phi, fixed, zero, zero_fitted, jacobian, residual,
+                        jacobian.shape[1], jf.nfev, jf.starts + ["polish on every sample (analysis core)"],
+                        base.status, base.message)
+    # the model's causal evaluation cuts a corner between samples by up to a tenth of a step
+    # (model_response): the samples next to one are left out of the check
+    step = fd.native_step_s
+    near = np.zeros(len(fd.t), bool)
+    for tc in fd.nodes.t[fd.nodes.corners]:
+        near |= np.abs(fd.t - tc) <= CORNER_STEPS * step
+    checked = ~near[rows]
+    polished_check = replace(polished, residual=residual[checked])
+    return polished if evaluable(fd, polished_check, rows[checked]) else None
+
+
+def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float,
+            base: Fit | None = None) -> FitResult:
     lay = jf.layout
     params = jf.params
     names = params.names()
@@ -89,12 +222,23 @@ def _result(fd: FitData, orders: Orders, paper, jf: JointFit, started: float) ->
     stderr[order] = unc.stderr[:len(order)]
     corr = np.full((len(names), len(names)), np.nan)
     corr[np.ix_(order, order)] = unc.correlation[:len(order), :len(order)]
+    flat_lower, flat_upper = np.full(len(names), -np.inf), np.full(len(names), np.inf)
+    flat_lower[nl_idx], flat_upper[nl_idx] = lower, upper
+    varied = np.ones(len(names), bool)
+    varied[nl_idx[jf.fixed_nonlinear]] = False
     notes = [f"{names[i]} = 0 (fixed): the data do not support an oscillation of damping mode "
              f"{names[i][5:-3]} (BIC), so it is a real mode" for i in nl_idx[jf.fixed_nonlinear]]
 
-    # the model's own evaluation at every sample, what a load cell would read
+    # what a load cell would read at every sample: the model's force, the unloaded reading
+    # where the plate is off; exact (the core's columns: the Riemann-Liouville derivative of the
+    # path through its corner nodes) when the core's fit is the result, else the causal
+    # evaluation, which is exact only where no corner lies between samples
     response = model_response(params, fd)
-    predicted = np.maximum(response.force, jf.contact_zero_N)
+    if base is not None:
+        force = base.model.specimen_force(base.nu, base.solution.theta)[0] + jf.contact_zero_N
+    else:
+        force = response.force
+    predicted = np.maximum(force, jf.contact_zero_N)
     y = fd.f[fd.observed]
     joint = GoodnessOfFit.of(y, predicted[fd.observed], jf.n_free)
     first, last = int(fd.observed[0]), int(fd.observed[-1]) + 1
@@ -122,6 +266,9 @@ def _result(fd: FitData, orders: Orders, paper, jf: JointFit, started: float) ->
         observed=fd.observed, paper=paper, source=fd.run.source,
         elapsed_s=time.perf_counter() - started, starts=jf.starts,
         run_time_s=fd.t, run_displacement_mm=fd.run.displacement_mm, run_force_N=fd.f,
+        lower=flat_lower, upper=flat_upper, varied=varied,
+        status=jf.status, message=jf.message,
+        noise_N=fd.noise_N, prepared=fd, core_fit=base,
     )
 
 

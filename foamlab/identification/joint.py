@@ -4,8 +4,8 @@
    FIT_SAMPLES_PER_HALF_CYCLE per half-cycle; the model is continuous in time, so
    the same model runs on a coarser operator grid): only the decay rates alpha and
    fractional orders beta are searched, the linear k, a, r are solved exactly.
-   Starts: the paper's three-step values, and a start built from the run's time
-   scale alone; the better after a short run is continued.
+   Starts: the paper's three-step values and two forward selections; the best after a
+   short run is continued.
 2. Polish at full resolution on every sample of the half-cycles, all parameters
    at once, with the load cell's contact loss in the measurement model: a plate
    that has lost contact reads the unloaded value z0, so the prediction is
@@ -22,11 +22,17 @@ from typing import Callable
 import numpy as np
 from scipy.optimize import least_squares
 
-from foamlab.identification.basis import Layout, ModelBasis
-from foamlab.identification.data import FitData, Orders, model_response
-from foamlab.identification.paper import alpha_candidates, beta_candidates, nonlinear_bounds
-from foamlab.identification.varpro import GreedyBasis, SeparableFit, SeparableProblem, solve_linear
+from foamlab.analysis.basis import ModelBasis
+from foamlab.analysis.prepared import PreparedRun, model_response
+from foamlab.identification.paper import alpha_candidates, beta_candidates
+from foamlab.identification.varpro import (
+    GreedyBasis,
+    SeparableFit,
+    SeparableProblem,
+    solve_linear,
+)
 from foamlab.model import ModelParameters
+from foamlab.model.layout import Layout, Orders, nonlinear_bounds
 
 #: Budget of the short runs that pick the better start, and of the continuation.
 PROBE_NFEV, FIT_NFEV = 6, 40
@@ -53,18 +59,8 @@ class JointFit:
     n_free: int
     nfev: int
     starts: list[str]
-
-
-def generic_start(orders: Orders, n_cycles: int, loading_time_s: float) -> np.ndarray:
-    """Nonlinear start from the run's time scale only: decay rates spread over
-    1..30 per loading time (alternately real and oscillating), orders spread over
-    the residual's range."""
-    rates = np.geomspace(1.0, 30.0, orders.N) / loading_time_s if orders.N else np.zeros(0)
-    alphas = []
-    for i, re in enumerate(rates):
-        alphas += [re, re if i % 2 else 0.0]
-    betas = np.linspace(-1.5, 0.8, orders.M) if orders.M > 1 else np.full(orders.M, 0.3)
-    return np.concatenate([np.asarray(alphas, float), np.tile(betas, n_cycles)])
+    status: int = 0               # scipy least_squares' at the end (> 0 converged)
+    message: str = ""
 
 
 def greedy_start(basis: ModelBasis, w: np.ndarray, blocks: Callable, y: np.ndarray, orders: Orders,
@@ -212,12 +208,15 @@ def _globalise(problem: SeparableProblem, fit, slots, lower, upper, ftol: float,
     return fit
 
 
-def _layout(fd: FitData, orders: Orders) -> Layout:
+def _layout(fd: PreparedRun, orders: Orders) -> Layout:
     return Layout(P=orders.P, N=orders.N, M=orders.M, C=fd.n_residual_cycles)
 
 
-def joint_fit(fd: FitData, orders: Orders, start: ModelParameters | None,
-              progress: Callable[[str, float], None] | None = None) -> JointFit:
+def _ranked_searches(fd: PreparedRun, orders: Orders, start: ModelParameters | None,
+                     progress: Callable[[str, float], None] | None):
+    """The global search of alpha and beta on the decimated run, from each start in turn, best
+    short probe first: yields (fit, fixed nonlinear, the starts' names, the lower and upper
+    bounds, the evaluations so far)."""
     lay = _layout(fd, orders)
     lower, upper = nonlinear_bounds(orders, lay.C, fd.loading_time_s)
     coarse = fd.nodes.basis(fd.fit_rows, lay, fd.x_scale_mm, fd.fit_step_s)
@@ -243,34 +242,60 @@ def joint_fit(fd: FitData, orders: Orders, start: ModelParameters | None,
                        name))
         if progress:
             progress(f"joint fit: start '{name}'", 0.5 + 0.1 * len(probes))
-    # the best start is continued; should its optimum be one the model cannot evaluate
-    # (see _evaluable), the next best start is, and so on
-    ranked = sorted(probes, key=lambda fr: fr[0].sse)
-    for rank, (best, best_name) in enumerate(ranked):
+    for best, best_name in sorted(probes, key=lambda fr: fr[0].sse):
         fit = problem.fit(best.nonlinear, lower, upper, max_nfev=FIT_NFEV, ftol=ftol, xtol=1e-6)
         fit = _globalise(problem, fit, slots, lower, upper, ftol)
         fit, fixed = _real_modes(problem, lay, fit, lower, upper, ftol)
+        yield (fit, fixed, [f"{n}{' (chosen)' if n == best_name else ''}" for _, n in probes],
+               lower, upper, problem.nfev)
+
+
+def search_start(fd: PreparedRun, orders: Orders, start: ModelParameters | None = None) -> ModelParameters:
+    """The global search's best optimum as parameters, without the full-resolution steps: a
+    start for a fit that continues on every sample (diagnosis' restarts)."""
+    fit, *_ = next(_ranked_searches(fd, orders, start, None))
+    lay = _layout(fd, orders)
+    return _template(fd, lay).with_vector(lay.to_flat(fit.linear, fit.nonlinear))
+
+
+def alternative_starts(fd: PreparedRun, orders: Orders, start: ModelParameters | None, count: int = 1):
+    """The search's next best optima after the first (the one joint_fit continued), as
+    parameters: starts for another polish when the first leaves structure."""
+    lay = _layout(fd, orders)
+    for rank, (fit, *_) in enumerate(_ranked_searches(fd, orders, start, None)):
+        if rank > count:
+            return
+        if rank:
+            yield _template(fd, lay).with_vector(lay.to_flat(fit.linear, fit.nonlinear))
+
+
+def joint_fit(fd: PreparedRun, orders: Orders, start: ModelParameters | None,
+              progress: Callable[[str, float], None] | None = None) -> JointFit:
+    lay = _layout(fd, orders)
+    # the best start is continued; should its optimum be one the model cannot evaluate
+    # (see evaluable), the next best start is, and so on
+    first = None
+    for fit, fixed, names, lower, upper, nfev in _ranked_searches(fd, orders, start, progress):
         if progress:
             progress("joint fit: full-resolution polish", 0.8)
-        jf = _polish(fd, lay, fit.linear, fit.nonlinear, fixed, lower, upper, problem.nfev,
-                     [f"{n}{' (chosen)' if n == best_name else ''}" for _, n in probes])
-        if rank == 0:
-            first = jf
-        if _evaluable(fd, jf):
+        jf = _polish(fd, lay, fit.linear, fit.nonlinear, fixed, lower, upper, nfev, names)
+        first = first or jf
+        if evaluable(fd, jf):
             return jf
     return first
 
 
-def _evaluable(fd: FitData, jf: "JointFit") -> bool:
+def evaluable(fd: PreparedRun, jf: "JointFit", rows: np.ndarray | None = None) -> bool:
     """Does the model's own evaluation (foamlab.model.evaluate: the operators the simulator
     steps, ~1e-7 relative accuracy) reproduce the fit within a tenth of the noise? The fit's
     columns are exact, so it can find optima that cancel huge terms: two residual terms of
     one cycle at nearly the same order (near beta = -3 the columns grow like t^4) with
     amplitudes +-1e5 whose difference is the force. No evaluation in finite precision
     reproduces such a model, and the simulator cannot run it."""
+    rows = fd.observed if rows is None else rows
     response = model_response(jf.params, fd)
-    predicted = np.maximum(response.force, jf.contact_zero_N)[fd.observed]
-    fitted = fd.f[fd.observed] - jf.residual
+    predicted = np.maximum(response.force, jf.contact_zero_N)[rows]
+    fitted = fd.f[rows] - jf.residual
     tolerance = 0.1 * max(fd.noise_N, 1e-4 * float(np.ptp(fd.f)))
     return bool(np.sqrt(np.mean((predicted - fitted) ** 2)) <= tolerance)
 
@@ -317,7 +342,7 @@ def _real_modes(problem: SeparableProblem, lay: Layout, fit, lower, upper, ftol:
     return fit, fixed
 
 
-def _polish(fd: FitData, lay: Layout, linear: np.ndarray, nonlinear: np.ndarray, fixed: np.ndarray,
+def _polish(fd: PreparedRun, lay: Layout, linear: np.ndarray, nonlinear: np.ndarray, fixed: np.ndarray,
             lower: np.ndarray, upper: np.ndarray, nfev: int, starts: list[str]) -> JointFit:
     full = fd.nodes.basis(fd.observed, lay, fd.x_scale_mm, fd.native_step_s)
     y = fd.f[fd.observed]
@@ -367,12 +392,14 @@ def _polish(fd: FitData, lay: Layout, linear: np.ndarray, nonlinear: np.ndarray,
     keep = [jac_col[f] for f in perm if jac_col[f] >= 0] + ([L + K] if fit_zero else [])
     jacobian = np.asarray(res.jac)[:, keep]
     lin, nl, fixed = lin[perm[:L]], nl[nl_perm], fixed[nl_perm]
-    flat = lay.to_flat(lin, nl)
-    template = ModelParameters(
+    params = _template(fd, lay).with_vector(lay.to_flat(lin, nl))
+    return JointFit(params, lay, lin, nl, fixed, float(zero), fit_zero, jacobian, -np.asarray(res.fun),
+                    len(res.x), nfev + int(res.nfev), starts, int(res.status), str(res.message))
+
+
+def _template(fd: PreparedRun, lay: Layout) -> ModelParameters:
+    return ModelParameters(
         x_scale_mm=fd.x_scale_mm, elastic_k=np.zeros(lay.P + 1), damping_a=np.zeros(lay.N),
         damping_alpha=np.zeros(lay.N, complex), residual_r=np.zeros((lay.C, lay.M)),
         residual_beta=np.zeros((lay.C, lay.M)),
         description=f"identified by foamlab fit from {fd.run.source or 'a run'}")
-    params = template.with_vector(flat)
-    return JointFit(params, lay, lin, nl, fixed, float(zero), fit_zero, jacobian, -np.asarray(res.fun),
-                    len(res.x), nfev + int(res.nfev), starts)

@@ -32,10 +32,18 @@ from typing import Callable
 import numpy as np
 from scipy.optimize import lsq_linear
 
-from foamlab.identification.data import FitData, Orders
+from foamlab.analysis.prepared import PreparedRun
 from foamlab.identification.statistics import GoodnessOfFit
 from foamlab.identification.varpro import GreedyBasis, SeparableProblem
 from foamlab.model import ModelParameters, damping_closed_form, residual_eq11
+from foamlab.model.layout import (
+    ALPHA_HI,
+    ALPHA_LO,
+    BETA_HI,
+    BETA_LO,
+    Orders,
+    nonlinear_bounds,
+)
 from foamlab.segmentation import HalfCycle
 
 #: Grid bins: about one per this many samples of the sparsest half-cycle...
@@ -44,21 +52,9 @@ SAMPLES_PER_BIN = 4
 MIN_BINS, MAX_BINS = 20, 300
 #: The shared displacement range must cover this fraction of the stroke.
 MIN_SHARED_FRACTION = 0.2
-#: Decay rates are searched over [ALPHA_LO, ALPHA_HI] / (loading time).
-ALPHA_LO, ALPHA_HI = 0.1, 100.0
-#: Fractional orders are searched in [BETA_LO, BETA_HI] (beta < 1, Eq. 10).
-BETA_LO, BETA_HI = -3.0, 0.99
 FD_STEP = 1e-6
 #: Iteration budget of each step's local refinement (start values, not the final fit).
 STEP_MAX_NFEV = 60
-
-
-def nonlinear_bounds(orders: Orders, n_cycles: int, loading_time_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds of (alpha_re, alpha_im) x N and beta x (C M), from the loading time."""
-    lo_a, hi_a = ALPHA_LO / loading_time_s, ALPHA_HI / loading_time_s
-    lower = [lo_a, 0.0] * orders.N + [BETA_LO] * (n_cycles * orders.M)
-    upper = [hi_a, hi_a] * orders.N + [BETA_HI] * (n_cycles * orders.M)
-    return np.asarray(lower, float), np.asarray(upper, float)
 
 
 def alpha_candidates(loading_time_s: float) -> list[np.ndarray]:
@@ -167,7 +163,7 @@ def resample_on_grid(x: np.ndarray, f: np.ndarray, edges: np.ndarray) -> np.ndar
     return out
 
 
-def _usable(fd: FitData, half: HalfCycle) -> tuple[np.ndarray, np.ndarray]:
+def _usable(fd: PreparedRun, half: HalfCycle) -> tuple[np.ndarray, np.ndarray]:
     sl = half.slice
     keep = ~fd.seg.contact_lost[sl]
     lin = fd.seg.first_cycle_linear_region
@@ -182,12 +178,12 @@ def _unit_damping(alpha: complex) -> ModelParameters:
                            residual_r=np.zeros((1, 0)), residual_beta=np.zeros((1, 0)))
 
 
-def _rate(fd: FitData, half: HalfCycle) -> float:
+def _rate(fd: PreparedRun, half: HalfCycle) -> float:
     sl = half.slice
     return float(abs(np.polyfit(fd.t[sl], fd.x[sl], 1)[0]))
 
 
-def paper_steps(fd: FitData, orders: Orders) -> PaperResult:
+def paper_steps(fd: PreparedRun, orders: Orders) -> PaperResult:
     """The three steps on the run's half-cycles; start values for the joint fit."""
     cycles = fd.seg.cycles
     C = fd.n_residual_cycles

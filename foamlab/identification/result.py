@@ -10,13 +10,43 @@ from pathlib import Path
 
 import numpy as np
 
-from foamlab.identification.data import Orders
+from foamlab.analysis.prepared import PreparedRun
+from foamlab.analysis.solve import Fit
 from foamlab.identification.paper import PaperResult
 from foamlab.identification.statistics import GoodnessOfFit
 from foamlab.model import ModelParameters, ModelResponse
+from foamlab.model.layout import Orders
 
 #: The steps of Table 5, plus the joint refinement.
 STEPS = ("damping", "residual", "elastic", "joint")
+
+
+#: Unit of each parameter family (foamlab.model.params), by name prefix.
+UNITS = (("alpha", "1/s"), ("beta", ""), ("k", "N"), ("a", "N/(mm s)"), ("r", "N s^beta/mm"))
+#: The terminal summary lists at most this many warnings (all are in --json and the sidecar).
+SUMMARY_WARNINGS = 3
+
+
+def unit_of(name: str) -> str:
+    return next((unit for prefix, unit in UNITS if name.startswith(prefix)), "")
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One fitted parameter as lmfit reports it: value, standard error, bounds, varied."""
+
+    name: str
+    value: float
+    stderr: float | None              # None: the data do not determine it
+    lower: float                      # -inf: unbounded
+    upper: float
+    varied: bool                      # False: held fixed (e.g. Im alpha of a real damping mode)
+    unit: str
+
+    @property
+    def determined(self) -> bool:
+        """Varied, with a standard error, and its 95 % interval excludes zero."""
+        return self.varied and self.stderr is not None and abs(self.value) > 1.96 * self.stderr
 
 
 def _num(v) -> float | None:
@@ -53,6 +83,14 @@ class FitResult:
     run_time_s: np.ndarray | None = None
     run_displacement_mm: np.ndarray | None = None
     run_force_N: np.ndarray | None = None
+    lower: np.ndarray | None = None   # bounds of each parameter in the search (flat order; +-inf: none)
+    upper: np.ndarray | None = None
+    varied: np.ndarray | None = None  # bool, flat order: False for parameters held fixed
+    status: int = 0                   # the final optimizer's (scipy least_squares): > 0 converged
+    message: str = ""
+    noise_N: float = float("nan")     # the load cell's noise level estimated from the run
+    prepared: PreparedRun | None = None   # the run as prepared for every fit (foamlab.analysis)
+    core_fit: Fit | None = None           # the analysis core's fit: what diagnosis extends
 
     # -- views -----------------------------------------------------------------------
     @property
@@ -64,6 +102,20 @@ class FitResult:
         """Measured minus fitted force at every sample of the run."""
         return self.run_force_N - self.predicted_force_N
 
+    @property
+    def success(self) -> bool:
+        """The final optimizer converged (not stopped by its iteration budget)."""
+        return self.status > 0
+
+    @property
+    def parameters(self) -> dict[str, Parameter]:
+        n = len(self.names)
+        lower = self.lower if self.lower is not None else np.full(n, -np.inf)
+        upper = self.upper if self.upper is not None else np.full(n, np.inf)
+        varied = self.varied if self.varied is not None else np.ones(n, bool)
+        return {name: Parameter(name, float(v), _num(s), float(lo), float(hi), bool(var), unit_of(name))
+                for name, v, s, lo, hi, var in zip(self.names, self.values, self.stderr, lower, upper, varied)}
+
     def value(self, name: str) -> float:
         return float(self.values[self.names.index(name)])
 
@@ -74,16 +126,20 @@ class FitResult:
     def to_dict(self) -> dict:
         """The object of ``foamlab fit --json`` (DESIGN.md): parameters, statistics, rmse,
         constraints. Standard errors of parameters the data do not determine are null."""
-        parameters = {n: {"value": float(v), "stderr": _num(s)}
-                      for n, v, s in zip(self.names, self.values, self.stderr)}
-        parameters["x_scale_mm"] = {"value": float(self.params.x_scale_mm), "stderr": None}
+        parameters = {p.name: {"value": p.value, "stderr": p.stderr, "lower": _num(p.lower),
+                               "upper": _num(p.upper), "varied": p.varied, "unit": p.unit}
+                      for p in self.parameters.values()}
+        parameters["x_scale_mm"] = {"value": float(self.params.x_scale_mm), "stderr": None, "lower": None,
+                                    "upper": None, "varied": False, "unit": "mm"}
         statistics = {}
         for step in STEPS:
             st = self.statistics.get(step)
             statistics[step] = st.to_dict() if st is not None else {
                 "sse": None, "r2": None, "adj_r2": None, "rmse": None}
         return {"parameters": parameters, "statistics": statistics, "rmse": _num(self.rmse),
-                "constraints": {k: bool(v) for k, v in self.constraints.items()}}
+                "constraints": {k: bool(v) for k, v in self.constraints.items()},
+                "noise": _num(self.noise_N),
+                "optimizer": {"success": self.success, "status": self.status, "message": self.message}}
 
     def to_json(self, indent: int | None = 2) -> str:
         return json.dumps(self.to_dict(), indent=indent)
@@ -118,6 +174,29 @@ class FitResult:
         return path
 
     # -- text ---------------------------------------------------------------------------
+    def brief(self) -> str:
+        """What a terminal shows: fit quality, the parameters the data determine, the warnings
+        that matter most (the full report is ``summary()``, --json and the sidecar)."""
+        joint = self.statistics.get("joint")
+        ratio = self.rmse / self.noise_N if self.noise_N > 0 else float("nan")
+        lines = [f"fit of {self.source or 'run'}: orders {self.orders}, {self.n_obs} samples, {self.elapsed_s:.2f} s",
+                 f"  RMSE {self.rmse:.4g} N = {ratio:.2f} x the load cell's noise ({self.noise_N:.3g} N)"
+                 + (f", R^2 {joint.r2:.6f}" if joint is not None else ""),
+                 f"  optimizer: {'converged' if self.success else 'stopped'} ({self.message})"]
+        params = [p for p in self.parameters.values() if p.determined]
+        hidden = len(self.names) - len(params)
+        lines.append(f"  parameters the data determine ({len(params)} of {len(self.names)}; "
+                     f"{hidden} fixed, not determined or within 2 standard errors of zero: see --full or --json):")
+        for p in params:
+            lines.append(f"    {p.name:<11}{p.value:>13.5g} +/- {p.stderr:<10.2g} {p.unit}")
+        failed = [k for k, ok in self.constraints.items() if not ok]
+        if failed:
+            lines.append("  thermodynamic checks failed: " + ", ".join(failed))
+        if self.warnings:
+            lines.append(f"  warnings ({len(self.warnings)}; the first {min(SUMMARY_WARNINGS, len(self.warnings))}):")
+            lines += [f"    - {w}" for w in self.warnings[:SUMMARY_WARNINGS]]
+        return "\n".join(lines)
+
     def summary(self) -> str:
         """A readable report: statistics per step (Table 5), parameters, checks, warnings."""
         lines = [f"[[Fit]] {self.source or 'run'}",

@@ -20,7 +20,7 @@ from foamlab import FoamlabError
 from foamlab.importers import bluehill, plain_csv, testxpert
 from foamlab.importers._text import read_text
 from foamlab.rundata import RunData
-from foamlab.storage.runfile import is_run_file
+from foamlab.runformat import is_run_file
 
 FORMATS = ("foamlab run file", plain_csv.FORMAT, bluehill.FORMAT, testxpert.FORMAT)
 

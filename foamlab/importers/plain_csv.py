@@ -13,7 +13,7 @@ from foamlab import FoamlabError
 from foamlab.importers._table import Rows, check_samples, parse_rows
 from foamlab.importers._text import TextFile
 from foamlab.rundata import RunData
-from foamlab.storage.runfile import BASE_COLUMNS, NO_TRAILER_REASON, runfile_fields
+from foamlab.runformat import BASE_COLUMNS, NO_TRAILER_REASON, runfile_fields
 
 FORMAT = "plain CSV"
 HEADER = ",".join(BASE_COLUMNS)

@@ -76,6 +76,8 @@ class Effect:
     """One hidden effect. Construct with the magnitude (first parameter) and/or named values."""
 
     name: ClassVar[str]
+    meaning: ClassVar[str] = ""             # what it is, physically (one line)
+    signature: ClassVar[str] = ""           # how it shows in the residuals of the paper's model
     stage: ClassVar[str]                    # "input" | "specimen" | "sensor"
     parameters: ClassVar[tuple[EffectParameter, ...]]
 
@@ -171,6 +173,9 @@ class CycleSoftening(Effect):
     """
 
     name = "cycle_softening"
+    meaning = ("the elastic force softens from cycle to cycle (Mullins-type stress softening): "
+               "the model's assumption (c) of one elastic curve for every cycle does not hold")
+    signature = "later cycles lie below the model on loading and unloading, more at large displacement"
     stage = "specimen"
     parameters = (EffectParameter("s", "1/cycle", 0.05, -0.5, 0.9,
                                   doc="fraction of the elastic force lost per cycle"),)
@@ -189,6 +194,9 @@ class DampingCycleChange(Effect):
     """
 
     name = "damping_cycle_change"
+    meaning = ("the damping force differs between loading half-cycles: the model's assumption (b) "
+               "of one damping force for every loading does not hold")
+    signature = "later loadings differ from the model by a loading-only, rate-like amount"
     stage = "specimen"
     parameters = (EffectParameter("d", "1/cycle", 0.2, -0.45, 2.0,
                                   doc="relative change of the damping force per cycle"),)
@@ -211,6 +219,9 @@ class RateDependence(Effect):
     """
 
     name = "rate_dependence"
+    meaning = ("the damping depends on the crosshead rate beyond the model's kernel: a model "
+               "identified at one speed mispredicts another")
+    signature = "the runs at other speeds miss the model by a loading-only amount that grows with the speed ratio"
     stage = "specimen"
     parameters = (
         EffectParameter("m", "-", 0.5, -1.0, 2.0, doc="exponent of the extra rate dependence"),
@@ -236,6 +247,8 @@ class DirectionFriction(Effect):
     """
 
     name = "direction_friction"
+    meaning = "a constant force opposes the motion (platen or guide friction)"
+    signature = "loading above and unloading below the model by the same force, independent of x"
     stage = "specimen"
     parameters = (
         EffectParameter("f_N", "N", 2.0, -50.0, 50.0, doc="friction force"),
@@ -269,6 +282,8 @@ class MachineCompliance(Effect):
     """
 
     name = "machine_compliance"
+    meaning = "the frame and load train deflect: part of the measured displacement is the machine's"
+    signature = "the stiff (high-force) part of the curve is softer than the model and the peak is rounded"
     stage = "input"
     parameters = (
         EffectParameter("c_mm_per_N", "mm/N", 0.005, 0.0, 0.01, doc="frame + load-cell compliance"),
@@ -288,6 +303,8 @@ class ChannelLag(Effect):
     """
 
     name = "channel_lag"
+    meaning = "force and displacement are sampled out of step (the force channel is late or early)"
+    signature = "extra hysteresis on loading and unloading alike, growing with the force's slope"
     stage = "sensor"
     parameters = (EffectParameter("tau_s", "s", 0.5, -5.0, 5.0, doc="delay of the force channel"),)
 
@@ -307,6 +324,8 @@ class ForceZeroDrift(Effect):
     """
 
     name = "force_zero_drift"
+    meaning = "the load cell's zero drifts during the run (temperature, bridge creep)"
+    signature = "an error growing linearly in time, seen also where the plate is off the specimen"
     stage = "sensor"
     parameters = (EffectParameter("rate_N_per_s", "N/s", 0.005, -1.0, 1.0, doc="zero drift rate"),)
 
@@ -378,6 +397,11 @@ class MemoryLag(Effect):
     """
 
     name = "memory_lag"
+    meaning = ("the specimen's memory forces (damping and residual) follow the loading history with "
+               "a relaxation time: at a turning point, where the paper's model passes from the loading "
+               "to the unloading branch at once, the specimen releases its force over that time")
+    signature = ("after each reversal the measured force falls over a few tenths of a second where the "
+                 "model drops at once; the elastic force is not delayed (unlike channel_lag)")
     stage = "specimen"
     parameters = (EffectParameter("tau_s", "s", 0.2, 0.0, 5.0,
                                   doc="relaxation time of the damping and residual forces"),)
@@ -426,8 +450,8 @@ def first_order_response(t, u, tau: float) -> np.ndarray:
 
     u: (n,) or (n, k), time along axis 0. The recursion y_i = a_i y_{i-1} + g_i is summed as
     y_i = sum_j exp(-(t_i - t_j)/tau) g_j, in stretches of at most _CHUNK_TAUS tau (so the
-    exponentials neither overflow nor lose precision), vectorised: a plain loop over 18 000
-    samples costs ~50 ms per call, and a fit calls it hundreds of times."""
+    exponentials neither overflow nor lose precision), vectorised because a fit calls it
+    hundreds of times (a plain loop's cost: docs/model.md#measured-costs-behind-implementation-choices)."""
     u = np.asarray(u, float)
     t = np.asarray(t, float)
     if tau <= 0 or len(t) < 2:

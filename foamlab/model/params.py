@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from foamlab import CONFIG_DIR, FoamlabError
+from foamlab.model.layout import Layout
 
 DEFAULT_SPECIMEN = CONFIG_DIR / "specimens" / "default.toml"
 
@@ -67,6 +68,11 @@ class ModelParameters:
     @property
     def n_residual_cycles(self) -> int:
         return self.residual_r.shape[0]
+
+    @property
+    def layout(self) -> Layout:
+        """Where each entry of to_vector() goes when the model is fitted (linear / nonlinear)."""
+        return Layout(P=self.order_P, N=self.order_N, M=self.order_M, C=self.n_residual_cycles)
 
     def residual_terms(self, cycle: int) -> tuple[np.ndarray, np.ndarray]:
         """(r, beta) of a 1-based cycle; cycles beyond those identified reuse the last."""

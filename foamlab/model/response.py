@@ -18,7 +18,7 @@ from foamlab.model.components import (
     elastic_force,
     rl_derivative_piecewise_linear,
 )
-from foamlab.model.history import HistoryLabels, label_history
+from foamlab.model.history import HistoryLabels, label_history, labels_from_extrema
 from foamlab.model.operators import FractionalOperator, HereditaryOperator, is_uniform
 from foamlab.model.params import ModelParameters
 
@@ -123,13 +123,10 @@ def closed_form(params: ModelParameters, t, amplitude_mm: float, rate_mm_s: floa
     A, v = amplitude_mm, rate_mm_s
     T = 2 * A / v
     phase = np.mod(t, T)
-    cyc = np.minimum(np.floor(t / T).astype(int), n_cycles - 1)
     x = np.where(phase <= T / 2, v * phase, v * (T - phase))
     x = np.where(t >= n_cycles * T, 0.0, x)
     starts = [int(np.argmin(np.abs(t - k * T))) for k in range(n_cycles)]
     peaks = [int(np.argmin(np.abs(t - (k + 0.5) * T))) for k in range(n_cycles)]
-    from foamlab.model.history import labels_from_extrema
-
     labels = labels_from_extrema(len(t), starts, peaks)
     loading = labels.direction == 1
     damping = np.where(loading, damping_closed_form(params, np.where(loading, x, 0.0), v), 0.0)

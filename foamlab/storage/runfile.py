@@ -30,24 +30,18 @@ import os
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, TextIO
 
 from foamlab import FoamlabError, __version__
+from foamlab.importers import plain_csv
+from foamlab.importers._text import read_text
 from foamlab.rundata import RunData, Specimen
+from foamlab.runformat import BASE_COLUMNS, MAGIC, META_PREFIX, SPECIMEN_FIELDS, is_run_file
 
-MAGIC = "# foamlab run file v1"
-BASE_COLUMNS = ("time_s", "displacement_mm", "force_N")
 DEFAULT_COLUMNS = BASE_COLUMNS + ("rtt_ms",)
-META_PREFIX = "meta."
-
-#: Header keys that map onto RunData fields (the rest is metadata).
-RUN_FIELDS = ("method", "machine", "started_at", "finished_at", "status", "abort_reason")
-SPECIMEN_FIELDS = {"specimen_label": "label", "specimen_height_mm": "height_mm",
-                   "specimen_width_mm": "width_mm", "specimen_depth_mm": "depth_mm"}
 #: Written in this order at the top of the file, when present.
 HEADER_ORDER = ("method", "specimen_label", "specimen_height_mm", "specimen_width_mm",
                 "specimen_depth_mm", "machine", "software", "started_at", "sampling_hz")
-NO_TRAILER_REASON = "the file has no status line: the run was interrupted (or is still being written)"
 
 
 def now_iso() -> str:
@@ -110,6 +104,8 @@ def _json_safe(value: Any) -> Any:
 def _format(value: Any) -> str:
     if value is None:
         return ""
+    if isinstance(value, int):          # labels (step, cycle) stay integers in the file
+        return str(value)
     v = float(value)
     return repr(v) if math.isfinite(v) else "nan"
 
@@ -123,12 +119,13 @@ class RunWriter:
     key is kept as free metadata. ``columns`` are the CSV columns: the three base
     columns first, extra ones (default ``rtt_ms``) after.
 
-    The file must not exist yet: a run never overwrites another.
+    The file must not exist yet: a run never overwrites another. ``opener`` opens it
+    (``open``'s signature; tests pass one whose writes fail, as a full disk's do).
     """
 
     def __init__(self, path: str | Path, header: dict[str, Any],
                  columns: tuple[str, ...] | list[str] | None = None,
-                 fsync_interval_s: float = 0.5) -> None:
+                 fsync_interval_s: float = 0.5, opener: Callable[..., TextIO] = open) -> None:
         columns = tuple(columns or header.get("columns") or DEFAULT_COLUMNS)
         if columns[:3] != BASE_COLUMNS:
             raise ValueError(f"run file columns must start with {','.join(BASE_COLUMNS)}")
@@ -140,7 +137,7 @@ class RunWriter:
         self._lock = threading.Lock()
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = open(self.path, "x", encoding="utf-8", newline="\n")
+            self._file = opener(self.path, "x", encoding="utf-8", newline="\n")
         except FileExistsError:
             raise FoamlabError(f"{self.path}: already exists; a run file is never overwritten") from None
         except OSError as exc:
@@ -184,6 +181,17 @@ class RunWriter:
 
     close = finish
 
+    def abandon(self) -> None:
+        """Close without a trailer after a failed write (full disk); the file is left as it is."""
+        with self._lock:
+            if self.closed:
+                return
+            self.closed = True
+            try:
+                self._file.close()          # may retry the failed flush and fail again
+            except OSError:
+                pass
+
     def _sync(self) -> None:
         self._file.flush()
         os.fsync(self._file.fileno())
@@ -217,46 +225,8 @@ def write_run_file(path: str | Path, run: RunData, extra: dict[str, Any] | None 
     return writer.path
 
 
-def runfile_fields(header: dict[str, str]) -> dict[str, Any]:
-    """RunData keyword arguments from ``# key: value`` lines (run files and plain CSVs)."""
-    fields: dict[str, Any] = {}
-    specimen: dict[str, Any] = {}
-    metadata: dict[str, Any] = {}
-    for key, value in header.items():
-        if key in RUN_FIELDS:
-            fields[key] = value
-        elif key in SPECIMEN_FIELDS:
-            name = SPECIMEN_FIELDS[key]
-            if name == "label":
-                specimen[name] = value
-            else:
-                try:
-                    number = float(value)
-                except ValueError:
-                    number = None
-                specimen[name] = number if number is not None and math.isfinite(number) else None
-        elif key.startswith(META_PREFIX):
-            try:
-                metadata[key[len(META_PREFIX):]] = json.loads(value)
-            except ValueError:
-                metadata[key[len(META_PREFIX):]] = value
-        else:
-            metadata[key] = value
-    if specimen:
-        fields["specimen"] = Specimen(**specimen)
-    fields["metadata"] = metadata
-    return fields
-
-
-def is_run_file(first_line: str) -> bool:
-    return first_line.lstrip("\ufeff").startswith("# foamlab run file")
-
-
 def read_run_file(path: str | Path) -> RunData:
     """A run file back as RunData (extra columns are listed in metadata['extra_columns'])."""
-    from foamlab.importers import plain_csv  # noqa: PLC0415 (importers use this module)
-    from foamlab.importers._text import read_text  # noqa: PLC0415
-
     text_file = read_text(path)
     lines = text_file.lines
     if not lines or not is_run_file(lines[0]):

@@ -1,21 +1,39 @@
-"""What identification needs from a run, checked once: cycles, labels, samples to fit.
+"""A run prepared for fitting, once: what identification and diagnosis both take.
 
-Every limit here is a property of the run (its sampling, its half-cycles, its
-noise); none is tuned to a data set. A run that cannot be identified raises a
-FoamlabError that says what is missing, before any optimiser starts.
+``prepare(run)`` checks the run and computes, once: the samples on the sampling schedule,
+the segmentation and the model's half-cycle labels, the displacement path with its corner
+nodes (path.py), the noise level (noise.py), the contact set measured, the decimated rows
+and block means of identification's search, and ``series``: the run as every full fit
+sees it (analysis.design.Series). Every limit here is a property of the run (its
+sampling, its half-cycles, its noise); none is tuned to a data set. A run that cannot be
+identified raises a FoamlabError that says what is missing, before any optimiser starts.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.signal import savgol_filter
 
 from foamlab import FoamlabError
-from foamlab.identification.basis import Layout, ModelBasis
-from foamlab.model import HistoryLabels, ModelParameters, ModelResponse, evaluate, labels_from_extrema
+from foamlab.analysis.design import Series
+from foamlab.analysis.noise import noise_sigma
+from foamlab.analysis.path import (
+    PathNodes,
+    displacement_path,
+    exact_history,
+    path_determined,
+    path_nodes,
+)
+from foamlab.model import (
+    HistoryLabels,
+    ModelParameters,
+    ModelResponse,
+    evaluate,
+    labels_from_extrema,
+)
 from foamlab.model.components import elastic_force
+from foamlab.model.effects import estimate_velocity, loading_rate
 from foamlab.rundata import RunData
 from foamlab.segmentation import HalfCycle, Segmentation, segment
 
@@ -26,209 +44,12 @@ FIT_SAMPLES_PER_HALF_CYCLE = 100
 CUSP_DISTANCE_RATIO = 4
 #: A force range smaller than this many times the force noise is "flat".
 FLAT_FORCE_NOISE_MULTIPLE = 20.0
-#: The displacement that drives the model is the crosshead's path estimated from the
-#: samples (displacement_path): a local cubic over this long a window, fitted within each
-#: stretch between corners of x.
-PATH_WINDOW_S = 2.0
-PATH_ORDER = 3
-#: A crosshead that reaches (leaves) a turning point closer than this fraction of a
-#: sample step before (after) a sample did so at the sample: no corner node between.
-CORNER_AT_SAMPLE = 0.02
 #: The model's response between the nodes of a path with corner nodes is computed on a
 #: uniform grid this many times finer than the samples (model_response).
 RESPONSE_REFINE = 8
 
 
-@dataclass(frozen=True)
-class Orders:
-    """Model orders: N damping modes, M residual terms per cycle, elastic polynomial order P."""
-
-    N: int = 3
-    M: int = 3
-    P: int = 7
-
-    def __post_init__(self) -> None:
-        if self.N < 0 or self.M < 0 or self.P < 1:
-            raise FoamlabError(f"orders N={self.N}, M={self.M}, P={self.P}: need N >= 0, M >= 0, P >= 1")
-        if self.N > 6 or self.M > 6 or self.P > 12:
-            raise FoamlabError(f"orders N={self.N}, M={self.M}, P={self.P}: at most N=6, M=6, P=12 "
-                               "(higher orders are not identifiable from one run)")
-
-    @classmethod
-    def parse(cls, text: str) -> "Orders":
-        """'N,M,P', e.g. '3,3,7' (the paper's orders)."""
-        parts = [p.strip() for p in str(text).split(",")]
-        try:
-            n, m, p = (int(v) for v in parts)
-        except ValueError:
-            raise FoamlabError(f"orders {text!r}: expected three integers N,M,P, e.g. 3,3,7") from None
-        return cls(n, m, p)
-
-    def __str__(self) -> str:
-        return f"N={self.N}, M={self.M}, P={self.P}"
-
-
-def noise_sigma(f: np.ndarray) -> float:
-    """White-noise sigma from second differences (robust to the curve itself)."""
-    if len(f) < 4:
-        return 0.0
-    d2 = np.diff(f, 2)
-    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
-
-
-#: A displacement is measured (not an exact synthetic history) when more than this share of its
-#: second differences is not zero.
-MEASURED_BENDS = 0.05
-
-
-def exact_history(x: np.ndarray) -> bool:
-    """True for an exact piecewise-linear history (a synthetic one: its samples are its path,
-    corners included), False for a measured displacement (estimated: displacement_path).
-
-    An exact history bends only at its corners; a measured one at many samples (resolution,
-    timing). A noise level of zero does not tell them apart: a 1 um encoder read on a regular
-    clock has zero second differences at most samples, so its robust noise level is 0 too
-    (measured: serial recordings at speedup 2; its 1 um staircase through the residual's
-    near-derivative cost 0.015 N rms, and clean runs were named a cause).
-    """
-    x = np.asarray(x, float)
-    if len(x) < 5:
-        return True
-    d2 = np.abs(np.diff(x, 2))
-    return not bool(np.mean(d2 > 1e-9 * max(float(np.ptp(x)), 1.0)) > MEASURED_BENDS)
-
-
-def displacement_path(t: np.ndarray, x: np.ndarray, corners) -> np.ndarray:
-    """The displacement as the model should see it: the measured one without its noise.
-
-    A displacement reading is a measurement too: the encoder's resolution (1 um) and the
-    jitter of the instant each sample was taken are noise. The residual term's fractional
-    derivative (beta up to ~0.8, nearly a derivative) turns white displacement noise into
-    force noise, ~140 N per mm rms for the default specimen at 16 Hz: 1 um of resolution
-    alone costs 0.05 N, a load cell's whole noise, and the fit cannot reach the force noise.
-    Between two corners of x (turning points, dwell starts) a crosshead's path is smooth,
-    so there it is estimated by a Savitzky-Golay cubic over PATH_WINDOW_S, on a uniform grid
-    (a missed sample is a straight line between its neighbours, as the crosshead moved).
-    The corner samples stay as measured: the crosshead turns somewhere between a corner and
-    its neighbours, which no smooth curve through them would respect. An exact history (no
-    noise: synthetic data) is returned unchanged.
-    """
-    t = np.asarray(t, float)
-    x = np.asarray(x, float)
-    path = x.copy()
-    n = len(x)
-    if exact_history(x):
-        return path
-    step = float(np.median(np.diff(t)))
-    window = int(round(PATH_WINDOW_S / step)) | 1
-    bounds = np.unique(np.concatenate([[-1, n], np.asarray(corners, dtype=int)]))
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        ts, xs = t[a + 1:b], x[a + 1:b]               # between two corners, both left out
-        if len(ts) < 2 or not ts[-1] > ts[0]:
-            continue
-        n_grid = int(round((ts[-1] - ts[0]) / step)) + 1
-        w = min(window, n_grid if n_grid % 2 else n_grid - 1)
-        if w <= PATH_ORDER + 1:
-            continue                                      # too short to estimate: as measured
-        grid = np.linspace(ts[0], ts[-1], n_grid)
-        path[a + 1:b] = np.interp(ts, grid, savgol_filter(np.interp(grid, ts, xs), w, PATH_ORDER,
-                                                          mode="interp"))
-    return path
-
-
-@dataclass
-class PathNodes:
-    """The displacement path as nodes: the samples plus the instants, between two samples,
-    where the crosshead reached a turning point and where it left it (path_nodes)."""
-
-    t: np.ndarray
-    x: np.ndarray
-    of_sample: np.ndarray         # node index of each sample
-    labels: HistoryLabels         # the model's half-cycles on the nodes
-    corners: np.ndarray           # node indices where x has a corner (turning points, arrivals)
-
-    @property
-    def inserted(self) -> int:
-        return len(self.t) - len(self.of_sample)
-
-    @property
-    def at_samples(self) -> np.ndarray:
-        """The path at the samples (the displacement that drives the model there)."""
-        return self.x[self.of_sample]
-
-    def basis(self, samples: np.ndarray, layout: Layout, x_scale_mm: float, step_s: float,
-              source: np.ndarray | None = None) -> ModelBasis:
-        """The model's design matrix at these samples, its operators driven by the path
-        through the nodes (identification's fits and diagnosis' extensions alike).
-
-        source: another history on the samples to drive the memory operators with instead
-        of the displacement (taken piecewise linear between samples, as the path is)."""
-        drive = self.x if source is None else np.interp(self.t, self.t[self.of_sample], source)
-        return ModelBasis(self.t, drive, self.labels, self.of_sample[np.asarray(samples, dtype=int)], layout,
-                          x_scale_mm, step_s, self.corners)
-
-
-def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, bool]],
-               tol: float) -> PathNodes:
-    """The crosshead's path with the corners the samples miss.
-
-    A drive that reverses from rest arrives at a turning point between two samples,
-    waits, and leaves between two samples; the straight lines through the samples cut
-    both corners, and the residual's near-derivative memory responds to exactly that
-    (measured: 0.7-1.4 N at the first samples after a turning point, 16 Hz, default
-    specimen). extremes: (first, last, is_maximum) samples at each turning point. A
-    stop is seen when there are several samples at the extreme or the one there is off
-    both stretches' straight lines (by more than tol); then the arrival is where
-    that line reaches the extreme and the departure where the outgoing line leaves it,
-    each a node when it falls between two samples, and the model switches at the
-    departure (the last node at the extreme, as model.label_history does). A path that
-    turns without stopping (a triangle sampled anywhere) keeps its samples as nodes."""
-    n = len(t)
-    inserts: list[tuple[float, float, int]] = []          # (time, x, sample it precedes)
-    arrival, departure = {}, {}
-
-    def line(a: int, b: int):
-        if not (0 <= a < n and 0 <= b < n and t[b] > t[a]):
-            return None
-        v = (path[b] - path[a]) / (t[b] - t[a])
-        return (lambda when: path[a] + v * (when - t[a])), v
-
-    for k, (first, last, _) in enumerate(extremes):
-        x_ext = path[last]
-        incoming, outgoing = line(first - 2, first - 1), line(last + 1, last + 2)
-        if incoming is None or outgoing is None or incoming[1] == 0 or outgoing[1] == 0:
-            continue
-        if first == last and min(abs(incoming[0](t[first]) - path[first]),
-                                 abs(outgoing[0](t[first]) - path[first])) <= tol:
-            continue                           # on one of the lines: turned without stopping
-        at = t[first - 1] + (x_ext - path[first - 1]) / incoming[1]
-        if t[first - 1] < at < t[first] - CORNER_AT_SAMPLE * (t[first] - t[first - 1]):
-            arrival[k] = len(inserts)
-            inserts.append((at, x_ext, first))
-        at = t[last + 1] - (path[last + 1] - x_ext) / outgoing[1]
-        if t[last] + CORNER_AT_SAMPLE * (t[last + 1] - t[last]) < at < t[last + 1]:
-            departure[k] = len(inserts)
-            inserts.append((at, x_ext, last + 1))
-    before = np.array([i[2] for i in inserts], dtype=int)
-    of_sample = np.arange(n) + np.searchsorted(np.sort(before), np.arange(n), side="right")
-    node_t = np.empty(n + len(inserts))
-    node_x = np.empty(n + len(inserts))
-    node_t[of_sample], node_x[of_sample] = t, path
-    # an inserted node sits right before the sample it precedes (two inserts before one
-    # sample - a departure and the next arrival - cannot happen: a half-cycle has samples)
-    insert_node = {j: int(of_sample[b]) - 1 for j, (_, _, b) in enumerate(inserts)}
-    for j, (at, xv, _) in enumerate(inserts):
-        node_t[insert_node[j]], node_x[insert_node[j]] = at, xv
-    minima, maxima, corners = [], [], []
-    for k, (first, last, top) in enumerate(extremes):
-        turn = insert_node[departure[k]] if k in departure else int(of_sample[last])
-        (maxima if top else minima).append(turn)
-        corners += [turn, insert_node[arrival[k]] if k in arrival else int(of_sample[first])]
-    labels = labels_from_extrema(len(node_t), minima, maxima)
-    return PathNodes(node_t, node_x, of_sample, labels, np.unique(np.asarray(corners, dtype=int)))
-
-
-def model_response(params: ModelParameters, fd: "FitData") -> ModelResponse:
+def model_response(params: ModelParameters, fd: "PreparedRun") -> ModelResponse:
     """The model at the run's samples, driven by the path with its corner nodes.
 
     Without corner nodes that is model.evaluate on the samples. With them, evaluate runs
@@ -250,8 +71,8 @@ def model_response(params: ModelParameters, fd: "FitData") -> ModelResponse:
 
 
 @dataclass
-class FitData:
-    run: RunData
+class PreparedRun:
+    run: RunData                  # on its sampling schedule (on_schedule)
     seg: Segmentation
     labels: HistoryLabels
     observed: np.ndarray          # sample indices of the half-cycles (objective rows)
@@ -269,7 +90,35 @@ class FitData:
     noise_N: float
     warnings: list[str]
     path_mm: np.ndarray           # the displacement that drives the model (displacement_path)
-    nodes: "PathNodes"            # the same, with the corners between samples (path_nodes)
+    nodes: PathNodes              # the same, with the corners between samples (path_nodes)
+    block_q: int                  # samples per block of the decimated search
+    half_id: np.ndarray           # per sample: its half-cycle as the model switches (-1: outside)
+    series: Series                # the run as every full fit sees it (all samples, evidence)
+    extremes: list[tuple[int, int, bool]]  # (first, last sample, is maximum) at each turning point
+    corner_tol: float             # mm: a sample this close to a line lies on it (path_nodes)
+    off_schedule: int = 0         # samples left out: taken off the sampling schedule
+
+    def other_turns(self) -> "PreparedRun":
+        """The same run with its turns without a stop at the other place: between samples where
+        this one has them at a sample, or the other way round (path.path_nodes)."""
+        nodes = path_nodes(self.t, self.path_mm, self.extremes, self.corner_tol,
+                           between_samples=not self.nodes.between_samples)
+        return replace(self, nodes=nodes, series=_series(self.run, self.series.name, self.labels, nodes,
+                                                         self.seg.contact_lost))
+
+    def with_force(self, force: np.ndarray) -> "PreparedRun":
+        """The same run (segmentation, path, labels) with another force: what a fit sees of
+        the measurement with an effect taken out (diagnosis' restarts). Nothing re-segmented."""
+        force = np.asarray(force, float)
+        run = replace(self.run, force_N=force)
+        fit_force, fit_count = _block_means(force, self.fit_rows, self.corners, self.half_id,
+                                            ~self.seg.contact_lost, self.block_q)
+        # the model's columns depend on the path only; the frame's force (compliance) on the force
+        kept = {k: v for k, v in self.series._bases.items() if k[0] != "frame" and k[-1] is None}
+        series = replace(self.series, y=force, _bases=kept)
+        return replace(self, run=run, fit_force=fit_force, fit_count=fit_count,
+                       block_curvature=BlockCurvature.of(self.fit_rows, fit_count, self.block_q, self.half_id),
+                       noise_N=noise_sigma(force), series=series)
 
     @property
     def t(self) -> np.ndarray:
@@ -386,8 +235,9 @@ def _turning_points(x: np.ndarray, seg: Segmentation) -> tuple[list[int], list[i
     return minima, maxima, dwell_starts
 
 
-def prepare(run: RunData, x_scale_mm: float | None = None) -> FitData:
+def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> PreparedRun:
     """Segment the run and check that it can be identified (FoamlabError if not)."""
+    run, off_schedule = on_schedule(run)
     n = len(run)
     if n < 20:
         raise FoamlabError(f"run has {n} samples: far too few to identify the model")
@@ -457,11 +307,67 @@ def prepare(run: RunData, x_scale_mm: float | None = None) -> FitData:
     path = displacement_path(run.time_s, run.displacement_mm, corners)
     corner_tol = max(3.0 * noise_sigma(run.displacement_mm), 1e-9 * max(seg.stroke_mm, 1.0))
     loading_times = [run.time_s[c.loading.stop - 1] - run.time_s[c.loading.start] for c in cycles]
-    return FitData(
+    if off_schedule:
+        warnings.append(f"{off_schedule} samples taken off the sampling schedule left out "
+                        "(their instants are unsure)")
+    # a measured displacement turns between its samples; an exact one (a polyline of its
+    # samples: foamlab's own synthetic runs) at them - the fit checks the other (other_turns)
+    nodes = path_nodes(run.time_s, path, sorted(extremes), corner_tol,
+                       between_samples=not exact_history(run.displacement_mm))
+    return PreparedRun(
         run=run, seg=seg, labels=labels, observed=observed, contact=contact,
         fit_rows=fit_rows, corners=corners, fit_force=fit_force, fit_count=fit_count,
         block_curvature=curvature, fit_step_s=fit_step, native_step_s=native,
         x_scale_mm=x_scale, n_residual_cycles=n_res,
         loading_time_s=float(np.median(loading_times)), noise_N=noise, warnings=warnings,
-        path_mm=path, nodes=path_nodes(run.time_s, path, sorted(extremes), corner_tol),
+        path_mm=path, nodes=nodes, block_q=q, half_id=half_id, extremes=sorted(extremes), corner_tol=corner_tol,
+        series=_series(run, name, labels, nodes, seg.contact_lost), off_schedule=off_schedule,
     )
+
+
+#: A sample taken this far (as a fraction of the sampling step) off its schedule is left out
+#: (on_schedule) when at most this share of the samples are.
+OFF_SCHEDULE, RARE_OFF_SCHEDULE = 0.5, 0.02
+
+
+def on_schedule(run: RunData) -> tuple[RunData, int]:
+    """The run without the samples taken off its sampling schedule, and how many there were.
+
+    A request that stalls leaves a gap, then samples bunched; the instant of the samples
+    around the stall is unsure by the stall (S x its wall time on a machine run at speedup
+    S): one such sample bends the estimated path for a second around it (docs/analysis.md,
+    "The path"). Samples whose interval to a neighbour is off the sampling step by more than OFF_SCHEDULE
+    of it are left out - only when they are rare (a regular clock that stalled): a clock
+    irregular by design (logging on change) is kept as it is.
+    """
+    t = np.asarray(run.time_s, float)
+    if len(t) < 10:
+        return run, 0
+    dt = np.diff(t)
+    h = float(np.median(dt))
+    off = np.abs(dt - h) > OFF_SCHEDULE * h
+    bad = np.zeros(len(t), dtype=bool)
+    bad[1:] |= off
+    bad[:-1] |= off
+    if not bad.any() or bad.mean() > RARE_OFF_SCHEDULE:
+        return run, 0
+    keep = ~bad
+    return replace(run, time_s=t[keep], displacement_mm=np.asarray(run.displacement_mm)[keep],
+                   force_N=np.asarray(run.force_N)[keep]), int(bad.sum())
+
+
+def _series(run: RunData, name: str, labels: HistoryLabels, nodes: PathNodes,
+            contact_lost: np.ndarray) -> Series:
+    """The run as every full fit sees it: the model driven by the path at the samples, the
+    samples that path determines as evidence, the crosshead's velocity and speed."""
+    t = np.asarray(run.time_s, float)
+    y = np.asarray(run.force_N, float)
+    x = nodes.at_samples
+    velocity = estimate_velocity(t, x, labels)
+    moving = np.abs(velocity) > 0.5 * np.percentile(np.abs(velocity), 95)
+    speed = float(np.median(np.abs(velocity[moving]))) * 60.0 if np.any(moving) else 0.0
+    return Series(name=name or run.source or "run", t=t, x=x, y=y, labels=labels, nodes=nodes,
+                  x_measured=np.asarray(run.displacement_mm, float),
+                  evidence=path_determined(t, run.displacement_mm, y, nodes, noise_sigma(y)),
+                  no_contact=np.asarray(contact_lost, bool),
+                  velocity=velocity, rate=loading_rate(t, x, labels.starts), speed_mm_min=speed)

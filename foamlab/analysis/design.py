@@ -3,7 +3,7 @@
 For fixed nonlinear parameters phi (damping exponents alpha_i, fractional orders
 beta) the paper's force is linear in its other parameters: elastic k_i, damping
 a_i and residual r_ci. Identification's ModelBasis gives that design matrix and
-each column's derivative in its own phi (foamlab.identification.basis). The
+each column's derivative in its own phi (foamlab.analysis.basis). The
 effects of foamlab.model.effects act on it as follows:
 
 - memory (memory_lag): each effect's own ``memory_batch`` (a response in time, linear)
@@ -39,11 +39,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from foamlab.identification.basis import Layout, ModelBasis
-from foamlab.identification.data import PathNodes
+from foamlab.analysis.basis import ModelBasis
+from foamlab.analysis.path import PathNodes
 from foamlab.model import ModelParameters
-from foamlab.model.effects import Components, Effect, EffectChain, frame_force, specimen_displacement
+from foamlab.model.effects import (
+    Components,
+    Effect,
+    EffectChain,
+    frame_force,
+    specimen_displacement,
+)
 from foamlab.model.history import HistoryLabels
+from foamlab.model.layout import Layout
 
 #: The active (contact) set is iterated at most this many times per solve.
 MAX_CONTACT_ITERATIONS = 12
@@ -86,10 +93,6 @@ class NormalSolve:
         """(I - P) vectors, P the orthogonal projection on the design's range."""
         coef = self.v @ ((self.v.T @ (self.a_s.T @ vectors)) / self.w[:, None])
         return vectors - self.a_s @ coef
-
-
-def least_squares_normal(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return NormalSolve(a).solve(b)
 
 
 # ----------------------------------------------------------------------------- runs
@@ -197,10 +200,6 @@ class Series:
                       no_contact=None if self.no_contact is None else self.no_contact[keep])
 
 
-def layout_of(params: ModelParameters) -> Layout:
-    return Layout(P=params.order_P, N=params.order_N, M=params.order_M, C=params.n_residual_cycles)
-
-
 def specimen_gains(chain: EffectChain, cycle, velocity, rate) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
     """Per-sample gains of the elastic, damping and residual components and the added force.
 
@@ -282,7 +281,7 @@ class ExtendedModel:
                  masks: list[np.ndarray] | None = None):
         self.series = series
         self.params = params
-        self.layout = layout_of(params)
+        self.layout = params.layout
         self.linear0, self.phi0 = self.layout.from_flat(params.to_vector())
         self.effect_types = list(effects)
         self.settings = settings or {}
@@ -556,6 +555,15 @@ class ExtendedModel:
             m, const = self._measured_design(s, chain, cols, offset, mask)
             out.append(m @ theta + const)
         return out
+
+    def specimen_force(self, nu, theta) -> list[np.ndarray]:
+        """The specimen's force per series before contact and sensor (the model's F of Eq. 20,
+        evaluated exactly by the columns), for given linear parameters and nu."""
+        phi, eta = self.split(nu)
+        chain = EffectChain(self.effects(eta))
+        theta = np.asarray(theta, float)
+        return [cols @ theta[:-1] + offset for s in self.series
+                for cols, offset, _, _ in [self._columns(s, chain, phi)]]
 
     def linear_start(self) -> np.ndarray:
         """The given parameters' linear values, zero offset 0."""

@@ -23,6 +23,8 @@ from statsmodels.stats.diagnostic import acorr_ljungbox
 MAD_TO_SIGMA = 1.0 / 0.6744897501960817
 #: Highest AR order tried when prewhitening.
 MAX_AR_ORDER = 6
+#: Whiteness tests below this p-value mean structure (fit and diagnosis alike).
+WHITE_P = 1e-3
 #: Lags of the Ljung-Box test.
 LJUNG_BOX_LAGS = 20
 

@@ -1,0 +1,279 @@
+"""Safety: the limits every sample is checked against, the crosshead's own alarms, and the
+ways a run leaves the machine - stop (else emergency stop), confirm at rest, park.
+
+The shape of bluesky's suspenders (threshold watchdogs), without the resuming: a limit ends
+the run, the data are kept and the reason recorded.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+from drivers.base import CrossheadStatus, DeviceConnectionLost, DeviceError, Machine
+from foamlab import FoamlabError
+from foamlab.acquisition.events import END_ESTOP, END_FAULT, END_LIMIT, END_OVERLOAD, RunAborted
+
+log = logging.getLogger(__name__)
+
+#: A move is complete when the drive is at rest and in position (or this close to the
+#: target: drives report um)...
+AT_TARGET_MM = 0.003
+#: Crosshead status is read between samples when there is slack, at most this often (wall s)...
+STATUS_INTERVAL_S = 0.1
+#: ...and at least this often even without slack (wall s; may cost a sample, counted as missed).
+STATUS_FORCED_INTERVAL_S = 1.0
+#: Stall: over this window (machine s) the crosshead moved < STALL_FRACTION of the commanded travel.
+STALL_WINDOW_S = 1.0
+STALL_FRACTION = 0.2
+#: How long to wait for the crosshead to come to rest after a stop (wall s).
+STOP_CONFIRM_S = 2.0
+#: How long cleanup keeps trying to send stop / emergency stop over a failing link (wall s).
+STOP_RETRY_S = 3.0
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Safety limits in machine coordinates (positions positive down)."""
+
+    force_N: float
+    travel_upper_mm: float          # smallest position allowed
+    travel_lower_mm: float          # largest position allowed
+    max_speed_mm_min: float
+
+    @classmethod
+    def from_profile(cls, profile: dict) -> "Limits":
+        """The profile's [limits]; the force limit defaults to 90 % of the load-cell capacity."""
+        limits = profile.get("limits", {})
+        capacity = float(profile.get("load_cell", {}).get("capacity_N", 0) or 0)
+        force = limits.get("force_N", 0.9 * capacity if capacity else None)
+        speed = limits.get("max_speed_mm_min", profile.get("crosshead", {}).get("max_speed_mm_min"))
+        missing = [k for k, v in (("force_N", force), ("travel_upper_mm", limits.get("travel_upper_mm")),
+                                  ("travel_lower_mm", limits.get("travel_lower_mm")),
+                                  ("max_speed_mm_min", speed)) if v is None]
+        if missing:
+            raise FoamlabError(f"machine profile {profile.get('name', '')!r}: [limits] lacks {', '.join(missing)}")
+        return cls(float(force), float(limits["travel_upper_mm"]), float(limits["travel_lower_mm"]), float(speed))
+
+    def within(self, profile_limits: "Limits") -> None:
+        """Raise FoamlabError unless these limits are inside the profile's (the GUI may only tighten)."""
+        if (self.force_N > profile_limits.force_N or self.travel_upper_mm < profile_limits.travel_upper_mm
+                or self.travel_lower_mm > profile_limits.travel_lower_mm
+                or self.max_speed_mm_min > profile_limits.max_speed_mm_min):
+            raise FoamlabError(f"limits {self} exceed the machine profile's {profile_limits}")
+
+    def describe(self) -> str:
+        return (f"force {self.force_N:g} N, travel [{self.travel_upper_mm:g}, {self.travel_lower_mm:g}] mm, "
+                f"speed {self.max_speed_mm_min:g} mm/min")
+
+    def check_sample(self, position: float, force: float, load_cell_status) -> None:
+        """Raise RunAborted when a sample is over a limit (or the load cell is over range)."""
+        if load_cell_status is not None and load_cell_status.over_range:
+            raise RunAborted(END_OVERLOAD, f"load cell overload (over-range) at {force:.1f} N")
+        if force >= self.force_N:
+            raise RunAborted(END_LIMIT, f"force limit {self.force_N:g} N reached ({force:.1f} N)")
+        if position > self.travel_lower_mm + AT_TARGET_MM or position < self.travel_upper_mm - AT_TARGET_MM:
+            raise RunAborted(END_LIMIT, f"travel limit: crosshead at {position:.3f} mm, outside "
+                                        f"[{self.travel_upper_mm:g}, {self.travel_lower_mm:g}] mm")
+
+
+class StallWatch:
+    """A move's watchdog: the crosshead must follow its command (machine time throughout).
+
+    Stalled: over STALL_WINDOW_S it moved less than STALL_FRACTION of the commanded travel.
+    Timed out: the move took 1.25 x its nominal duration + 5 s without arriving.
+    """
+
+    def __init__(self, speed_mm_min: float, start_s: float, expected_s: float):
+        self.speed, self.start_s, self.expected_s = speed_mm_min, start_s, expected_s
+        self._window: collections.deque[tuple[float, float]] = collections.deque()
+
+    def check(self, now_s: float, position: float, target: float) -> str:
+        """"" when the move is on its way, else what went wrong (one line)."""
+        window = self._window
+        window.append((now_s, position))
+        while window and window[0][0] < now_s - STALL_WINDOW_S:
+            window.popleft()
+        elapsed = now_s - self.start_s
+        span = window[-1][0] - window[0][0]
+        if elapsed > 2 * STALL_WINDOW_S and len(window) >= 3 and span >= 0.8 * STALL_WINDOW_S:
+            moved = abs(window[-1][1] - window[0][1])
+            if moved < STALL_FRACTION * self.speed / 60.0 * span:
+                return f"crosshead stalled: commanded {self.speed:g} mm/min, moved {moved:.3f} mm in {span:.1f} s"
+        if elapsed > 1.25 * self.expected_s + 5.0:
+            return (f"crosshead did not reach its target: {abs(position - target):.3f} mm short after "
+                    f"{elapsed:.1f} s")
+        return ""
+
+
+def fault_name(machine: Machine) -> str:
+    """The drive's fault, named when the driver can tell (Modbus fault code), else generic."""
+    reason = getattr(machine.crosshead, "fault_reason", None)   # optional driver extra
+    if reason is not None:
+        try:
+            return reason()
+        except Exception:
+            pass
+    return "latched by the drive"
+
+
+def check_crosshead_status(status: CrossheadStatus, machine: Machine) -> None:
+    """Raise RunAborted for the drive's e-stop, fault and limit-switch bits."""
+    if status.emergency_stopped:
+        raise RunAborted(END_ESTOP, "emergency stop on the machine")
+    if status.fault:
+        raise RunAborted(END_FAULT, f"crosshead fault: {fault_name(machine)}")
+    if status.lower_limit:
+        raise RunAborted(END_LIMIT, "crosshead reached its lower travel limit")
+    if status.upper_limit:
+        raise RunAborted(END_LIMIT, "crosshead reached its upper travel limit")
+
+
+class CrossheadWatch:
+    """Reads the drive's status between samples and raises on its alarms (check_crosshead_status).
+
+    Between samples only when the request fits before the next deadline (its round trip is
+    tracked), at most every STATUS_INTERVAL_S, and at least every STATUS_FORCED_INTERVAL_S
+    even without slack (that may cost a sample: counted as missed).
+    """
+
+    def __init__(self, machine: Machine):
+        self.machine = machine
+        self._last = 0.0
+        self._rtt = 0.0
+
+    def maybe_read(self, schedule) -> None:
+        since = time.monotonic() - self._last
+        if since < STATUS_INTERVAL_S:
+            return
+        if since < STATUS_FORCED_INTERVAL_S and schedule.slack() < 1.5 * self._rtt + 1e-4:
+            return
+        self.read(schedule)
+
+    def read(self, schedule=None) -> CrossheadStatus | None:
+        """The drive's status (None when the request failed: the next one may succeed)."""
+        t = time.monotonic()
+        try:
+            status = self.machine.crosshead.status()
+        except DeviceConnectionLost:
+            raise
+        except DeviceError as exc:
+            log.warning("crosshead status failed: %s", exc)
+            return None
+        done = time.monotonic()
+        if schedule is not None:
+            schedule.waited_for_device(done - t)
+        self._rtt = 0.8 * self._rtt + 0.2 * (done - t) if self._rtt else done - t
+        self._last = done
+        check_crosshead_status(status, self.machine)
+        return status
+
+
+class Stopper:
+    """Brings the crosshead to rest at the end of a run, whatever the link does. Never raises.
+
+    `estop` set: only emergency stops are sent. `link_alive` turns False when the link is lost
+    for good (then nothing more is sent: no park).
+    """
+
+    def __init__(self, machine: Machine, estop: threading.Event):
+        self.machine = machine
+        self.estop = estop
+        self.link_alive = False
+
+    def stop(self) -> str:
+        """Stop, else emergency stop, retried (reconnecting) for STOP_RETRY_S; says what happened.
+
+        A link that glitched may come back within STOP_RETRY_S; a real drive's watchdog is the
+        last line of defence beyond that.
+        """
+        crosshead = self.machine.crosshead
+        deadline = time.monotonic() + STOP_RETRY_S
+        errors: list[str] = []
+        while True:
+            estop = ("emergency stop", "emergency stopped", crosshead.emergency_stop)
+            attempts = (estop,) if self.estop.is_set() else (("stop", "stopped", crosshead.stop), estop)
+            lost = False
+            for verb, label, action in attempts:
+                try:
+                    action()
+                    if errors:
+                        return f"{label} after {len(errors)} failed attempt(s): {errors[0]}"
+                    return label
+                except Exception as exc:
+                    lost |= isinstance(exc, DeviceConnectionLost)
+                    if not errors:
+                        log.warning("%s of the crosshead failed: %s (retrying for %g s)", verb, exc, STOP_RETRY_S)
+                    errors.append(str(exc))
+            if time.monotonic() >= deadline:
+                self.link_alive = False
+                return f"stop and emergency stop failed ({len(errors)} attempts): {errors[-1]}"
+            if lost:
+                try:
+                    self.machine.connect()
+                except Exception as exc:
+                    errors.append(str(exc))
+            time.sleep(0.02)
+
+    def confirm_at_rest(self) -> bool:
+        """Wait until the drive reports no motion; e-stop it if it does not within STOP_CONFIRM_S."""
+        deadline = time.monotonic() + STOP_CONFIRM_S
+        while time.monotonic() < deadline:
+            try:
+                if not self.machine.crosshead.status().moving:
+                    return True
+            except DeviceConnectionLost:
+                self.link_alive = False
+                return False
+            except Exception:
+                pass
+            time.sleep(0.005)
+        try:
+            self.machine.crosshead.emergency_stop()
+        except Exception:
+            pass
+        return False
+
+
+def park(machine: Machine, stopper: Stopper, limits: Limits, target: float, speed: float, *,
+         speedup: float, poll_s: float, interrupted: Callable[[], bool], wake: threading.Event) -> str:
+    """Move back to the start position; `interrupted`, the force or a fault halts it. Says what happened."""
+    crosshead = machine.crosshead
+    try:
+        start = machine.read_sample()
+        # moving up unloads the specimen: only a force that rises and stays up means the
+        # plate pushes on something (after a force-limit stop the force starts above the
+        # limit; a viscoelastic specimen may spike for an instant when the motion reverses)
+        force_stop = max(limits.force_N, start.force_N + 0.01 * limits.force_N)
+        high = 0
+        crosshead.move_to(target, speed)
+        distance = abs(start.position_mm - target)
+        deadline = time.monotonic() + (distance / speed * 60.0 * 1.5 + 5.0) / speedup + 2.0
+        while time.monotonic() < deadline:
+            if interrupted():
+                crosshead.stop()
+                return "park interrupted by a stop request"
+            reading = machine.read_sample()
+            high = high + 1 if reading.force_N >= force_stop else 0
+            if high >= 3 or (reading.load_cell_status is not None and reading.load_cell_status.over_range):
+                crosshead.stop()
+                return f"park stopped: force {reading.force_N:.1f} N"
+            status = crosshead.status()
+            if status.fault or status.emergency_stopped:
+                crosshead.stop()
+                return "park stopped by a crosshead fault"
+            arrived = abs(reading.position_mm - target) <= AT_TARGET_MM or status.in_position
+            if arrived and not status.moving:
+                return f"parked at {target:.3f} mm"
+            if (status.upper_limit or status.lower_limit) and not status.moving:
+                return f"park ended at a travel limit, {reading.position_mm:.3f} mm"
+            wake.wait(poll_s)
+        crosshead.stop()
+        return "park timed out; crosshead stopped"
+    except Exception as exc:
+        stopper.stop()
+        return f"park failed: {exc}"

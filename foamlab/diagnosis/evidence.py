@@ -1,0 +1,176 @@
+"""Evidence for a candidate: information criteria on one prewhitened scale, held-out
+prediction, and the acceptance rules. Each rule is a small function that returns why a
+candidate fails it ('' when it passes), so the report can say why every candidate was or
+was not named."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import chi2
+
+from foamlab.analysis.design import ExtendedModel, Series, Solution
+from foamlab.analysis.noise import WHITE_P, ArWhitener, whiteness
+from foamlab.analysis.solve import Fit, contact_of, varpro
+from foamlab.diagnosis.result import Candidate
+
+#: A candidate must improve BIC (prewhitened residuals) by more than this ("very strong" evidence).
+DELTA_BIC_MIN = 10.0
+#: ...and its effect's (first) parameter must lie this many standard errors from zero: on clean
+#: recordings the base's alpha/beta can improve in an extension's fit, at its effect's expense
+#: (docs/findings.md, "The acceptance rules").
+EFFECT_Z_MIN = 3.0
+#: Share of the structure left above the noise an extension must explain to be named when
+#: its residuals are still not white; at least PARTIAL_SHARE_MIN to be reported as partial.
+EXPLAINED_SHARE_MIN = 0.5
+PARTIAL_SHARE_MIN = 0.1
+#: Contiguous blocks of each run in the held-out check.
+HELDOUT_FOLDS = 6
+#: ...each made of blocks of about this many samples spread over the run (at least 8 per fold):
+#: short, so no block just after a turning point decides the check alone (docs/analysis.md).
+HELDOUT_BLOCK_SAMPLES = 10
+HELDOUT_BLOCKS_PER_FOLD = 8
+#: Iterations of the refit without the held-out blocks.
+HELDOUT_NFEV = 3
+
+
+def folds(series: list[Series], n_folds: int = HELDOUT_FOLDS,
+          blocks_per_fold: int | None = None) -> list[list[np.ndarray]]:
+    """Keep-masks per fold. Each run is cut into n_folds x blocks_per_fold contiguous
+    blocks (default: blocks of ~HELDOUT_BLOCK_SAMPLES samples); fold k leaves out blocks
+    k, k + n_folds, ... (interleaved), so every cycle keeps data that determine its own
+    parameters and each held-out block is predicted, not extrapolated past the end of
+    what was fitted. Samples measured off the specimen stay in every fit: their force is
+    the unloaded reading whatever the model, so they carry no information on its
+    parameters, only where the plate leaves the specimen - a fit without them is free to
+    put contact there (docs/analysis.md, "Held-out blocks")."""
+    out = []
+    for k in range(n_folds):
+        masks = []
+        for s in series:
+            per_fold = blocks_per_fold or max(HELDOUT_BLOCKS_PER_FOLD,
+                                               int(round(len(s) / (n_folds * HELDOUT_BLOCK_SAMPLES))))
+            m = np.ones(len(s), dtype=bool)
+            edges = np.linspace(0, len(s), n_folds * per_fold + 1).astype(int)
+            for b in range(k, n_folds * per_fold, n_folds):
+                m[edges[b]:edges[b + 1]] = False
+            if s.no_contact is not None:
+                m |= s.no_contact
+            masks.append(m)
+        out.append(masks)
+    return out
+
+
+def heldout_rmse(fit: Fit, on: Fit | None = None, n_folds: int = HELDOUT_FOLDS) -> float:
+    """RMSE of every block predicted by the model refitted (all its parameters) without it.
+
+    on: the same model on other (decimated) samples to do it on; the result is stored
+    in ``fit``.
+    """
+    if fit.heldout_rmse is not None:
+        return fit.heldout_rmse
+    work = on or fit
+    sq, count = 0.0, 0
+    for keep in folds(work.model.series, n_folds):
+        sol = _refit_without(work, keep)
+        out = ~np.concatenate(keep) & np.concatenate(sol.used)
+        r = np.concatenate(sol.residuals)[out]
+        sq += float(r @ r)
+        count += len(r)
+    fit.heldout_rmse = float(np.sqrt(sq / max(count, 1)))
+    return fit.heldout_rmse
+
+
+def _refit_without(fit: Fit, keep: list[np.ndarray]) -> Solution:
+    """The fit redone without the held-out samples: the linear parameters exactly and the
+    effect parameters by a few trust-region steps from the full-data optimum. The base
+    model's alpha/beta stay at their full-data values, for both models alike (refitting
+    them per block would cost most of the diagnosis and moves them by a fraction of
+    their standard error)."""
+    model = fit.model
+    if model.free_base:
+        model = ExtendedModel(model.series, fit.params, model.effect_types, model.settings,
+                              effect_bounds=model.effect_bounds, masks=contact_of(fit, model.series))
+    if not model.n_eta:
+        return model.solve((), keep)
+    return varpro(model, fit.eta, keep, max_nfev=HELDOUT_NFEV).solution
+
+
+def _before_with_contact_of(before: Fit, fit: Fit) -> Solution:
+    """The model without the candidate's effect, solved from the candidate's contact set (the
+    better of that and its own solution). The active-set iteration ends in a fixed point that
+    depends on its start: an extension that merely found a better contact set would
+    otherwise be credited with it (docs/analysis.md, "The acceptance rules")."""
+    if not all(a is b for a, b in zip(before.model.series, fit.model.series)):
+        return before.solution
+    m = before.model
+    again = ExtendedModel(m.series, m.params, m.effect_types, m.settings, free_base=m.free_base,
+                          base_bounds=m.base_bounds, effect_bounds=m.effect_bounds,
+                          masks=fit.solution.masks).solve(before.nu)
+    return again if again.rss() < before.solution.rss() else before.solution
+
+
+def compare(cands: list[Candidate], before: Fit) -> None:
+    """Delta BIC and LR p-value of each candidate against `before`, on one prewhitened scale."""
+    best = min([c.fit for c in cands] + [before], key=lambda f: f.rss)
+    whitener = ArWhitener.fit(best.solution.used_residuals)
+    for c in cands:
+        base = _before_with_contact_of(before, c.fit)
+        wb = whitener.apply(base.used_residuals)
+        rss_b, n = float(wb @ wb), len(wb)
+        we = whitener.apply(c.fit.solution.used_residuals)
+        rss_e = float(we @ we)
+        q = c.fit.model.n_eta - before.model.n_eta
+        lr = n * np.log(rss_b / rss_e) if rss_e > 0 and rss_b > 0 else 0.0
+        # the fits minimise the plain residuals: a candidate that fits them worse than the
+        # model it extends (a worse local optimum) has no evidence, whatever the filter
+        # does to it (one AR filter can favour a residual that moved its error to low
+        # frequencies); so the plain likelihood ratio bounds the prewhitened one
+        n_raw = c.fit.n
+        if c.fit.rss > 0 and base.rss() > 0:
+            lr = min(lr, n_raw * np.log(base.rss() / c.fit.rss) * n / max(n_raw, 1))
+        c.delta_bic = float(lr - q * np.log(n))
+        c.lr_p = float(chi2.sf(max(lr, 0.0), q))
+
+
+# ----------------------------------------------------------------------------- acceptance rules
+
+def rule_evidence(c: Candidate) -> str:
+    return "" if c.delta_bic > DELTA_BIC_MIN else f"delta BIC {c.delta_bic:.1f} <= {DELTA_BIC_MIN:g}"
+
+
+def rule_not_pinned(c: Candidate) -> str:
+    return f"{c.pinned}: the data ask for more than this cause can be" if c.pinned else ""
+
+
+def rule_effect_determined(c: Candidate) -> str:
+    """The fit improves, but is the effect itself determined? The base model's alpha/beta can
+    take its place (its standard error is that of the joint fit)."""
+    z = c.z_score
+    return "" if z >= EFFECT_Z_MIN else \
+        f"effect not determined: {z:.2g} standard errors from zero (< {EFFECT_Z_MIN:g})"
+
+
+def explained_share(c: Candidate, current: Fit, sigma: float) -> float:
+    """The share of what the current model leaves above the noise that the candidate removes."""
+    left = current.rss - current.n * sigma ** 2
+    return 1.0 if left <= 0 else min((current.rss - c.fit.rss) / left, 1.0)
+
+
+def explains(c: Candidate) -> bool:
+    """Most of the structure left, or white residuals: a cause, not a sliver of something else."""
+    return c.share >= EXPLAINED_SHARE_MIN or whiteness(c.fit.solution.residual).min_p >= WHITE_P
+
+
+def rule_explains(c: Candidate, first_round: bool) -> str:
+    """Named causes must explain the structure; in the first round a real part of it (at least
+    PARTIAL_SHARE_MIN) may be reported as partial."""
+    if explains(c) or (first_round and c.share >= PARTIAL_SHARE_MIN):
+        return ""
+    return f"explains {c.share:.0%} of the structure left (< {EXPLAINED_SHARE_MIN:.0%})"
+
+
+def rule_heldout(c: Candidate, current: Fit, current_coarse: Fit) -> str:
+    """Held out on the search's samples (every k-th): the same prediction error, cheaper."""
+    before = heldout_rmse(current, current_coarse)
+    after = heldout_rmse(c.fit, c.coarse_fit)
+    return "" if after < before else f"held-out RMSE not lower ({after:.4g} >= {before:.4g})"

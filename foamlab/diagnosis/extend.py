@@ -1,0 +1,149 @@
+"""Fitting a candidate cause as an extension of the current model (the stages of a search).
+
+screen: the effect's parameter scanned and refined with the base's alpha/beta held (cheap);
+fit_joint: everything free (the base may have bent its alpha/beta to mimic the effect);
+reidentify: a restart from identification's search on the data with the effect taken out;
+probe: the three, short, for one cause; without_last: the model a finding extends, refitted.
+All fits are the analysis core's (foamlab.analysis.solve.varpro).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from foamlab import FoamlabError
+from foamlab.analysis.design import ExtendedModel, Series
+from foamlab.analysis.prepared import PreparedRun
+from foamlab.analysis.solve import (
+    POLISH_NFEV,
+    Fit,
+    base_bounds,
+    contact_of,
+    model_like,
+    varpro,
+)
+from foamlab.diagnosis.causes import Cause
+from foamlab.identification.joint import search_start
+from foamlab.identification.paper import paper_steps
+from foamlab.model.layout import Orders
+
+#: Iteration budgets of the screening (effect parameters only) and of the joint fits.
+SCREEN_NFEV, PROBE_NFEV, JOINT_NFEV = 10, 4, 20
+#: Iterations of the joint fit restarted from identification on corrected data.
+RESTART_NFEV = 12
+
+
+def _settings(causes: list[type[Cause]], series: list[Series]) -> dict:
+    return {c.effect.name: c.settings(series) for c in causes}
+
+
+def screen(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
+    """Fit base + causes with the base's alpha/beta held: the last cause's parameter scanned,
+    then the effect parameters refined (cheap: only the linear parameters move with them)."""
+    model = ExtendedModel(series, current.params, [c.effect for c in causes], _settings(causes, series),
+                          effect_bounds={c.effect.name: c.bounds() for c in causes},
+                          masks=contact_of(current, series))
+    prev = current.eta
+    trials = [np.concatenate([prev, row]) for row in causes[-1].starts(series)]
+    rss = [model.solve(eta).rss() for eta in trials]
+    return Fit.of(list(causes), model, varpro(model, trials[int(np.argmin(rss))], max_nfev=SCREEN_NFEV))
+
+
+def fit_joint(series: list[Series], start: Fit, current: Fit, max_nfev: int | None = None) -> Fit:
+    """Fit base + causes with everything free (alpha, beta, effect and linear parameters).
+
+    The base model can mimic an effect by bending its own alpha/beta (a fast damping
+    mode and an order-near-1 residual term together act like friction at one speed);
+    then the screening, with alpha/beta held, sees little, and a joint fit started
+    at the screening's near-zero value stays there. So a cause the screening did not
+    see starts from a visible size of its effect (both signs if it has two), and
+    alpha/beta unbend as it grows.
+    """
+    model = model_like(start, series, free_base=True)
+    if start.model.free_base:                 # continue a joint fit
+        starts = [start.nu]
+    else:
+        eta0 = start.eta.copy()
+        starts = [model.start(eta0)]
+        seen = current.n * np.log(current.rss / start.rss) > np.log(current.n)
+        if not seen:
+            size = abs(start.causes[-1].joint_start(series))
+            lo, hi = start.causes[-1].bounds()
+            starts = []
+            for side in ((1.0, -1.0) if lo[0] < 0 < hi[0] else (1.0,)):
+                eta0[-1] = float(np.clip(side * size, lo[0], hi[0]))
+                starts.append(model.start(eta0))
+    best = None
+    for nu0 in starts:
+        optimum = varpro(model, nu0, max_nfev=max_nfev or JOINT_NFEV)
+        if best is None or optimum.solution.rss() < best.solution.rss():
+            best = optimum
+    if best.solution.rss() > start.rss:
+        # every start from a visible size ended in a worse local minimum than the screening
+        # (a lag of seconds): the screening's fit is the extension's best, keep it
+        return start
+    return Fit.of(list(start.causes), model, best)
+
+
+def without_last(series: list[Series], fit: Fit) -> Fit:
+    """The fit's model without its last effect, refitted from the fit's alpha/beta."""
+    m = fit.model
+    model = ExtendedModel(series, fit.params, m.effect_types[:-1], m.settings, effect_bounds=m.effect_bounds,
+                          free_base=True,
+                          base_bounds=base_bounds(series, fit.params), masks=contact_of(fit, series))
+    k = len(m.effect_types[-1].fitted_parameters())
+    eta = fit.eta[:len(fit.eta) - k]
+    return Fit.of(list(fit.causes[:-1]), model, varpro(model, model.start(eta), max_nfev=POLISH_NFEV))
+
+
+def reidentify(ref: PreparedRun, series: list[Series], fit: Fit, eta: np.ndarray | None = None,
+               max_nfev: int = RESTART_NFEV) -> Fit:
+    """The fit restarted from identification run on the data with its effects taken out.
+
+    A base model that has bent its alpha/beta to mimic an effect sits in a local
+    minimum the joint fit cannot leave; identification's own multi-start search on
+    the corrected data (measured minus what the effects add, at the fit's values or
+    at ``eta``; the reference run as prepared, its force replaced) finds the base the
+    effect leaves behind, and the joint fit continues from there.
+    """
+    model = fit.model
+    theta = fit.solution.theta
+    phi = model.split(fit.nu)[0]
+    eta = fit.eta if eta is None else np.asarray(eta, float)
+    base_part = phi if model.free_base else []
+    with_effects, without = (model.predict(theta, np.concatenate([base_part, e]))
+                             for e in (eta, np.zeros(model.n_eta)))
+    # the prediction is on the series' samples: the reference run's when not decimated
+    effect = np.zeros(len(ref.series))
+    effect[series[0].samples] = with_effects[0] - without[0]
+    if series[0].obs is not None:                 # decimated: the effect between its samples
+        effect = np.interp(ref.series.t, series[0].t, with_effects[0] - without[0])
+    lay = fit.params.layout
+    try:
+        corrected = ref.with_force(ref.series.y - effect)
+        orders = Orders(N=lay.N, M=lay.M, P=lay.P)
+        params = search_start(corrected, orders, paper_steps(corrected, orders).start)
+    except FoamlabError:
+        return fit
+    restart = ExtendedModel(series, params, model.effect_types, model.settings, free_base=True,
+                            effect_bounds=model.effect_bounds,
+                            base_bounds=base_bounds(series, params), masks=contact_of(fit, series))
+    out = Fit.of(list(fit.causes), restart, varpro(restart, restart.start(eta), max_nfev=max_nfev))
+    return out if out.rss < fit.rss else fit
+
+
+def probe(ref: PreparedRun, series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
+    """A short fit of base + causes: screening, a joint probe and, for a last cause that
+    identification's staged fit absorbs, a restart from identification with the effect
+    taken out at a visible size (on the side the screening leaned to)."""
+    screened = screen(series, current, causes)
+    fit = fit_joint(series, screened, current, PROBE_NFEV)
+    cause = causes[-1]
+    if cause.absorbed_by_identification:
+        lo, hi = cause.bounds()
+        side = -1.0 if screened.eta[-1] < 0 and lo[0] < 0 else 1.0
+        for size in (abs(cause.joint_start(series)), abs(cause.scale(series))):
+            eta = fit.eta.copy()
+            eta[-1] = float(np.clip(side * size, lo[0], hi[0]))
+            fit = reidentify(ref, series, fit, eta)
+    return fit

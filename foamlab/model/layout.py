@@ -1,0 +1,140 @@
+"""The model's orders and the flat parameter layout, defined once.
+
+``ModelParameters.to_vector()`` orders the parameters k_0..k_P, then (a_i, Re alpha_i,
+Im alpha_i) per damping mode, then (r_cm, beta_cm) per cycle and term. Fitting splits
+them into linear ones (the design columns) and nonlinear ones (alpha, beta): ``Layout``
+maps between the two, for identification, diagnosis and anything else that fits.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from foamlab import FoamlabError
+
+#: Decay rates are searched over [ALPHA_LO, ALPHA_HI] / (loading time).
+ALPHA_LO, ALPHA_HI = 0.1, 100.0
+#: Fractional orders are searched in [BETA_LO, BETA_HI] (beta < 1, Eq. 10).
+BETA_LO, BETA_HI = -3.0, 0.99
+
+
+@dataclass(frozen=True)
+class Orders:
+    """Model orders: N damping modes, M residual terms per cycle, elastic polynomial order P."""
+
+    N: int = 3
+    M: int = 3
+    P: int = 7
+
+    def __post_init__(self) -> None:
+        if self.N < 0 or self.M < 0 or self.P < 1:
+            raise FoamlabError(f"orders N={self.N}, M={self.M}, P={self.P}: need N >= 0, M >= 0, P >= 1")
+        if self.N > 6 or self.M > 6 or self.P > 12:
+            raise FoamlabError(f"orders N={self.N}, M={self.M}, P={self.P}: at most N=6, M=6, P=12 "
+                               "(higher orders are not identifiable from one run)")
+
+    @classmethod
+    def parse(cls, text: str) -> "Orders":
+        """'N,M,P', e.g. '3,3,7' (the paper's orders)."""
+        parts = [p.strip() for p in str(text).split(",")]
+        try:
+            n, m, p = (int(v) for v in parts)
+        except ValueError:
+            raise FoamlabError(f"orders {text!r}: expected three integers N,M,P, e.g. 3,3,7") from None
+        return cls(n, m, p)
+
+    def __str__(self) -> str:
+        return f"N={self.N}, M={self.M}, P={self.P}"
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where each parameter of ModelParameters' flat vector goes.
+
+    linear:    k_0..k_P, a_1..a_N, r_11..r_CM  (columns of the design matrix, in this order)
+    nonlinear: alpha_1 (re, im), ..., alpha_N, beta_11..beta_CM
+    """
+
+    P: int
+    N: int
+    M: int
+    C: int  # cycles with their own residual terms
+
+    @property
+    def n_linear(self) -> int:
+        return self.P + 1 + self.N + self.C * self.M
+
+    @property
+    def n_nonlinear(self) -> int:
+        return 2 * self.N + self.C * self.M
+
+    @property
+    def n_params(self) -> int:
+        return self.n_linear + self.n_nonlinear
+
+    def column_of_nonlinear(self, j: int) -> int:
+        """Design-matrix column that nonlinear parameter j acts on."""
+        if j < 2 * self.N:
+            return self.P + 1 + j // 2
+        return self.P + 1 + self.N + (j - 2 * self.N)
+
+    def to_flat(self, linear: np.ndarray, nonlinear: np.ndarray) -> np.ndarray:
+        """ModelParameters.to_vector() order from (linear, nonlinear)."""
+        p1, N, C, M = self.P + 1, self.N, self.C, self.M
+        k = linear[:p1]
+        a = linear[p1:p1 + N]
+        r = linear[p1 + N:].reshape(C, M)
+        al = nonlinear[:2 * N].reshape(N, 2)
+        beta = nonlinear[2 * N:].reshape(C, M)
+        damping = np.column_stack([a, al[:, 0], al[:, 1]]).ravel()
+        residual = np.stack([r, beta], axis=-1).ravel()
+        return np.concatenate([k, damping, residual])
+
+    def from_flat(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p1, N, C, M = self.P + 1, self.N, self.C, self.M
+        flat = np.asarray(flat, float)
+        d = flat[p1:p1 + 3 * N].reshape(N, 3)
+        res = flat[p1 + 3 * N:].reshape(C, M, 2)
+        linear = np.concatenate([flat[:p1], d[:, 0], res[:, :, 0].ravel()])
+        nonlinear = np.concatenate([d[:, 1:].ravel(), res[:, :, 1].ravel()])
+        return linear, nonlinear
+
+    def canonical_permutation(self, linear: np.ndarray, nonlinear: np.ndarray) -> np.ndarray:
+        """Index into [linear, nonlinear] that puts damping modes in order of decay rate
+        (then frequency) and each cycle's residual terms in order of beta: one name per
+        mode/term whatever order the optimiser found them in."""
+        p1, N, C, M = self.P + 1, self.N, self.C, self.M
+        L = self.n_linear
+        lin_perm = np.arange(L)
+        nl_perm = np.arange(self.n_nonlinear)
+        al = np.asarray(nonlinear[:2 * N], float).reshape(N, 2)
+        order = np.lexsort((al[:, 1], al[:, 0]))
+        lin_perm[p1:p1 + N] = p1 + order
+        nl_perm[:2 * N] = (2 * order[:, None] + np.arange(2)).ravel()
+        beta = np.asarray(nonlinear[2 * N:], float).reshape(C, M)
+        for c in range(C):
+            o = np.argsort(beta[c], kind="stable")
+            lin_perm[p1 + N + c * M:p1 + N + (c + 1) * M] = p1 + N + c * M + o
+            nl_perm[2 * N + c * M:2 * N + (c + 1) * M] = 2 * N + c * M + o
+        return np.concatenate([lin_perm, L + nl_perm])
+
+    def flat_index_of_linear(self) -> np.ndarray:
+        """Index in the flat vector of each linear parameter (design-column order)."""
+        flat = np.arange(self.n_params, dtype=float)
+        lin, _ = self.from_flat(flat)
+        return lin.astype(int)
+
+    def flat_index_of_nonlinear(self) -> np.ndarray:
+        flat = np.arange(self.n_params, dtype=float)
+        _, nl = self.from_flat(flat)
+        return nl.astype(int)
+
+
+def nonlinear_bounds(orders: Orders, n_cycles: int, loading_time_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of (alpha_re, alpha_im) x N and beta x (C M), from the loading time."""
+    lo_a, hi_a = ALPHA_LO / loading_time_s, ALPHA_HI / loading_time_s
+    lower = [lo_a, 0.0] * orders.N + [BETA_LO] * (n_cycles * orders.M)
+    upper = [hi_a, hi_a] * orders.N + [BETA_HI] * (n_cycles * orders.M)
+    return np.asarray(lower, float), np.asarray(upper, float)

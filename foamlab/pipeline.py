@@ -1,0 +1,189 @@
+"""The analysis of a recorded run: one pipeline for `foamlab run`, the window and batches.
+
+    method results -> fit -> diagnosis with that same fit -> files beside the run -> catalog
+
+    from foamlab import pipeline
+    a = pipeline.analyse(run, path, method=method, folder=out_dir)   # every stage
+    a.fit, a.fit_error, a.diagnosis.verdict, a.files
+
+Each stage takes the run's Analysis (the typed record of what was found), fills its part and
+returns it, so a caller may run them one by one (the window shows the fit, then diagnoses in
+the background). A run is fitted exactly once (fit_stage keeps a fit it already has) and the
+diagnosis extends that fit, never a fit of its own. A stage that fails says why in one line
+(its *_error field) and the others go on: the run file is already the record.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from foamlab import FoamlabError
+from foamlab.diagnosis import Diagnosis, diagnose
+from foamlab.diagnosis.store import store_diagnosis
+from foamlab.identification import FitResult, fit_run
+from foamlab.identification.store import store_fit
+from foamlab.methods import Method, MethodResults, load_method
+from foamlab.rundata import RunData
+from foamlab.storage.catalog import Catalog
+from foamlab.storage.runfile import is_run_file
+
+log = logging.getLogger(__name__)
+
+#: progress(stage, fraction 0..1): "method results", "fit: <its step>", "diagnosis", "files", "catalog"
+Progress = Callable[[str, float], None]
+
+
+def _quiet(stage: str, fraction: float) -> None:
+    pass
+
+
+@dataclass
+class Analysis:
+    """What the pipeline found for one run. Errors are one line ("" when the stage went well
+    or did not run); a field left None with no error means the stage was not asked for."""
+
+    run: RunData
+    path: Path | None = None                   # the foamlab run file (sidecars go beside it)
+    method_results: MethodResults | None = None
+    method_error: str = ""
+    fit: FitResult | None = None
+    fit_error: str = ""
+    diagnosis: Diagnosis | None = None
+    diagnosis_error: str = ""
+    fit_path: Path | None = None               # <run>.fit.json, once written
+    diagnosis_path: Path | None = None         # <run>.diagnosis.json, once written
+    files_error: str = ""
+    catalog: Path | None = None                # the catalog the run is indexed in
+    catalog_error: str = ""
+
+    @property
+    def verdict(self) -> str:
+        return self.diagnosis.verdict if self.diagnosis is not None else ""
+
+    @property
+    def files(self) -> list[Path]:
+        """The run file and the sidecars written beside it."""
+        return [p for p in (self.path, self.fit_path, self.diagnosis_path) if p is not None]
+
+
+def method_stage(a: Analysis, method: Method | None = None, progress: Progress = _quiet) -> Analysis:
+    """The method's results (the run's own method, by name, when none is given)."""
+    progress("method results", 0.0)
+    try:
+        method = method or (load_method(a.run.method) if a.run.method else None)
+        if method is None:
+            a.method_error = "no test method recorded with the run"
+        elif len(a.run):
+            a.method_results = method.compute_results(a.run)
+    except FoamlabError as exc:
+        a.method_error = str(exc)
+    except Exception as exc:   # a results bug must not cost the fit
+        log.debug("method results failed", exc_info=True)
+        a.method_error = f"method results failed: {type(exc).__name__}: {exc}"
+    progress("method results", 1.0)
+    return a
+
+
+def fit_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
+    """Identify the model on the run - once: a fit the Analysis already has is kept."""
+    if a.fit is not None:
+        return a
+    try:
+        a.fit = fit_run(a.run, progress=lambda stage, fraction: progress(f"fit: {stage}", fraction))
+        a.fit_error = ""
+    except FoamlabError as exc:
+        a.fit_error = str(exc)
+    except Exception as exc:   # a fitting bug must not cost the run: it is saved already
+        log.debug("fit failed", exc_info=True)
+        a.fit_error = f"fit failed: {type(exc).__name__}: {exc}"
+    return a
+
+
+def diagnose_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
+    """Diagnose the run as an extension of its fit (fit_stage first)."""
+    if a.diagnosis is not None:
+        return a
+    if a.fit is None:
+        a.diagnosis_error = f"not diagnosed: no fit ({a.fit_error or 'the fit stage has not run'})"
+        return a
+    progress("diagnosis", 0.0)
+    try:
+        a.diagnosis = _diagnose(a.run, a.fit)
+        a.diagnosis_error = ""
+    except FoamlabError as exc:
+        a.diagnosis_error = str(exc)
+    except Exception as exc:   # the run is done and saved; a diagnosis bug must not hide that
+        log.debug("diagnosis failed", exc_info=True)
+        a.diagnosis_error = f"diagnosis failed: {type(exc).__name__}: {exc}"
+    progress("diagnosis", 1.0)
+    return a
+
+
+def _diagnose(run: RunData, fit: FitResult) -> Diagnosis:
+    # The one call into the diagnosis: it extends this fit instead of fitting the run again.
+    return diagnose([run], fit=fit)
+
+
+def files_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
+    """Write the fit and the diagnosis beside the run file (foamlab run files only: a vendor
+    export opened for a look is not ours to add to); what is written already is left alone."""
+    if a.path is None or not _ours(a.path):
+        return a
+    progress("files", 0.0)
+    try:
+        if a.fit is not None and a.fit_path is None:
+            a.fit_path = store_fit(a.fit, a.path).path
+        if a.diagnosis is not None and a.diagnosis_path is None:
+            a.diagnosis_path = store_diagnosis(a.diagnosis.to_dict(), a.path).path
+        a.files_error = ""
+    except FoamlabError as exc:
+        a.files_error = str(exc)
+    progress("files", 1.0)
+    return a
+
+
+def catalog_stage(a: Analysis, folder: str | Path | None = None, progress: Progress = _quiet) -> Analysis:
+    """Index the run, its fit and its diagnosis in `folder`'s catalog (default: the run's folder).
+    Idempotent: run it after each stage whose result should be listed."""
+    if a.path is None or not _ours(a.path):
+        return a
+    progress("catalog", 0.0)
+    folder = Path(folder) if folder is not None else a.path.parent
+    try:
+        with Catalog.for_folder(folder, sync=False) as catalog:
+            catalog.add_run(a.path, a.run)
+            if a.fit_path is not None:
+                catalog.add_fit(a.path, a.fit_path, rmse=a.fit.rmse)
+            if a.diagnosis_path is not None:
+                catalog.add_diagnosis(a.path, a.diagnosis_path, verdict=a.verdict)
+            a.catalog = catalog.path
+        a.catalog_error = ""
+    except Exception as exc:   # the files are the record; `foamlab catalog rebuild` recovers the index
+        a.catalog_error = f"not added to the catalog: {exc}"
+    progress("catalog", 1.0)
+    return a
+
+
+def analyse(run: RunData, path: str | Path | None = None, *, method: Method | None = None,
+            folder: str | Path | None = None, fit: bool = True, diagnose: bool = True,
+            progress: Progress = _quiet) -> Analysis:
+    """Every stage in order. An aborted run is not fitted (its protocol is incomplete)."""
+    a = Analysis(run, Path(path) if path is not None else None)
+    method_stage(a, method, progress)
+    if fit and run.status != "aborted":
+        fit_stage(a, progress)
+        if diagnose:
+            diagnose_stage(a, progress)
+    files_stage(a, progress)
+    return catalog_stage(a, folder, progress)
+
+
+def _ours(path: Path) -> bool:
+    try:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:
+            return is_run_file(fh.readline())
+    except OSError:
+        return False

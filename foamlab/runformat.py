@@ -1,0 +1,60 @@
+"""The run-file format's shared definitions: what its writer and its readers both know.
+
+The writer (foamlab.storage.runfile, which documents the layout) and the readers
+(foamlab.importers: a run file is a plain CSV with a richer ``#`` header) import
+these from here, so neither imports the other to learn the format: storage uses
+importers to read a run file back, importers never use storage.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+from foamlab.rundata import Specimen
+
+MAGIC = "# foamlab run file v1"
+BASE_COLUMNS = ("time_s", "displacement_mm", "force_N")
+META_PREFIX = "meta."
+
+#: Header keys that map onto RunData fields (the rest is metadata).
+RUN_FIELDS = ("method", "machine", "started_at", "finished_at", "status", "abort_reason")
+SPECIMEN_FIELDS = {"specimen_label": "label", "specimen_height_mm": "height_mm",
+                   "specimen_width_mm": "width_mm", "specimen_depth_mm": "depth_mm"}
+NO_TRAILER_REASON = "the file has no status line: the run was interrupted (or is still being written)"
+
+
+def is_run_file(first_line: str) -> bool:
+    return first_line.lstrip("\ufeff").startswith("# foamlab run file")
+
+
+def runfile_fields(header: dict[str, str]) -> dict[str, Any]:
+    """RunData keyword arguments from ``# key: value`` lines (run files and plain CSVs)."""
+    fields: dict[str, Any] = {}
+    specimen: dict[str, Any] = {}
+    metadata: dict[str, Any] = {}
+    for key, value in header.items():
+        if key in RUN_FIELDS:
+            fields[key] = value
+        elif key in SPECIMEN_FIELDS:
+            name = SPECIMEN_FIELDS[key]
+            if name == "label":
+                specimen[name] = value
+            else:
+                try:
+                    number = float(value)
+                except ValueError:
+                    number = None
+                specimen[name] = number if number is not None and math.isfinite(number) else None
+        elif key.startswith(META_PREFIX):
+            try:
+                metadata[key[len(META_PREFIX):]] = json.loads(value)
+            except ValueError:
+                metadata[key[len(META_PREFIX):]] = value
+        else:
+            metadata[key] = value
+    if specimen:
+        fields["specimen"] = Specimen(**specimen)
+    fields["metadata"] = metadata
+    return fields

@@ -1,0 +1,61 @@
+"""Acceptance: `foamlab fit` reaches the load cell's noise on runs it did not generate itself.
+
+The runs come from tests/independent_model.py (the combined model written again, in closed
+form, in continuous time; validated in test_independent_model.py): three triangular
+cycles at 16 Hz, two parameter regimes unlike the default specimen, contact loss at the
+end of every unloading, a load-cell zero offset, 0.15 N Gaussian noise, a 1 um encoder.
+In regimes A and B the crosshead turns between samples, as a real machine does (the
+motion starts at a phase drawn from the seed); A-grid and B-grid have their turning
+points on samples. A perfect fit leaves the noise: rmse / sigma ~ 1.00 (the realised
+noise's rms is within 0.6 % of sigma for every case here).
+
+Requirement: the fit's whole-run RMSE (`rmse` of `foamlab fit --json`) <= 1.05 sigma.
+Measured on 2026-11-25 (benchmarks/bench_fit_independent.py): A-grid/B-grid 0.996-1.014,
+A 3.85-7.90, B 1.02-5.89 (8 of 10 turning-between-samples cases fail): the fit switches
+the model at the sample of largest displacement; when that sample lies after the true
+turn the model is still loading there (damping on, residual off) while the truth has
+turned: that sample is 30-50 N off, and the fit bends its parameters to it
+(2.2-2.8 sigma on the samples more than 3 steps from any turning point).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import independent_model as im
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+TOLERANCE = 1.05
+SEEDS = (1, 2, 3, 4, 5)
+CASES = ([(r, s) for r in im.REGIMES.values() for s in SEEDS]
+         + [(r, s) for r in im.GRID_REGIMES.values() for s in (1, 2)])
+
+
+@pytest.mark.parametrize("regime,seed", CASES, ids=[f"{r.name}-seed{s}" for r, s in CASES])
+def test_fit_reaches_the_noise(regime, seed):
+    from foamlab.identification import fit_run
+
+    run = im.generate(regime, seed)
+    result = fit_run(run.to_rundata())
+    ratio = result.rmse / regime.noise_N
+    assert ratio <= TOLERANCE, (f"regime {regime.name} seed {seed} (motion from t = {run.start_s:.4f} s): "
+                                f"fit RMSE {result.rmse:.4f} N = {ratio:.3f} x the noise {regime.noise_N} N")
+
+
+def test_fit_cli_json_reaches_the_noise(tmp_path):
+    regime, seed = im.REGIME_A, 1
+    run = im.generate(regime, seed)
+    path = tmp_path / "independent_A_1.csv"
+    run.write_csv(path)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    out = subprocess.run([sys.executable, "-m", "foamlab.cli", "fit", str(path), "--json", "--no-store"],
+                         cwd=ROOT, env=env, capture_output=True, text=True, check=False, timeout=300)
+    assert out.returncode == 0, out.stderr
+    rmse = json.loads(out.stdout)["rmse"]
+    assert rmse / regime.noise_N <= TOLERANCE, (f"foamlab fit --json on regime A seed 1: rmse {rmse:.4f} N = "
+                                                f"{rmse / regime.noise_N:.3f} x the noise")
