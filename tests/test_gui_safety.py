@@ -95,7 +95,8 @@ def test_estop_works_while_the_close_question_is_open(qtbot, win, how):
     qtbot.waitUntil(lambda: w.last_result is not None, timeout=RUN_TIMEOUT_MS)
     assert w.last_result.end == "estop", w.last_result.reason
     assert_estopped(qtbot, sim)
-    assert w.isVisible()                         # the e-stop did not answer the question
+    assert w.isVisible()                         # the e-stop did not answer the question...
+    assert w.dialog is None                      # ...the run's end withdrew it: no test is running
 
 
 def press_into_specimen(qtbot, w: MainWindow, sim, depth_mm: float = 12.0) -> float:

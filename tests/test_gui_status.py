@@ -68,6 +68,7 @@ def test_status_after_an_estop_and_a_later_run_is_current(qtbot, win):
     assert "aborted" in text and "emergency stop" in text and style == ERROR_STYLE
     click(qtbot, w.reset_button)
     qtbot.waitUntil(lambda: not sim.crosshead_status()["emergency_stop"], timeout=5000)
+    qtbot.waitUntil(lambda: status(w) == ("e-stop reset: the crosshead may move again", ""), timeout=5000)
     # Back to where the run started (above the specimen), so the next run may tare.
     w.jog_speed.setValue(300.0)
     click(qtbot, w.return_button)

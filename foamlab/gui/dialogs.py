@@ -6,9 +6,10 @@ button could not be clicked and Esc only answered the dialog (issue 18). So:
 
 - every question and file chooser of the window is non-modal (show() and a callback), the
   e-stop button stays clickable beside it;
-- Esc is an application-wide shortcut for the e-stop, matched before any widget or
-  dialog of the application sees the key: Esc never cancels a dialog here, it stops
-  the machine.
+- Esc is an application-wide shortcut for the e-stop, matched before the focused
+  widget's own key handling (a dialog's reject): Esc never cancels a dialog here, it
+  stops the machine. (A popup list open inside a dialog, e.g. a completer, would take
+  that one Esc for itself; the e-stop button stays clickable.)
 """
 
 from __future__ import annotations

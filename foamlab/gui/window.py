@@ -170,8 +170,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.zero_force_button.clicked.connect(lambda: self._tare("zero force"))
         self.tare_button.clicked.connect(lambda: self._tare("tare"))
         self.return_button.clicked.connect(self._return_to_start)
-        self.reset_button.clicked.connect(
-            lambda: self.link.call("reset e-stop", lambda m: m.crosshead.reset_fault()))
+        self.reset_button.clicked.connect(self._reset_estop)
         self.start_button.clicked.connect(self.start_run)
         self.stop_button.clicked.connect(self.stop_run)
         self.estop_button.clicked.connect(self.emergency_stop)
@@ -296,6 +295,13 @@ class MainWindow(QtWidgets.QMainWindow):
         self.link.call("return to start", lambda m: m.crosshead.move_to(target, speed))
         self._status(f"returning to the start position, {target:.2f} mm, at {speed:g} mm/min (Stop or Esc halts)")
 
+    def _reset_estop(self) -> None:
+        conn = self.link.connection
+        if conn is not None:     # the red EMERGENCY STOP line is replaced once the drive is reset
+            self.link.submit(conn.machine.crosshead.reset_fault,
+                             lambda _: self._status("e-stop reset: the crosshead may move again", timeout_ms=10_000),
+                             lambda msg: self._status(f"reset e-stop failed: {msg}", error=True))
+
     def _tare(self, what: str) -> None:
         """Tare or zero the load cell, refused in words while it carries a load (foamlab.safety)."""
         conn = self.link.connection
@@ -419,6 +425,8 @@ class MainWindow(QtWidgets.QMainWindow):
         """Everything the window says about a run that ended (a foamlab.acquisition.RunResult)."""
         self._drain_samples()
         self.last_result = result
+        if self.dialog is not None and self.dialog.objectName() == "close_question":
+            self.close_dialog()         # "A test is running" is no longer true
         if result.contact_position_mm is not None and self.link.connection is not None:
             remember_contact(self.link.connection.machine, result.contact_position_mm)
         self._end_run_ui()
