@@ -160,7 +160,7 @@ class Report:
                 text = PLAIN_VERDICTS[self.verdict]
             else:
                 first = next((f for f in self.findings if f.effect == self.verdict), None)
-                text = f"{first.description} ({first.meaning})" if first else self.verdict.replace("_", " ")
+                text = f"{first.description}: {first.meaning}" if first else self.verdict.replace("_", " ")
             return text[0].upper() + text[1:] + "."
         if self.diagnosis_note:
             return f"Diagnosis {self.diagnosis_note}"

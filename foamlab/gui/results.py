@@ -103,6 +103,9 @@ class ResultsPanel(QtWidgets.QTabWidget):
         self.parameters = _table(["parameter", "value", "std. error", "rel. error", "unit"], "fit_parameters")
         self.statistics = _table(["step", "SSE [N²]", "R²", "adj. R²", "RMSE [N]"], "fit_statistics")
         self.constraints = _table(["check", "result", "a failure means"], "fit_constraints")
+        # The meaning is a sentence: wrapped in the width there is, not cut off.
+        self.constraints.setWordWrap(True)
+        self.constraints.horizontalHeader().setSectionResizeMode(2, QtWidgets.QHeaderView.ResizeMode.Stretch)
         self.warnings = QtWidgets.QPlainTextEdit()
         self.warnings.setObjectName("fit_warnings")
         self.warnings.setReadOnly(True)
@@ -181,6 +184,7 @@ class ResultsPanel(QtWidgets.QTabWidget):
         _fill(self.constraints, [(CONSTRAINT_MEANINGS.get(n, (n, ""))[0], "pass" if ok else "FAIL",
                                   "" if ok else CONSTRAINT_MEANINGS.get(n, (n, ""))[1])
                                  for n, ok in report.constraints])
+        self.constraints.resizeRowsToContents()
         lines = [f"• {w}" for w in report.fit_warnings] + [f"note: {n}" for n in report.fit_notes]
         self.warnings.setPlainText("\n".join(lines) or "none")
         _fill(self.findings, [(f.effect, f.description, _opt(f.rmse_before), _opt(f.rmse_after),
