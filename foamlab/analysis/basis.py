@@ -111,11 +111,15 @@ class _Fractional:
     """
 
     def __init__(self, t, x, start: int, peak: int, obs: np.ndarray, grid_t: np.ndarray,
-                 grid_x: np.ndarray, turning: np.ndarray):
+                 grid_x: np.ndarray, turning: np.ndarray, later_starts=(), rows: np.ndarray | None = None):
+        """later_starts: starts of later cycles whose memories share this one's terms: the sum
+        of their D^beta, each from its own start, is one convolution (the slope changes
+        counted once per memory that has begun). rows: observed rows to evaluate (default:
+        those after the peak)."""
         h = grid_t[1] - grid_t[0]
         tol = 1e-6 * h
         tk = float(t[start])
-        self.rows = np.flatnonzero(obs > peak)
+        self.rows = np.flatnonzero(obs > peak) if rows is None else np.asarray(rows, int)
         obs_t = t[obs[self.rows]]
         on_grid = grid_t > tk + tol
         j0 = int(np.argmax(on_grid)) if on_grid.any() else len(grid_t)
@@ -136,6 +140,12 @@ class _Fractional:
         if len(slopes):
             ds[0] = slopes[0]
             ds[1:len(slopes)] = np.diff(slopes)
+        if len(later_starts) and len(slopes):
+            # memory k adds its initial slope at its start and every slope change after it
+            at = np.searchsorted(node_t, t[np.asarray(later_starts, int)] - tol)
+            begun = 1 + np.searchsorted(np.sort(at), np.arange(len(node_t)), side="left")
+            ds[1:] *= begun[1:]
+            np.add.at(ds, at[at < len(slopes)], slopes[at[at < len(slopes)]])
         n = len(grid_t)
         self.h, self.n = h, n
         self.d_grid = np.zeros(n)
@@ -244,11 +254,33 @@ class ModelBasis:
         turning = turning[(turning >= 0) & (turning < len(self.t))]
         self.damping_parts = [_Damping(self.t, self.x, s, p, self.obs, step_s)
                               for s, p in zip(starts, peaks)]
-        self.residual_parts = [_Fractional(self.t, self.x, s, p, self.obs, grid_t, grid_x, turning)
-                               for s, p in zip(starts, peaks)]
+        self.residual_parts = self._residual_parts(starts, peaks, grid_t, grid_x, turning)
         xs = self.x[self.obs] / self.x_scale_mm
         self.elastic = np.vander(xs, layout.P + 1, increasing=True)
         self._cache: dict = {}
+
+    def _residual_parts(self, starts, peaks, grid_t, grid_x, turning) -> list[tuple[int, float, "_Fractional"]]:
+        """(layout cycle, sign, part) of each residual memory. Cycles up to the layout's last
+        have a part each; the last and every later cycle share its terms, so their memories
+        are one convolution from the last's start (each later one's own start and slope
+        changes counted as they begin) minus, on each later cycle's loading, that cycle's own
+        memory (not yet switched on there): the cost stays linear in the cycles."""
+        last = self.layout.C - 1
+        parts = [(k, 1.0, _Fractional(self.t, self.x, s, p, self.obs, grid_t, grid_x, turning))
+                 for k, (s, p) in enumerate(zip(starts[:last], peaks[:last]))]
+        if len(starts) <= last:
+            return parts
+        later = list(zip(starts[last + 1:], peaks[last + 1:]))
+        parts.append((last, 1.0, _Fractional(self.t, self.x, starts[last], peaks[last], self.obs, grid_t,
+                                             grid_x, turning, later_starts=[s for s, _ in later])))
+        for s, p in later:
+            loading = np.flatnonzero((self.obs >= s) & (self.obs <= p))
+            if not len(loading):
+                continue
+            window = grid_t[grid_t <= self.t[p] + (grid_t[1] - grid_t[0])]
+            parts.append((last, -1.0, _Fractional(self.t, self.x, s, p, self.obs, window,
+                                                  grid_x[:len(window)], turning, rows=loading)))
+        return parts
 
     # -- columns -----------------------------------------------------------------
     def damping_column(self, alpha: complex, derivative: bool = False):
@@ -281,14 +313,13 @@ class ModelBasis:
             return hit
         col = np.zeros((self.n_obs, len(betas)))
         dcol = np.zeros((self.n_obs, len(betas))) if derivative else None
-        last = self.layout.C - 1
-        for k, part in enumerate(self.residual_parts):
-            if min(k, last) != c or not len(part.rows):
+        for k, sign, part in self.residual_parts:
+            if k != c or not len(part.rows):
                 continue
             y, dy = part.columns(betas, derivative)
-            col[part.rows] += y
+            col[part.rows] += sign * y
             if derivative:
-                dcol[part.rows] += dy
+                dcol[part.rows] += sign * dy
         out = (col, dcol)
         self._store(key, out)
         return out

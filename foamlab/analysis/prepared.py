@@ -252,13 +252,10 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
     seg = segment(run)
     cycles = seg.cycles
     halves = seg.half_cycles
-    if len(halves) == 1:
-        raise FoamlabError(f"run has a single half-cycle ({halves[0].direction}); identification "
-                           "needs at least two cycles (loading, unloading, second loading)")
-    if len(cycles) < 2 or cycles[0].unloading is None:
+    if not cycles or cycles[0].unloading is None:
         have = ", ".join(h.label for h in halves) or "none"
-        raise FoamlabError(f"too few cycles: identification needs at least two (the paper's Eq. 15 "
-                           f"subtracts the first unloading from the second loading); found {have}")
+        raise FoamlabError(f"no complete cycle: identification needs at least one loading and its "
+                           f"unloading; found {have}")
     minima, maxima, dwell_starts = _turning_points(run.displacement_mm, seg)
     labels = labels_from_extrema(n, minima, maxima)
     # (first, last, is_maximum) at each turning point, in the order _turning_points found them

@@ -209,7 +209,7 @@ def _globalise(problem: SeparableProblem, fit, slots, lower, upper, ftol: float,
 
 
 def _layout(fd: PreparedRun, orders: Orders) -> Layout:
-    return Layout(P=orders.P, N=orders.N, M=orders.M, C=fd.n_residual_cycles)
+    return Layout(P=orders.P, N=orders.N, M=orders.M, C=orders.residual_cycles(fd.n_residual_cycles))
 
 
 def _ranked_searches(fd: PreparedRun, orders: Orders, start: ModelParameters | None,
