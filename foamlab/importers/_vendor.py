@@ -201,3 +201,38 @@ def _fields_from_header(header: dict[str, str], metadata: dict,
                     if length is not None:
                         dims[field] = length
     return {"specimen": Specimen(label=label, **dims), "started_at": started}
+
+
+def find_single_header(lines: list[str], accept: Callable[[list[str], list[str], list[str]], bool],
+                       clean: Callable[[str], str] = str.strip, max_lines: int = 60) -> Layout | None:
+    """A names row with the unit inside each name ('Time (s)'), followed by data.
+
+    ``accept(raw_fields, names, units)`` says whether the row is the vendor's;
+    ``clean`` tidies a name once its unit is split off.
+    """
+    for i, line in enumerate(lines[:max_lines]):
+        text = line.lstrip("\ufeff")
+        for sep in SEPARATORS:
+            if sep not in text:
+                continue
+            fields = split_fields(text, sep)
+            if len(fields) < 3 or is_data_row(fields):
+                continue
+            pairs = [split_unit(f) for f in fields]
+            names, units = [clean(n) for n, _ in pairs], [u for _, u in pairs]
+            if not accept(fields, names, units):
+                continue
+            following = next((j for j in range(i + 1, min(len(lines), i + 4)) if lines[j].strip()),
+                             None)
+            if following is None or is_data_row(split_fields(lines[following], sep)):
+                return Layout(names_index=i, units_index=None, sep=sep, names=names, units=units)
+    return None
+
+
+def has_channels(names: list[str], units: list[str]) -> bool:
+    """Whether time, displacement and force columns can be told from these names and units."""
+    try:
+        pick_channels(names, units, "")
+    except FoamlabError:
+        return False
+    return True
