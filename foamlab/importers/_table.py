@@ -198,8 +198,9 @@ def order_times(source: str, time_s: np.ndarray, line_nos, notes: list[str]) -> 
         raise FoamlabError(f"{source}: line {line_nos[1]}: time never advances "
                            f"(all {len(time_s)} samples at {time_s[0]:g} s)")
     new = _spread_repeats(time_s, float(np.median(forward)))
+    first = int(repeats[0])
     notes.append(f"time repeats at {len(repeats)} of {len(time_s)} samples (first at line "
-                 f"{line_nos[int(repeats[0]) + 1]}, t = {time_s[int(repeats[0])]:g} s): samples "
+                 f"{line_nos[first + 1]}, {time_s[first] - time_s[0]:g} s from the start): samples "
                  f"kept in file order, repeated times spread evenly up to the next time")
     return new
 

@@ -166,10 +166,12 @@ def _join(source: str, blocks: list[Block], starts: list[int], notes: list[str])
     if not chain or kept < len(blocks[largest].time_s):
         return blocks[largest]  # its own disorder is reported, naming the line
     left = [k for k in range(len(blocks)) if k not in set(chain)]
+    t0 = blocks[chain[0]].time_s[0]  # times shown from the run's start (Excel days are huge)
     for k in left[:3]:
         b = blocks[k]
-        notes.append(f"block at line {starts[k] + 1} ({len(b.time_s)} rows, t = {b.time_s[0]:g}"
-                     f"..{b.time_s[-1]:g} s) left out: its time does not continue the run")
+        notes.append(f"block at line {starts[k] + 1} ({len(b.time_s)} rows, t = "
+                     f"{b.time_s[0] - t0:g}..{b.time_s[-1] - t0:g} s) left out: its time does "
+                     f"not continue the run")
     if len(left) > 3:
         notes.append(f"{len(left) - 3} more blocks left out for the same reason")
     if len(chain) > 1:

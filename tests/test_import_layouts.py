@@ -1,0 +1,146 @@
+"""Every export layout of issue 17 (tests/data/layouts/, written by make_layouts.py):
+read, converted and segmented into its cycles; the quirks noted; binary testXpert
+files refused in one line; a fuzz test over the vendor readers."""
+
+from __future__ import annotations
+
+import gzip
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from foamlab import FoamlabError
+from foamlab.cli import main
+from foamlab.importers import load_run
+from foamlab.importers._text import decode
+
+DATA = Path(__file__).parent / "data"
+LAYOUTS = DATA / "layouts"
+sys.path.insert(0, str(DATA))
+import make_layouts  # noqa: E402
+
+
+@pytest.mark.parametrize("name", list(make_layouts.LAYOUTS))
+def test_layout_is_read_and_segmented(name):
+    expect = make_layouts.LAYOUTS[name][1]
+    run = load_run(LAYOUTS / name)
+    assert run.metadata["format"] == expect.fmt
+    assert run.specimen.label == expect.label
+    assert run.metadata.get("operator", "") == expect.operator
+    if expect.encoding:
+        assert run.metadata["encoding"] == expect.encoding
+    notes = " | ".join(run.metadata.get("import_notes", []))
+    for text in expect.notes:
+        assert text in notes
+    assert np.all(np.diff(run.time_s) > 0) and run.time_s[0] == 0.0
+    # compression positive in foamlab's units whatever the file stored
+    assert run.force_N.max() > 5.0 and run.force_N.max() > -run.force_N.min()
+    assert run.displacement_mm.max() == pytest.approx(
+        5.0 if expect.cycles == 3 else 2.0, abs=0.05)
+    if expect.force_max_N:
+        assert run.force_N.max() > expect.force_max_N
+    assert run.segments().n_cycles == expect.cycles
+
+
+def test_layout_fixtures_are_reproducible(tmp_path):
+    for path in make_layouts.write_all(tmp_path):
+        assert path.read_bytes() == (LAYOUTS / path.name).read_bytes(), path.name
+
+
+def test_wavematrix_grouped_time_is_read_exactly():
+    run = load_run(LAYOUTS / "wavematrix_bom.steps.tracking.csv")
+    assert run.metadata["time_offset_s"] == pytest.approx(985.0)
+    assert run.time_s[-1] == pytest.approx(40.0)          # 985 .. 1025 s, past "1,000.00000"
+    assert run.sampling_hz == pytest.approx(10.0)
+    assert run.metadata["channels"]["force"] == "Load (kN)"
+
+
+def test_mts_blocks_with_other_columns_are_joined_by_name():
+    run = load_run(LAYOUTS / "mts_enu_blocks.dat")
+    assert len(run) == 61 and run.sampling_hz == pytest.approx(10.0)
+    assert run.started_at == "2016-03-29T13:55:00"       # M/D/Y: the format line says so
+    assert run.metadata["channels"] == {"time": "Running Time (Sec)",
+                                        "displacement": "Displacement (mm)",
+                                        "force": "Force (kN)"}
+
+
+def test_mts_excel_day_time_and_left_out_peak_block():
+    run = load_run(LAYOUTS / "mts_deu_exceltime.dat")
+    assert run.started_at == "2023-06-30T07:30:00"       # the first block's clock, D.M.Y
+    assert run.metadata["channels"]["time"] == "Datum (d)"
+    assert run.time_s[-1] == pytest.approx(6.0, abs=0.1)
+    assert "t = 999..5" in run.metadata["import_notes"][0]
+
+
+def test_repeated_timestamps_are_spread_in_order():
+    run = load_run(LAYOUTS / "bluehill_repeated_time.csv")
+    assert len(run) == 122                                # nothing dropped
+    assert run.time_s[:4] == pytest.approx([0.0, 1 / 30, 2 / 30, 0.1])
+
+
+def test_show_prints_the_import_notes(capsys):
+    assert main(["show", str(LAYOUTS / "bluehill_repeated_time.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "import note:   time repeats at" in out
+    assert main(["show", str(LAYOUTS / "mts_enu_blocks.dat"), "--json"]) == 0
+    import json
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["operator"] == "J. Smith" and summary["cycles"] == 3
+    assert summary["import_notes"] == ["7 data blocks joined in file order"]
+
+
+@pytest.mark.parametrize("text,encoding", [
+    ("Etykieta próbki;Pianka żółta\nSiła;Czas\n", "cp1250"),
+    ("Prędkość;wartość\n", "cp1250"),
+    ("Probenbezeichnung;Würfel Ä\nVolumen;mm³\n", "cp1252"),
+    ("Contrainte à rupture;Éprouvette\n", "cp1252"),
+    ("Año;señal\n", "cp1252"),
+])
+def test_cp1250_and_cp1252_told_apart(text, encoding):
+    assert decode(text.encode(encoding)) == (text, encoding)
+
+
+@pytest.mark.parametrize("name", ["series.zs2", "Probe.ZSE"])
+def test_testxpert_binary_is_refused_in_one_line(tmp_path, capsys, name):
+    path = tmp_path / name
+    path.write_bytes(gzip.compress(b"\x00\x01testXpert binary\x00" * 20))
+    assert main(["show", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert "testXpert native file" in err and "Export" in err
+
+
+def test_renamed_zs2_is_refused_by_its_bytes(tmp_path):
+    path = tmp_path / "export.csv"
+    path.write_bytes(gzip.compress(b"\x00binary" * 10))
+    with pytest.raises(FoamlabError, match="compressed binary file.*testXpert"):
+        load_run(path)
+
+
+BROKEN = {
+    "wavematrix text in a number": (
+        '"Total Time (s)","Total Cycles","Position(Linear:Position) (mm)","Load(Linear:Load) (kN)",\n'
+        '0.0,0,0.0,0.0,\n0.1,0,abc,0.1,\n', "line 3: 'abc' in column 'displacement'"),
+    "mts time backwards": (
+        "MTS793|MPT|ENU|1|2|.|/|:|1|0|0|A\n\nData Header\tTime:\t1\tSec\n"
+        "Running Time\tAxial Displacement\tAxial Force\nSec\tmm\tkN\n0.0\t0\t0\n0.2\t1\t1\n0.1\t2\t2\n",
+        "line 8: time goes backwards"),
+    "mts no force": (
+        "MTS793|MPT|ENU|1|2|.|/|:|1|0|0|A\n\nData Header\tTime:\t1\tSec\n"
+        "Running Time\tAxial Displacement\nSec\tmm\n0.0\t0\n0.2\t1\n", "no force column"),
+    "bluehill 3 missing field": (
+        "Time measurement (s),Extension (mm),Primary load measurement (N)\n0,0,0\n0.1,1\n0.2,2,2\n",
+        "line 3: 2 fields, expected 3"),
+}
+
+
+@pytest.mark.parametrize("case", list(BROKEN))
+def test_broken_layouts_get_one_line_naming_the_line(tmp_path, case):
+    content, expected = BROKEN[case]
+    path = tmp_path / "broken.dat"
+    path.write_text(content, encoding="utf-8")
+    with pytest.raises(FoamlabError) as info:
+        load_run(path)
+    assert expected in str(info.value) and "\n" not in str(info.value)
