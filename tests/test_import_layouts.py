@@ -144,3 +144,88 @@ def test_broken_layouts_get_one_line_naming_the_line(tmp_path, case):
     with pytest.raises(FoamlabError) as info:
         load_run(path)
     assert expected in str(info.value) and "\n" not in str(info.value)
+
+
+# --------------------------------------------------------------------------- fuzz
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+# CI runs a fixed, fast sample; FOAMLAB_HYPOTHESIS_EXAMPLES=5000 searches harder (random).
+_EXAMPLES = int(__import__("os").environ.get("FOAMLAB_HYPOTHESIS_EXAMPLES", "120"))
+_FUZZ = settings(max_examples=_EXAMPLES, deadline=None, derandomize=_EXAMPLES <= 120,
+                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+_FIXTURE_BYTES = {name: (LAYOUTS / name).read_bytes() for name in make_layouts.LAYOUTS}
+
+
+def _outcome(path: Path) -> None:
+    """A RunData with increasing time, or a one-line FoamlabError: nothing else."""
+    try:
+        run = load_run(path)
+    except FoamlabError as exc:
+        assert "\n" not in str(exc) and "internal parser error" not in str(exc), str(exc)
+        return
+    assert len(run) >= 2 and np.all(np.diff(run.time_s) > 0)
+    assert np.all(np.isfinite(run.displacement_mm)) and np.all(np.isfinite(run.force_N))
+
+
+@_FUZZ
+@given(st.sampled_from(sorted(_FIXTURE_BYTES)), st.floats(0.0, 1.0),
+       st.lists(st.tuples(st.floats(0.0, 1.0), st.binary(min_size=1, max_size=3)), max_size=4))
+def test_fuzz_truncated_and_mutated_exports(tmp_path, name, cut, mutations):
+    raw = bytearray(_FIXTURE_BYTES[name])
+    for where, junk in mutations:
+        i = int(where * (len(raw) - 1))
+        raw[i:i + len(junk)] = junk
+    raw = bytes(raw[:max(1, int(cut * len(raw)))])
+    path = tmp_path / name
+    path.write_bytes(raw)
+    _outcome(path)
+
+
+_HEADS = [
+    "MTS793|MPT|ENU|1|2|.|/|:|1|0|0|A\n\nData Header\tTime:\t1\tSec\n"
+    "Running Time\tAxial Displacement\tAxial Force\nSec\tmm\tkN",
+    "MTS793|MPT|DEU|1|2|,|.|:|49|1|1|A\n\nDatenerfassung\tZeit:\t1\ts\nDatum\tCh 1 Weg\tCh 1 Kraft\nd\tmm\tkN",
+    "MTS793|MPT|ENU|1|0|.|/|:|1|0|0|A\n\nData Header  Time:  1  Sec\nRunning Time  Axial Force  Axial Displacement\nSec  kN  mm",
+    '\ufeff"Total Time (s)","Total Cycles","Position(Linear:Position) (mm)","Load(Linear:Load) (kN)",',
+    "Gesamtzeit (s);Gesamtzyklen;Position des Aktuators (mm);Kraft (N);",
+    "Time measurement (s),Extension (mm),Primary load measurement (N)",
+    "Texteingaben : Probenbeschriftung;Würfel\n\nZeit;Weg;Kraft\n(s);(mm);(N)",
+    "aktuelle Probe;Schaum\nPrüfzeit;Standardkraft;Standardweg\ns;N;mm",
+]
+_NUMBERS = st.one_of(
+    st.floats(-5e3, 5e3).map(lambda v: f"{v:.4f}"),
+    st.floats(-5e6, 5e6).map(lambda v: f"{v:,.3f}"),                      # 1,234.567
+    st.floats(-5e6, 5e6).map(lambda v: f"{v:,.2f}".replace(",", "\u00a0").replace(".", ",")),
+    st.floats(-5e6, 5e6).map(lambda v: f'"{v:,.5f}"'),
+    st.sampled_from(["", "0", "0", "1,5", "1.000,5", "1\u202f000,0", "nan", "-", "x", '"', "1e400"]),
+)
+
+
+@_FUZZ
+@given(st.sampled_from(_HEADS), st.lists(st.lists(_NUMBERS, min_size=0, max_size=4), max_size=10),
+       st.sampled_from([",", ";", "\t", "  "]), st.sampled_from(["\n", "\r\n", "\r"]),
+       st.sampled_from(["utf-8", "utf-8-sig", "cp1250", "cp1252", "gbk", "utf-16"]))
+def test_fuzz_vendor_layouts(tmp_path, head, rows, sep, newline, encoding):
+    text = newline.join([head] + [sep.join(r) for r in rows]) + newline
+    path = tmp_path / "fuzz.csv"
+    path.write_bytes(text.encode(encoding, errors="replace"))
+    _outcome(path)
+
+
+def test_mts_displacement_zeroed_at_the_start_is_joined(tmp_path):
+    # MTS zeroes the displacement when the test starts (38 mm -> 0 between two samples)
+    t = np.arange(0.0, 130.0, 0.5)
+    phase = ((t - 10.0) / 20.0) % 2.0
+    x = np.where(t < 10.0, 0.0, -0.34 * np.where(phase < 1, phase, 2 - phase))
+    shown = np.where(t < 10.0, 38.03, x)
+    rows = [f"{ti:.2f}\t{si:.5f}\t{xi / 0.34 * 110 - 4:.4f}" for ti, si, xi in zip(t, shown, x)]
+    text = ("MTS793|MPT|ENU|1|2|.|/|:|1|0|0|A\n\nData Acquisition\tTime:\t130\tSec\n"
+            "Running Time\tCh 1 Displacement\tCh 1 Force\nSec\tmm\tkN\n" + "\n".join(rows) + "\n")
+    path = tmp_path / "specimen.dat"
+    path.write_text(text)
+    run = load_run(path)
+    assert "the channel was zeroed" in run.metadata["import_notes"][0]
+    assert run.displacement_mm.max() == pytest.approx(0.34, abs=1e-3)
+    assert run.segments().n_cycles == 3

@@ -154,9 +154,10 @@ def make_run(text_file: TextFile, fmt: str, block: Block, header: dict[str, str]
     """RunData in foamlab's conventions from a file's samples and header."""
     source = str(text_file.path)
     time_s = order_times(source, block.time_s, block.line_nos, notes)
+    disp = join_rezeroed(block.disp_mm, block.line_nos, notes)
     metadata: dict = {"format": fmt, "encoding": text_file.encoding, "header": header,
                       "channels": {kind: f"{ch.name} ({ch.unit})" for kind, ch in block.channels.items()}}
-    time_s, disp, force = to_foamlab_convention(time_s, block.disp_mm, block.force_N, metadata)
+    time_s, disp, force = to_foamlab_convention(time_s, disp, block.force_N, metadata)
     fields = _fields_from_header(header, metadata, day_first)
     if notes:
         metadata["import_notes"] = notes
@@ -201,6 +202,28 @@ def _fields_from_header(header: dict[str, str], metadata: dict,
                     if length is not None:
                         dims[field] = length
     return {"specimen": Specimen(label=label, **dims), "started_at": started}
+
+
+def join_rezeroed(disp: np.ndarray, line_nos, notes: list[str]) -> np.ndarray:
+    """Displacement with the machine's re-zeroing undone (MTS zeroes the channel when
+    the test starts: 38 mm to 0 between two samples). A jump counts when it is over
+    half the range and 20 times the largest ordinary step; the samples before it are
+    shifted to join the ones after."""
+    disp = disp.copy()
+    for _ in range(3):
+        steps = np.abs(np.diff(disp))
+        if len(steps) < 10:
+            return disp
+        i = int(np.argmax(steps))
+        ordinary = np.percentile(np.delete(steps, i), 99)
+        if not (steps[i] > 0.5 * np.ptp(disp) and steps[i] > 20 * ordinary):
+            return disp
+        jump = float(disp[i + 1] - disp[i])
+        disp[:i + 1] += jump
+        notes.append(f"displacement jumps by {jump:g} between lines {line_nos[i]} and "
+                     f"{line_nos[i + 1]} (the channel was zeroed): the samples before it shifted "
+                     f"to join")
+    return disp
 
 
 def find_single_header(lines: list[str], accept: Callable[[list[str], list[str], list[str]], bool],
