@@ -25,6 +25,7 @@ MAX_BYTES = 2 * 1024 ** 3
 # 4. Latin-1, which decodes anything, as the last resort.
 # UTF-16 is recognised by its BOM only (Windows "Unicode text" exports have one).
 _CJK = "\u3400-\u4dbf\u4e00-\u9fff\uf900-\ufaff"
+_HAS_CJK = re.compile(f"[{_CJK}]")
 _MOJIBAKE = re.compile(rf"[A-Za-z\u00c0-\u00ff][{_CJK}]|[{_CJK}][A-Za-z\u00c0-\u00ff]")
 
 
@@ -88,8 +89,8 @@ def decode(raw: bytes) -> tuple[str, str]:
             text = raw.decode(encoding)
         except UnicodeDecodeError:
             continue
-        if encoding == "gb18030" and _MOJIBAKE.search(text):
-            continue
+        if encoding == "gb18030" and (_MOJIBAKE.search(text) or not _HAS_CJK.search(text)):
+            continue  # Latin bytes read as Chinese, or no Chinese at all
         if encoding == "utf-8-sig":
             encoding = "utf-8-bom" if raw.startswith(b"\xef\xbb\xbf") else "utf-8"
         return text, encoding
