@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from foamlab import FoamlabError
 from foamlab.cli import main
@@ -121,15 +123,15 @@ def test_renamed_zs2_is_refused_by_its_bytes(tmp_path):
 
 BROKEN = {
     "wavematrix text in a number": (
-        '"Total Time (s)","Total Cycles","Position(Linear:Position) (mm)","Load(Linear:Load) (kN)",\n'
-        '0.0,0,0.0,0.0,\n0.1,0,abc,0.1,\n', "line 3: 'abc' in column 'displacement'"),
+        ('"Total Time (s)","Total Cycles","Position(Linear:Position) (mm)","Load(Linear:Load) (kN)",\n'
+         '0.0,0,0.0,0.0,\n0.1,0,abc,0.1,\n'), "line 3: 'abc' in column 'displacement'"),
     "mts time backwards": (
-        "MTS793|MPT|ENU|1|2|.|/|:|1|0|0|A\n\nData Header\tTime:\t1\tSec\n"
-        "Running Time\tAxial Displacement\tAxial Force\nSec\tmm\tkN\n0.0\t0\t0\n0.2\t1\t1\n0.1\t2\t2\n",
+        ("MTS793|MPT|ENU|1|2|.|/|:|1|0|0|A\n\nData Header\tTime:\t1\tSec\n"
+         "Running Time\tAxial Displacement\tAxial Force\nSec\tmm\tkN\n0.0\t0\t0\n0.2\t1\t1\n0.1\t2\t2\n"),
         "line 8: time goes backwards"),
     "mts no force": (
-        "MTS793|MPT|ENU|1|2|.|/|:|1|0|0|A\n\nData Header\tTime:\t1\tSec\n"
-        "Running Time\tAxial Displacement\nSec\tmm\n0.0\t0\n0.2\t1\n", "no force column"),
+        ("MTS793|MPT|ENU|1|2|.|/|:|1|0|0|A\n\nData Header\tTime:\t1\tSec\n"
+         "Running Time\tAxial Displacement\nSec\tmm\n0.0\t0\n0.2\t1\n"), "no force column"),
     "bluehill 3 missing field": (
         "Time measurement (s),Extension (mm),Primary load measurement (N)\n0,0,0\n0.1,1\n0.2,2,2\n",
         "line 3: 2 fields, expected 3"),
@@ -147,9 +149,6 @@ def test_broken_layouts_get_one_line_naming_the_line(tmp_path, case):
 
 
 # --------------------------------------------------------------------------- fuzz
-
-from hypothesis import HealthCheck, given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
 
 # CI runs a fixed, fast sample; FOAMLAB_HYPOTHESIS_EXAMPLES=5000 searches harder (random).
 _EXAMPLES = int(__import__("os").environ.get("FOAMLAB_HYPOTHESIS_EXAMPLES", "120"))
@@ -184,8 +183,8 @@ def test_fuzz_truncated_and_mutated_exports(tmp_path, name, cut, mutations):
 
 
 _HEADS = [
-    "MTS793|MPT|ENU|1|2|.|/|:|1|0|0|A\n\nData Header\tTime:\t1\tSec\n"
-    "Running Time\tAxial Displacement\tAxial Force\nSec\tmm\tkN",
+    ("MTS793|MPT|ENU|1|2|.|/|:|1|0|0|A\n\nData Header\tTime:\t1\tSec\n"
+     "Running Time\tAxial Displacement\tAxial Force\nSec\tmm\tkN"),
     "MTS793|MPT|DEU|1|2|,|.|:|49|1|1|A\n\nDatenerfassung\tZeit:\t1\ts\nDatum\tCh 1 Weg\tCh 1 Kraft\nd\tmm\tkN",
     "MTS793|MPT|ENU|1|0|.|/|:|1|0|0|A\n\nData Header  Time:  1  Sec\nRunning Time  Axial Force  Axial Displacement\nSec  kN  mm",
     '\ufeff"Total Time (s)","Total Cycles","Position(Linear:Position) (mm)","Load(Linear:Load) (kN)",',

@@ -99,9 +99,10 @@ def format_summary(s: dict) -> str:
         f"file:          {s['path']}",
         f"format:        {s['format']} ({s['encoding']})",
     ]
-    if s["specimen"] or s["started_at"]:
+    if s["specimen"] or s["started_at"] or s.get("operator"):
+        operator = f"   operator {s['operator']}" if s.get("operator") else ""
         lines.append(f"specimen:      {s['specimen'] or '-'}   started {s['started_at'] or '-'}"
-                     + (f"   operator {s['operator']}" if s.get("operator") else ""))
+                     f"{operator}")
     for note in s.get("import_notes", []):
         lines.append(f"import note:   {note}")
     lines += [

@@ -37,8 +37,14 @@ import numpy as np
 from foamlab import FoamlabError
 from foamlab.importers._table import Rows, parse_date
 from foamlab.importers._text import TextFile
-from foamlab.importers._vendor import (Block, header_items, is_data_row, make_run, read_block,
-                                       split_fields)
+from foamlab.importers._vendor import (
+    Block,
+    header_items,
+    is_data_row,
+    make_run,
+    read_block,
+    split_fields,
+)
 from foamlab.rundata import RunData
 
 FORMAT = "MTS 793 MPT"
