@@ -228,3 +228,15 @@ def test_mts_displacement_zeroed_at_the_start_is_joined(tmp_path):
     assert "the channel was zeroed" in run.metadata["import_notes"][0]
     assert run.displacement_mm.max() == pytest.approx(0.34, abs=1e-3)
     assert run.segments().n_cycles == 3
+
+
+def test_mts_blocks_without_titles_or_blank_lines(tmp_path):
+    rows = [f"{0.1 * i:.1f}\t{-abs(((i / 10) % 2) - 1) * 5:.4f}\t{-abs(((i / 10) % 2) - 1):.4f}"
+            for i in range(61)]
+    parts = ["MTS793|MPT|ENU|1|2|.|/|:|1|0|0|A", ""]
+    for k in range(0, 61, 20):
+        parts += ["Running Time\tAxial Displacement\tAxial Force", "s\tmm\tkN"] + rows[k:k + 20]
+    path = tmp_path / "specimen.dat"
+    path.write_text("\n".join(parts) + "\n")
+    run = load_run(path)
+    assert len(run) == 61 and run.segments().n_cycles == 3

@@ -119,7 +119,9 @@ def _read_blocks(text_file: TextFile, lines: list[str], sep: str, decimal: str,
                            f"in this MTS 793 export")
     blocks, errors = [], []
     for k, start in enumerate(starts):
-        stop = starts[k + 1] - 1 if k + 1 < len(starts) else len(lines)
+        stop = starts[k + 1] if k + 1 < len(starts) else len(lines)
+        if k + 1 < len(starts) and _is_text(lines[stop - 1], sep):
+            stop -= 1  # the next block's title
         names = [_PREFIX.sub("", n) for n in split_fields(lines[start], sep)]
         units = split_fields(lines[start + 1], sep)
         rows = _block_rows(lines, start + 2, stop)
