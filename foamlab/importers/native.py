@@ -1,10 +1,11 @@
 """Native binary files of testing software, refused with how to export text.
 
 testXpert (ZwickRoell) keeps a test series in a gzip-compressed binary file
-(.zs2; .zse, .zp2 for its templates and single results). Its layout is
-undocumented and version dependent: zs2decode 0.3.3 misreads channels on
-current files (its issues #9 and #10), so foamlab reads testXpert's own text
-export instead.
+(.zs2; .zse from older versions; .zp2 is a test program and holds no
+measurements). The layout is undocumented and changes with versions:
+zs2decode 0.3.3 stops on testXpert III .zs2 files (its issue #10) and does not
+recover data from old .zse files (issue #9), so foamlab reads testXpert's own
+text export instead.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from pathlib import Path
 
 from foamlab import FoamlabError
 
-TESTXPERT_SUFFIXES = {".zs2", ".zse", ".zp2", ".zs3"}
+TESTXPERT_SUFFIXES = {".zs2", ".zse", ".zs3"}
 TESTXPERT_HOW = ("export the raw data as text in testXpert (testXpert II: File > Export > "
                  "ASCII / 'Export to text file', tick the series and the channels time, "
                  "standard force and standard travel; testXpert III: Export > Text file) "
@@ -25,6 +26,9 @@ def refuse(path: str | Path) -> None:
     """Raise a one-line FoamlabError for a native binary file foamlab does not read."""
     p = Path(path)
     suffix = p.suffix.lower()
+    if suffix == ".zp2":
+        raise FoamlabError(f"{p}: a testXpert test program (.zp2), which holds no measurements; "
+                           f"{TESTXPERT_HOW}")
     if suffix in TESTXPERT_SUFFIXES:
         raise FoamlabError(f"{p}: a testXpert native file ({p.suffix}), not a text export; "
                            f"{TESTXPERT_HOW}")
