@@ -21,15 +21,8 @@ from pathlib import Path
 import pandas as pd
 
 from foamlab import FoamlabError
-from foamlab.importers import (
-    bluehill,
-    bluehill3,
-    mts793,
-    native,
-    plain_csv,
-    testxpert,
-    wavematrix,
-)
+from foamlab.importers import (bluehill, bluehill3, mts793, native, plain_csv, testxpert,
+                               wavematrix)
 from foamlab.importers._text import read_text
 from foamlab.rundata import RunData
 from foamlab.runformat import is_run_file

@@ -14,21 +14,10 @@ import numpy as np
 
 from foamlab import FoamlabError
 from foamlab.importers._numbers import detect_decimal, remove_grouping
-from foamlab.importers._table import (
-    FORCE_UNITS,
-    LENGTH_UNITS,
-    TIME_UNITS,
-    Channel,
-    Rows,
-    normalize_name,
-    normalize_unit,
-    order_times,
-    parse_date,
-    parse_length_mm,
-    parse_rows,
-    pick_channels,
-    to_foamlab_convention,
-)
+from foamlab.importers._table import (FORCE_UNITS, LENGTH_UNITS, TIME_UNITS, Channel, Rows,
+                                      normalize_name, normalize_unit, order_times, parse_date,
+                                      parse_length_mm, parse_rows, pick_channels,
+                                      to_foamlab_convention)
 from foamlab.importers._text import TextFile
 from foamlab.rundata import RunData, Specimen
 

@@ -15,12 +15,7 @@ Displacement (mm),Force (N)``). Compression made positive, units converted.
 from __future__ import annotations
 
 from foamlab.importers._text import TextFile
-from foamlab.importers._vendor import (
-    Layout,
-    find_single_header,
-    has_channels,
-    read_export,
-)
+from foamlab.importers._vendor import (Layout, find_single_header, has_channels, read_export)
 from foamlab.rundata import RunData
 
 FORMAT = "Instron Bluehill 3"

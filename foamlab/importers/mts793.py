@@ -37,14 +37,8 @@ import numpy as np
 from foamlab import FoamlabError
 from foamlab.importers._table import Rows, parse_date
 from foamlab.importers._text import TextFile
-from foamlab.importers._vendor import (
-    Block,
-    header_items,
-    is_data_row,
-    make_run,
-    read_block,
-    split_fields,
-)
+from foamlab.importers._vendor import (Block, header_items, is_data_row, is_number, make_run,
+                                       read_block, split_fields)
 from foamlab.rundata import RunData
 
 FORMAT = "MTS 793 MPT"
@@ -89,12 +83,18 @@ def _is_text(line: str, sep: str) -> bool:
     return bool(line.strip()) and not is_data_row(split_fields(line, sep))
 
 
+def _all_numbers(line: str, sep: str) -> bool:
+    # strict: operator entries such as "Masse :<TAB>5328" are not data rows
+    filled = [f for f in split_fields(line, sep) if f]
+    return bool(filled) and all(is_number(f) for f in filled)
+
+
 def _block_starts(lines: list[str], sep: str) -> list[int]:
-    """Indices of the names rows: two text rows (names, units), then a data row."""
+    """Indices of the names rows: two text rows (names, units), then a row of numbers."""
     starts, i = [], 1
     while i + 2 < len(lines):
         if (_is_text(lines[i], sep) and _is_text(lines[i + 1], sep)
-                and lines[i + 2].strip() and not _is_text(lines[i + 2], sep)):
+                and _all_numbers(lines[i + 2], sep)):
             starts.append(i)
             i += 3
         else:

@@ -22,12 +22,7 @@ import re
 
 from foamlab.importers._table import normalize_name
 from foamlab.importers._text import TextFile
-from foamlab.importers._vendor import (
-    Layout,
-    find_single_header,
-    has_channels,
-    read_export,
-)
+from foamlab.importers._vendor import (Layout, find_single_header, has_channels, read_export)
 from foamlab.rundata import RunData
 
 FORMAT = "Instron WaveMatrix"

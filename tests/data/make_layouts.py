@@ -117,6 +117,7 @@ def mts_deu_exceltime() -> bytes:
     lines = ["MTS793|MPT|DEU|1|2|,|.|:|49|1|1|A", "",
              "Bediener Information\t\t\t\t\t\tZeit:\t22,38\ts\t30.06.2023 07:29:37",
              "Datum : \t30.6.2023", "Prüfer : \tMüller", "Probenbezeichnung :  \tPU-Schaum Würfel 3",
+             "Bemerkungen\tweggeregelt 5 mm/s", "Masse :\t31,5", "Höhe :\t50,0",
              "Bediener Information Ende"]
     for start in range(0, len(t), 100):
         sl = slice(start, start + 100)
