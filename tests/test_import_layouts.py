@@ -132,6 +132,9 @@ BROKEN = {
     "mts no force": (
         ("MTS793|MPT|ENU|1|2|.|/|:|1|0|0|A\n\nData Header\tTime:\t1\tSec\n"
          "Running Time\tAxial Displacement\nSec\tmm\n0.0\t0\n0.2\t1\n"), "no force column"),
+    "unclosed quote": (
+        'Time measurement (s),Extension (mm),Primary load measurement (N)\n0,0,0\n0.1,"1,1\n0.2,2,2\n',
+        "line 3: a quote"),
     "bluehill 3 missing field": (
         "Time measurement (s),Extension (mm),Primary load measurement (N)\n0,0,0\n0.1,1\n0.2,2,2\n",
         "line 3: 2 fields, expected 3"),

@@ -65,6 +65,8 @@ def parse_rows(rows: Rows, *, source: str, sep: str, decimal: str, ncols: int,
         raise FoamlabError(f"{source}: no data rows after the header")
     width = _check_field_counts(rows, source, sep, ncols)
     joined = "\n".join(rows.texts)
+    if '"' in joined:
+        _check_quotes(rows, source)
     indices = sorted(set(wanted.values()))
     read = dict(sep=sep, decimal=decimal, header=None, names=list(range(width)),
                 skip_blank_lines=False, quotechar='"', engine="c")
@@ -85,6 +87,14 @@ def parse_rows(rows: Rows, *, source: str, sep: str, decimal: str, ncols: int,
                                ends_with_newline)
         out[name] = values
     return out
+
+
+def _check_quotes(rows: Rows, source: str) -> None:
+    """A quote that never closes would swallow the following lines into one field."""
+    for text, line_no in zip(rows.texts, rows.line_nos):
+        if text.count('"') % 2:
+            raise FoamlabError(f"{source}: line {line_no}: a quote (\") opens a field that "
+                               f"does not close on this line")
 
 
 def _check_field_counts(rows: Rows, source: str, sep: str, ncols: int) -> int:
