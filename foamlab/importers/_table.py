@@ -188,9 +188,9 @@ def order_times(source: str, time_s: np.ndarray, line_nos, notes: list[str]) -> 
     """Time as acquired, made strictly increasing where a vendor repeated a timestamp.
 
     A repeated time (two rows at t = 0 at the start of a Bluehill file, or times
-    rounded coarser than the sampling) keeps its samples in file order: the
-    repeats are spread evenly up to the next time, and a note says so. Time that
-    goes backwards is an error naming the line.
+    rounded coarser than the sampling) keeps its samples in file order, spaced
+    evenly around it (see _spread_repeats), and a note says so. Time that goes
+    backwards is an error naming the line.
     """
     if len(time_s) < 2:
         raise FoamlabError(f"{source}: only {len(time_s)} sample; a run needs at least 2")
@@ -207,24 +207,31 @@ def order_times(source: str, time_s: np.ndarray, line_nos, notes: list[str]) -> 
     if not len(forward):
         raise FoamlabError(f"{source}: line {line_nos[1]}: time never advances "
                            f"(all {len(time_s)} samples at {time_s[0]:g} s)")
-    new = _spread_repeats(time_s, float(np.median(forward)))
+    new = _spread_repeats(time_s)
     first = int(repeats[0])
     notes.append(f"time repeats at {len(repeats)} of {len(time_s)} samples (first at line "
                  f"{line_nos[first + 1]}, {time_s[first] - time_s[0]:g} s from the start): samples "
-                 f"kept in file order, repeated times spread evenly up to the next time")
+                 f"kept in file order, each repeated time given to the middle of its run and "
+                 f"the samples around it spaced evenly")
     return new
 
 
-def _spread_repeats(t: np.ndarray, step: float) -> np.ndarray:
-    new_group = np.r_[True, np.diff(t) != 0]
-    starts = np.flatnonzero(new_group)
+def _spread_repeats(t: np.ndarray) -> np.ndarray:
+    """Each run of equal times is placed around its own time: the time belongs to the
+    middle of the run (a rounded clock), and the samples between run middles are
+    spaced evenly. Samples away from repeats keep their times."""
+    new_run = np.r_[True, np.diff(t) != 0]
+    starts = np.flatnonzero(new_run)
     sizes = np.diff(np.r_[starts, len(t)])
-    group = np.cumsum(new_group) - 1
-    position = np.arange(len(t)) - starts[group]
-    # the last group has no next time: continue at the typical step
-    following = np.r_[t[starts[1:]], t[starts[-1]] + step * sizes[-1]]
-    width = (following - t[starts]) / sizes
-    return t[starts][group] + position * width[group]
+    middles = starts + (sizes - 1) / 2.0
+    values = t[starts]
+    index = np.arange(len(t), dtype=float)
+    out = np.interp(index, middles, values)
+    # np.interp holds the end values flat: continue the first and last slopes instead
+    for ends, (a, b) in ((index < middles[0], (0, 1)), (index > middles[-1], (-2, -1))):
+        slope = (values[b] - values[a]) / (middles[b] - middles[a])
+        out[ends] = values[b] + (index[ends] - middles[b]) * slope
+    return out
 
 
 # --------------------------------------------------------------------------- channels
