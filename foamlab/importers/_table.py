@@ -208,6 +208,10 @@ def order_times(source: str, time_s: np.ndarray, line_nos, notes: list[str]) -> 
         raise FoamlabError(f"{source}: line {line_nos[1]}: time never advances "
                            f"(all {len(time_s)} samples at {time_s[0]:g} s)")
     new = _spread_repeats(time_s)
+    flat = np.flatnonzero(np.diff(new) <= 0)  # float resolution exhausted (absurd times)
+    if len(flat):
+        raise FoamlabError(f"{source}: line {line_nos[int(flat[0]) + 1]}: time repeats and "
+                           f"cannot be told apart at {time_s[int(flat[0])]:g} s")
     first = int(repeats[0])
     notes.append(f"time repeats at {len(repeats)} of {len(time_s)} samples (first at line "
                  f"{line_nos[first + 1]}, {time_s[first] - time_s[0]:g} s from the start): samples "
