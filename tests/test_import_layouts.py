@@ -245,3 +245,24 @@ def test_mts_blocks_without_titles_or_blank_lines(tmp_path):
     path.write_text("\n".join(parts) + "\n")
     run = load_run(path)
     assert len(run) == 61 and run.segments().n_cycles == 3
+
+
+@pytest.mark.parametrize("delimiter", ["1", "0"])
+def test_mts_comma_and_space_delimited_exports(tmp_path, delimiter):
+    # the format line's delimiter: 1 = comma ("Lotus", strings quoted), 0 = spaces ("plain")
+    t = np.arange(0.0, 30.05, 0.1)
+    x = 5.0 - np.abs(((t / 5.0) % 2.0) - 1.0) * 5.0
+    if delimiter == "1":
+        head = ('"Data Header","","Time:","1","Sec","3/29/2016 1:54:32 PM"\n'
+                '"Running Time","Axial Displacement","Axial Force"\n"Sec","mm","kN"\n')
+        rows = [f"{ti:.2f},{-xi:.4f},{-xi * 0.002:.6f}" for ti, xi in zip(t, x)]
+    else:
+        head = ("Data Header          Time:   1  Sec   3/29/2016 1:54:32 PM\n"
+                "Running Time    Axial Displacement    Axial Force\nSec mm kN\n")
+        rows = [f"  {ti:8.2f}  {-xi:9.4f}  {-xi * 0.002:10.6f}" for ti, xi in zip(t, x)]
+    path = tmp_path / "specimen.dat"
+    path.write_text(f"MTS793|MPT|ENU|1|{delimiter}|.|/|:|1|0|0|A\n\n" + head + "\n".join(rows) + "\n")
+    run = load_run(path)
+    assert run.force_N.max() == pytest.approx(10.0)      # kN read as kN
+    assert run.started_at == "2016-03-29T13:54:32"
+    assert run.segments().n_cycles == 3

@@ -124,6 +124,8 @@ def _read_blocks(text_file: TextFile, lines: list[str], sep: str, decimal: str,
             stop -= 1  # the next block's title
         names = [_PREFIX.sub("", n) for n in split_fields(lines[start], sep)]
         units = split_fields(lines[start + 1], sep)
+        if len(units) < len(names) and len(lines[start + 1].split()) == len(names):
+            units = lines[start + 1].split()  # plain export, units one space apart
         rows = _block_rows(lines, start + 2, stop)
         try:
             blocks.append((start, read_block(source, rows, names, units, sep,
