@@ -26,7 +26,7 @@ from foamlab.importers._vendor import (Layout, find_single_header, has_channels,
 from foamlab.rundata import RunData
 
 FORMAT = "Instron WaveMatrix"
-_TRANSDUCER = re.compile(r"\([^()]*:[^()]*\)")   # "(Linear:Position)"
+_TRANSDUCER = re.compile(r"\([^()]*[:|][^()]*\)")   # "(Linear:Position)", some tools write "|"
 _TOTAL_TIME = {"total time", "gesamtzeit", "temps total", "tiempo total"}
 _CYCLES = {"total cycles", "elapsed cycles", "gesamtzyklen", "verstrichene zyklen",
            "cycles totaux", "ciclos totales"}
