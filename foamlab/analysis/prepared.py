@@ -40,6 +40,9 @@ from foamlab.segmentation import HalfCycle, Segmentation, segment
 #: The decimated fit keeps about this many samples per half-cycle (the curves are
 #: smooth over a half-cycle; the final polish and the statistics use every sample).
 FIT_SAMPLES_PER_HALF_CYCLE = 100
+#: ...and at most about this many rows in all: a long run's search costs no more than a short
+#: one's (the polish on every sample is what grows with the run).
+FIT_ROWS_MAX = 2500
 #: Block radius at most (samples since the last turning point) / this.
 CUSP_DISTANCE_RATIO = 4
 #: A force range smaller than this many times the force noise is "flat".
@@ -277,7 +280,7 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
     dt = np.diff(run.time_s)
     native = float(np.median(dt))
     half_samples = min(len(h) for h in own_halves)
-    q = max(1, half_samples // FIT_SAMPLES_PER_HALF_CYCLE)
+    q = max(1, half_samples // FIT_SAMPLES_PER_HALF_CYCLE, len(observed) // FIT_ROWS_MAX)
     in_contact = observed[contact]
     # decimated rows: the samples nearest to the operators' grid (every q-th sample
     # from the first cycle's start on a regular clock), plus the turning points
