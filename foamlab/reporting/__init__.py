@@ -114,7 +114,7 @@ def write_series_report(series: SpecimenSeries, out: str | Path) -> Path:
     doc.heading("Files")
     doc.table(["specimen", "file", "started", "SHA-256"],
               [[s.label, s.path.name, s.run.started_at or "-", sha256_of(s.path)] for s in series.specimens],
-              [0.14, 0.26, 0.2, 0.4])
+              [0.12, 0.2, 0.14, 0.54], mono=(3,))
     sections.series_table(doc, series)
     with tempfile.TemporaryDirectory(prefix="foamlab-series-") as tmp:
         png = Path(tmp) / "series.png"

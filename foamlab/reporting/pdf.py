@@ -56,6 +56,7 @@ class Document:
                                     textColor=colors.HexColor("#444444")),
             "cell": ParagraphStyle("c", parent=base["BodyText"], fontName=FONT, fontSize=8, leading=9.5),
             "mono": ParagraphStyle("m", parent=base["BodyText"], fontName=MONO, fontSize=8, leading=10),
+            "mono-small": ParagraphStyle("ms", parent=base["BodyText"], fontName=MONO, fontSize=6.5, leading=9),
         }
         self.story: list = []
 
@@ -87,16 +88,18 @@ class Document:
         self._table(rows, [0.24 * self.width, 0.76 * self.width], header=False)
 
     def table(self, header: list[str], rows: list[list], widths: list[float] | None = None,
-              bold_rows: int = 0) -> None:
-        """A table with a header row (repeated on each page); widths are fractions of the page."""
+              bold_rows: int = 0, mono: tuple[int, ...] = ()) -> None:
+        """A table with a header row (repeated on each page); widths are fractions of the page;
+        columns in `mono` in a small fixed font (hashes stay on one line)."""
         from reportlab.platypus import Paragraph  # noqa: PLC0415
 
-        def cell(v, bold=False):
-            return Paragraph(f"<b>{text(v)}</b>" if bold else text(v), self.styles["cell"])
+        def cell(v, bold=False, style="cell"):
+            return Paragraph(f"<b>{text(v)}</b>" if bold else text(v), self.styles[style])
 
         n = len(rows)
         body = [[cell(h, True) for h in header]]
-        body += [[cell(v, i >= n - bold_rows) for v in row] for i, row in enumerate(rows)]
+        body += [[cell(v, i >= n - bold_rows, "mono-small" if j in mono else "cell") for j, v in enumerate(row)]
+                 for i, row in enumerate(rows)]
         cols = [w * self.width for w in widths] if widths else None
         self._table(body, cols, header=True)
 

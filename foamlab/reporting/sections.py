@@ -50,14 +50,17 @@ def run_file(doc: Document, c: ReportContent) -> None:
     ], mono=("SHA-256",))
 
 
+def _mm(v) -> str:
+    return f"{num(v)} mm" if v else "- (not recorded)"
+
+
 def specimen(doc: Document, c: ReportContent) -> None:
     s = c.run.specimen
     doc.heading("Specimen")
     doc.fields([
         ("label", s.label or "-"),
-        ("height", f"{num(s.height_mm)} mm"), ("width", f"{num(s.width_mm)} mm"),
-        ("depth", f"{num(s.depth_mm)} mm"),
-        ("area", f"{num(s.area_mm2)} mm²" if s.area_mm2 else "- (width and depth unknown)"),
+        ("height", _mm(s.height_mm)), ("width", _mm(s.width_mm)), ("depth", _mm(s.depth_mm)),
+        ("area", f"{num(s.area_mm2, '.6g')} mm²" if s.area_mm2 else "- (width and depth unknown)"),
         ("operator", _meta(c.run, "operator") or "-"),
         ("date", c.run.started_at or _meta(c.run, "date") or "-"),
     ])
@@ -117,7 +120,10 @@ def results(doc: Document, c: ReportContent) -> None:
     doc.heading("Results of the method")
     r = c.analysis.method_results
     if r is None or not len(r):
-        doc.paragraph(text(f"not available: {c.analysis.method_error or 'no results'}"))
+        why = c.analysis.method_error or ("the specimen height is not recorded in the file (the results are "
+                                          "fractions of it)" if not c.run.specimen.height_mm else
+                                          "the run reached none of the method's cycles")
+        doc.paragraph(text(f"not available: {why}"))
         return
     rows = [[readable_name(v), num(v.value), unit_text(v.unit), v.note or v.description] for v in r]
     doc.table(["quantity", "value", "unit", "note"], rows, [0.34, 0.14, 0.1, 0.42])
