@@ -70,6 +70,8 @@ def recorded(tmp_path_factory):
     assert cli.main(["run", "--method", str(method), "--speedup", "12", "--out", str(data), "--quiet",
                      "--specimen-label", "R7", "--width", "100", "--depth", "100"]) == 0
     run_file = next(data.glob("*_R7_short.csv"))
+    sidecars = {p: p.stat().st_mtime_ns for p in data.glob("*.json")}
+    assert len(sidecars) == 2                       # <run>.fit.json, <run>.diagnosis.json
 
     def no_diagnosis(*args, **kwargs):
         raise AssertionError("diagnosed again although the stored diagnosis is current")
@@ -77,6 +79,7 @@ def recorded(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(pipeline, "diagnose", no_diagnosis)
         code = cli.main(["report", str(run_file), "--method", str(method)])
+    assert {p: p.stat().st_mtime_ns for p in data.glob("*.json")} == sidecars   # current: left alone
     return run_file, code
 
 
@@ -199,7 +202,9 @@ def test_series_csv_rows_and_statistics_against_hand_numbers(tmp_path, capsys):
     method, paths = _series_files(tmp_path)
     out = tmp_path / "series.csv"
     assert cli.main(["series", *map(str, paths), "--method", str(method), "--out", str(out)]) == 0
-    assert capsys.readouterr().out.strip() == f"series: {out.resolve()}"
+    printed = capsys.readouterr().out.strip().splitlines()
+    assert printed[0].startswith("method tri: 3 specimens") and printed[-1] == f"series: {out.resolve()}"
+    assert any(line.startswith("Loading energy, cycle 1") and line.endswith("13.48") for line in printed)
     lines = out.read_text(encoding="utf-8").splitlines()
     assert lines[0].startswith("# foamlab specimen series: method tri")
     rows = list(csv.reader(lines[1:]))

@@ -9,7 +9,7 @@ HELP = "results of several specimens tested with one method, with mean, sd and c
 
 EXAMPLES = """\
 examples:
-  foamlab series A1.csv A2.csv A3.csv                    # table on the terminal
+  foamlab series A1.csv A2.csv A3.csv                    # the table (one line per result) on the terminal
   foamlab series data/*_iso3386-1.csv --out series.csv   # one row per specimen + n, mean, sd, cv rows
   foamlab series A*.csv --pdf series.pdf                 # the table and the specimens' curves as a PDF
   foamlab series export1.csv export2.csv --method paper-3cycle
@@ -39,12 +39,11 @@ def run(args: argparse.Namespace) -> int:
     from foamlab.reporting import specimen_series, write_series_report  # noqa: PLC0415
 
     series = specimen_series(args.paths, args.method)
+    print(format_table(series))
     if args.out:
         print(f"series: {series.write_csv(Path(args.out)).resolve()}")
     if args.pdf:
         print(f"report: {write_series_report(series, args.pdf).resolve()}")
-    if not args.out and not args.pdf:
-        print(format_table(series))
     for s in series.specimens:
         if s.error:
             print(f"foamlab series: {s.path.name}: no results: {s.error}")
@@ -52,8 +51,22 @@ def run(args: argparse.Namespace) -> int:
 
 
 def format_table(series) -> str:
-    rows = series.rows()
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines = [f"method {series.method.name}: {len(series)} specimens"]
-    lines += ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
+    """One line per result (a method has a dozen; specimens are columns), then the statistics."""
+    from foamlab.reporting.series import unit_text  # noqa: PLC0415
+
+    head = ["result", "unit"] + [s.label for s in series.specimens] + ["n", "mean", "sd", "cv %"]
+    rows = [head]
+    for st in series.statistics:
+        c = st.column
+        rows.append([c.title, unit_text(c.unit)] + [_cell(s.value(c)) for s in series.specimens]
+                    + [str(st.n), _cell(st.mean), _cell(st.sd), _cell(st.cv_percent)])
+    widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
+    lines = [f"method {series.method.name}: {len(series)} specimens ("
+             + ", ".join(f"{s.label}: {s.path.name}" for s in series.specimens) + ")"]
+    lines += ["  ".join(cell.ljust(w) if i < 2 else cell.rjust(w) for i, (cell, w) in enumerate(zip(row, widths)))
+              .rstrip() for row in rows]
     return "\n".join(lines)
+
+
+def _cell(v) -> str:
+    return "-" if v is None else f"{v:.4g}"

@@ -112,10 +112,10 @@ def write_series_report(series: SpecimenSeries, out: str | Path) -> Path:
     doc.fields([("method", f"{m.name}: {m.title}")] + ([("reference", m.reference)] if m.reference else [])
                + [("steps" if i == 0 else "", line) for i, line in enumerate(sections.steps_text(m))])
     doc.heading("Files")
-    doc.table(["specimen", "file", "started", "SHA-256"],
-              [[s.label, s.path.name, s.run.started_at or "-", sha256_of(s.path)] for s in series.specimens],
-              [0.12, 0.2, 0.14, 0.54], mono=(3,))
-    sections.series_table(doc, series)
+    doc.table(["", "specimen", "file", "started", "SHA-256"],
+              [[str(i), s.label, s.path.name, (s.run.started_at or "-")[:16].replace("T", " "), sha256_of(s.path)]
+               for i, s in enumerate(series.specimens, 1)], [0.04, 0.1, 0.2, 0.15, 0.51], mono=(4,))
+    sections.series_table(doc, series, list_files=False)
     with tempfile.TemporaryDirectory(prefix="foamlab-series-") as tmp:
         png = Path(tmp) / "series.png"
         doc.figure(figures.series_curves(series, png), "Force against displacement of every specimen.")

@@ -109,7 +109,8 @@ class Document:
         c = self.colors
         style = [("GRID", (0, 0), (-1, -1), 0.25, c.HexColor("#bbbbbb")),
                  ("VALIGN", (0, 0), (-1, -1), "TOP"),
-                 ("TOPPADDING", (0, 0), (-1, -1), 1.5), ("BOTTOMPADDING", (0, 0), (-1, -1), 1.5)]
+                 ("TOPPADDING", (0, 0), (-1, -1), 1.5), ("BOTTOMPADDING", (0, 0), (-1, -1), 1.5),
+                 ("LEFTPADDING", (0, 0), (-1, -1), 3), ("RIGHTPADDING", (0, 0), (-1, -1), 3)]
         if header:
             style.append(("BACKGROUND", (0, 0), (-1, 0), c.HexColor("#e8e8e8")))
         t = Table(rows, colWidths=widths, repeatRows=1 if header else 0, hAlign="LEFT")

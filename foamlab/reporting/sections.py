@@ -220,12 +220,15 @@ def notes(doc: Document, c: ReportContent) -> None:
             doc.paragraph(text(n), "small")
 
 
-def series_table(doc: Document, series: SpecimenSeries) -> None:
+def series_table(doc: Document, series: SpecimenSeries, list_files: bool = True) -> None:
     """Each specimen's results and the series statistics (mean, sd, cv), one column per specimen
     (results as rows: a method may have a dozen of them)."""
     doc.heading(f"Specimen series ({len(series)} specimens, method {series.method.name})")
-    doc.fields([(f"{i}. {s.label}", f"{s.path.name}" + (f" - {s.error}" if s.error else ""))
-                for i, s in enumerate(series.specimens, 1)])
+    if list_files:
+        doc.fields([(f"{i}. {s.label}", f"{s.path.name}") for i, s in enumerate(series.specimens, 1)])
+    for s in series.specimens:
+        if s.error:
+            doc.paragraph(text(f"{s.label}: no results: {s.error}"), "small")
     header = ["quantity", "unit"] + [str(i) for i in range(1, len(series) + 1)] + ["n", "mean", "sd", "cv %"]
     rows = []
     for st in series.statistics:
@@ -233,7 +236,7 @@ def series_table(doc: Document, series: SpecimenSeries) -> None:
         rows.append([col.title, unit_text(col.unit)] + [num(s.value(col)) for s in series.specimens]
                     + [str(st.n), num(st.mean), num(st.sd, ".3g"), num(st.cv_percent, ".3g")])
     n = len(series)
-    first = 0.24 if n <= 6 else 0.18
+    first = 0.21 if n <= 6 else 0.16
     rest = (1.0 - first - 0.08) / (n + 4)
     doc.table(header, rows, [first, 0.08] + [rest] * (n + 4))
     doc.paragraph(text("sd: sample standard deviation (n - 1); cv: sd / |mean|. Specimens without a value "
