@@ -123,11 +123,11 @@ def test_report_renders_to_an_a4_page_with_its_figures(recorded, tmp_path):
 def test_report_of_an_imported_export_goes_to_out_and_nothing_beside_the_export(tmp_path, capsys):
     before = sorted(REAL.parent.iterdir())
     out = tmp_path / "22L3.pdf"
-    assert cli.main(["report", str(REAL), "--out", str(out), "--no-diagnose"]) == 0
+    assert cli.main(["report", str(REAL), "--out", str(out), "--no-diagnose", "--method", "paper-3cycle"]) == 0
     assert capsys.readouterr().out.strip() == f"report: {out.resolve()}"
     assert sorted(REAL.parent.iterdir()) == before
     text = pdf_text(out)
-    for words in ("22L.3", "Instron Bluehill", sha256(REAL), "damping", "residual", "elastic", "joint",
+    for words in ("22L.3", "Instron Bluehill", sha256(REAL), "paper-3cycle", "damping", "residual", "elastic", "joint",
                   "Parameters the data determine", "not diagnosed", "the specimen height is not recorded"):
         assert words in text, words
 
@@ -140,6 +140,24 @@ def test_report_of_an_export_without_out_goes_to_the_current_folder(tmp_path, mo
     assert capsys.readouterr().out.strip() == f"report: {pdf}"
     text = pdf_text(pdf)
     assert sha256(REAL) in text and "not fitted" in text and "Schedule statistics" in text
+    assert "no test method recorded with the run" in text
+
+
+@pytest.mark.hil
+@pytest.mark.timeout(120)
+@needs_poppler
+def test_report_diagnoses_a_run_without_a_current_diagnosis_and_stores_nothing_with_no_store(recorded, tmp_path):
+    """The run file alone (its sidecars left behind): fitted once, diagnosed with that fit, the
+    diagnosis report's figure reused; --no-store writes nothing beside the run file."""
+    run_file, _ = recorded
+    alone = tmp_path / run_file.name
+    shutil.copy(run_file, alone)
+    out = tmp_path / "r.pdf"
+    assert cli.main(["report", str(alone), "--out", str(out), "--no-store"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([alone.name, out.name])
+    text = pdf_text(out)
+    assert "verdict:" in text and "made now, on the fit above" in text and sha256(alone) in text
+    assert "Where the base model misses" in text or "what its extension adds" in text
 
 
 def test_write_report_takes_the_windows_analysis(tmp_path):

@@ -120,9 +120,14 @@ def results(doc: Document, c: ReportContent) -> None:
     doc.heading("Results of the method")
     r = c.analysis.method_results
     if r is None or not len(r):
-        why = c.analysis.method_error or ("the specimen height is not recorded in the file (the results are "
-                                          "fractions of it)" if not c.run.specimen.height_mm else
-                                          "the run reached none of the method's cycles")
+        if c.analysis.method_error:
+            why = c.analysis.method_error
+        elif c.method is None:
+            why = "no test method recorded with the run (foamlab report --method gives one)"
+        elif not c.run.specimen.height_mm:
+            why = "the specimen height is not recorded in the file (the results are fractions of it)"
+        else:
+            why = "the run reached none of the method's cycles"
         doc.paragraph(text(f"not available: {why}"))
         return
     rows = [[readable_name(v), num(v.value), unit_text(v.unit), v.note or v.description] for v in r]
