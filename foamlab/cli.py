@@ -32,7 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
                 continue  # command not built yet
             raise
         module.register(sub)
-    for subparser in sub.choices.values():
+    for subparser in [parser, *sub.choices.values()]:   # the top parser reports unknown options
         subparser.error = _one_line_error(subparser)
     return parser
 

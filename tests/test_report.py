@@ -172,7 +172,7 @@ def test_write_report_takes_the_windows_analysis(tmp_path):
 
 # --------------------------------------------------------------------------- bad input
 
-@pytest.mark.parametrize("case", ["missing", "folder", "garbage", "not-pdf", "no-folder"])
+@pytest.mark.parametrize("case", ["missing", "folder", "garbage", "not-pdf", "no-folder", "bad-option"])
 def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, case):
     garbage = tmp_path / "garbage.csv"
     garbage.write_bytes(bytes(range(256)) * 8)
@@ -180,7 +180,13 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, case):
             "folder": [str(tmp_path)],
             "garbage": [str(garbage), "--out", str(tmp_path / "g.pdf")],
             "not-pdf": [str(REAL), "--out", str(tmp_path / "r.txt"), "--no-fit"],
-            "no-folder": [str(REAL), "--out", str(tmp_path / "no" / "r.pdf"), "--no-fit"]}[case]
+            "no-folder": [str(REAL), "--out", str(tmp_path / "no" / "r.pdf"), "--no-fit"],
+            "bad-option": [str(REAL), "--pages", "2"]}[case]
+    if case == "bad-option":                        # argparse's own complaint, on one line too
+        with pytest.raises(SystemExit) as stop:
+            cli.main(["report"] + args)
+        assert stop.value.code == 2 and "unrecognized arguments: --pages" in one_error_line(capsys)
+        return
     assert cli.main(["report"] + args) == 2
     assert one_error_line(capsys).startswith("foamlab report: error: ")
     assert not list(tmp_path.glob("*.pdf"))
