@@ -16,6 +16,7 @@ import pytest
 
 from foamlab import cli, pipeline
 from foamlab.reporting import specimen_series, write_report
+from foamlab.reporting.content import schedule_summary
 from foamlab.reporting.series import Column, statistic
 from foamlab.rundata import Specimen
 from foamlab.storage.runfile import write_run_file
@@ -168,6 +169,20 @@ def test_write_report_takes_the_windows_analysis(tmp_path):
     out = write_report(path, tmp_path / "w1.pdf", analysis, fit=False)
     assert out == tmp_path / "w1.pdf" and out.read_bytes().startswith(b"%PDF")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["w1.csv", "w1.pdf"]   # no sidecar without a fit
+
+
+def test_schedule_statistics_from_the_header_else_counted_from_the_time_stamps():
+    t = np.delete(np.arange(160) / 16.0, [40, 41, 90])           # 16 Hz, three deadlines skipped
+    run = pipeline.RunData(t, np.zeros_like(t), np.zeros_like(t), metadata={"sampling_hz": 16.0})
+    s = schedule_summary(run, None)
+    assert (s.samples, s.missed, s.missed_source) == (157, 3, "estimated from the time stamps")
+    assert s.missed_percent == pytest.approx(100 * 3 / 160)
+    jittered = pipeline.RunData(t + np.where(np.arange(157) % 7 == 3, 0.02, 0.0), np.zeros(157), np.zeros(157),
+                                metadata={"sampling_hz": 16.0})
+    assert schedule_summary(jittered, None).missed == 3           # a sample stamped off its deadline is no miss
+    run.metadata["missed"] = 5                                     # what the engine counted, when the file has it
+    assert schedule_summary(run, None).missed == 5
+    assert schedule_summary(run, None).missed_source == "recorded in the run file"
 
 
 # --------------------------------------------------------------------------- bad input

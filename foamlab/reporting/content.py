@@ -40,7 +40,7 @@ class ScheduleSummary:
     duration_s: float
     expected_samples: int | None       # the method's plan for this specimen (None: method unknown)
     missed: int | None
-    missed_source: str                 # "run file header" | "estimated from the time stamps" | ""
+    missed_source: str                 # "recorded in the run file" | "estimated from the time stamps" | ""
     speedup: float | None = None
 
     @property
@@ -105,7 +105,7 @@ def schedule_summary(run: RunData, method: Method | None) -> ScheduleSummary:
     for key in MISSED_KEYS:
         value = _number(run.metadata.get(key))
         if value is not None:
-            missed, source = int(value), "run file header"
+            missed, source = int(value), "recorded in the run file"
             break
     if missed is None and hz and n > 1:
         # deadlines between the first and the last sample, less the samples: a sample stamped a
