@@ -58,6 +58,22 @@ def run(args: argparse.Namespace) -> int:
         raise FoamlabError(f"{path}: cannot read ({exc.strerror or exc})") from None
     out = Path(args.out) if args.out else default_report_path(path, ours)
     written = write_report(path, out, method=args.method, fit=not args.no_fit,
-                           diagnose=not (args.no_fit or args.no_diagnose), store=not args.no_store)
+                           diagnose=not (args.no_fit or args.no_diagnose), store=not args.no_store,
+                           progress=Stages())
     print(f"report: {written.resolve()}")
     return 0
+
+
+class Stages:
+    """Says which slow stage is under way (the fit: ~1 s; a diagnosis: ~10 s), once each."""
+
+    SAY = {"fit": "fitting the model...", "diagnosis": "diagnosing the run (--no-diagnose skips it)..."}
+
+    def __init__(self) -> None:
+        self.said: set[str] = set()
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        top = stage.split(":", 1)[0]
+        if top in self.SAY and top not in self.said:
+            self.said.add(top)
+            print(self.SAY[top], flush=True)

@@ -46,7 +46,8 @@ def _check_out(out: Path) -> Path:
 
 
 def write_report(path: str | Path, out: str | Path, analysis=None, *, method=None, fit: bool = True,
-                 diagnose: bool = True, store: bool = True, series: SpecimenSeries | None = None) -> Path:
+                 diagnose: bool = True, store: bool = True, series: SpecimenSeries | None = None,
+                 progress=None) -> Path:
     """Write the test report of the run in `path` to the PDF `out`; returns `out`.
 
     analysis: the pipeline's Analysis of this run when the caller has one (the window): its
@@ -54,9 +55,11 @@ def write_report(path: str | Path, out: str | Path, analysis=None, *, method=Non
     method: overrides the run's own (a name in configs/methods or a .toml path). fit / diagnose:
     False leaves those sections saying so. store: write new sidecars beside a foamlab run file.
     series: a SpecimenSeries this run belongs to, shown as a table at the end.
+    progress: the pipeline's progress(stage, fraction). A window whose diagnosis is still running
+    passes diagnose=False (else the run is diagnosed here, in the caller's thread).
     """
     out = _check_out(Path(out))
-    content = gather(path, analysis, method=method, fit=fit, diagnose=diagnose, store=store)
+    content = gather(path, analysis, method=method, fit=fit, diagnose=diagnose, store=store, progress=progress)
     if not fit:
         content.analysis.fit_error = content.analysis.fit_error or "not asked for (--no-fit)"
     if fit and not diagnose and content.analysis.diagnosis is None:

@@ -123,6 +123,10 @@ def _number(v) -> float | None:
     return f if math.isfinite(f) else None
 
 
+def _quiet(stage: str, fraction: float) -> None:
+    pass
+
+
 def _is_run_file(path: Path) -> bool:
     """A foamlab run file (sidecars may go beside it); an export opened for a report is not ours."""
     try:
@@ -166,16 +170,21 @@ def current_diagnosis(path: Path, fit_side: Path | None) -> StoredDiagnosis | No
 
 
 def gather(path: str | Path, analysis: pipeline.Analysis | None = None, *, method: Method | str | None = None,
-           fit: bool = True, diagnose: bool = True, store: bool = True) -> ReportContent:
+           fit: bool = True, diagnose: bool = True, store: bool = True,
+           progress: pipeline.Progress | None = None) -> ReportContent:
     """Everything the report shows. `analysis` (the window's) is used as it is and completed;
     `store`: sidecars made now are written beside a foamlab run file and catalogued (as the
-    pipeline does after `foamlab run`); other files are never written beside."""
+    pipeline does after `foamlab run`); other files are never written beside. `progress` is
+    the pipeline's (stage, fraction)."""
     from foamlab.importers import load_run  # noqa: PLC0415
 
+    progress = progress or _quiet
     path = Path(path)
     sha = sha256_of(path)
     if analysis is None:
         analysis = pipeline.Analysis(load_run(path), path)
+        if sha256_of(path) != sha:      # the SHA-256 must be that of the data the report shows
+            raise FoamlabError(f"{path}: the file changed while it was read (a run still being recorded?)")
     elif analysis.path is None:
         analysis.path = path
     run = analysis.run
@@ -191,17 +200,17 @@ def gather(path: str | Path, analysis: pipeline.Analysis | None = None, *, metho
         pipeline.method_stage(analysis, method)
     content = ReportContent(path, run, sha, analysis, method)
     if fit and run.status != "aborted":
-        _fit_and_diagnose(content, diagnose, store)
+        _fit_and_diagnose(content, diagnose, store, progress)
     elif run.status == "aborted" and fit:
         content.notes.append("not fitted: the run was aborted (its protocol is incomplete)")
     content.schedule = schedule_summary(run, method)
     return content
 
 
-def _fit_and_diagnose(c: ReportContent, diagnose: bool, store: bool) -> None:
+def _fit_and_diagnose(c: ReportContent, diagnose: bool, store: bool, progress: pipeline.Progress) -> None:
     a = c.analysis
     ours = _is_run_file(c.path)
-    pipeline.fit_stage(a)
+    pipeline.fit_stage(a, progress)
     if ours and a.fit is not None:
         fit_side = current_fit_sidecar(c.path, a.fit)
         a.fit_path = a.fit_path or fit_side
@@ -210,7 +219,7 @@ def _fit_and_diagnose(c: ReportContent, diagnose: bool, store: bool) -> None:
             if c.stored_diagnosis is not None:
                 a.diagnosis_path = c.stored_diagnosis.path
     if diagnose and c.stored_diagnosis is None:
-        pipeline.diagnose_stage(a)
+        pipeline.diagnose_stage(a, progress)
     if store and ours:
         before = (a.fit_path, a.diagnosis_path)
         pipeline.files_stage(a)
