@@ -63,8 +63,9 @@ def format_table(series) -> str:
     widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
     lines = [f"method {series.method.name}: {len(series)} specimens ("
              + ", ".join(f"{s.label}: {s.path.name}" for s in series.specimens) + ")"]
-    lines += ["  ".join(cell.ljust(w) if i < 2 else cell.rjust(w) for i, (cell, w) in enumerate(zip(row, widths)))
-              .rstrip() for row in rows]
+    for row in rows:
+        cells = [cell.ljust(w) if i < 2 else cell.rjust(w) for i, (cell, w) in enumerate(zip(row, widths, strict=True))]
+        lines.append("  ".join(cells).rstrip())
     return "\n".join(lines)
 
 

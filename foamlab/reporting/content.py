@@ -19,8 +19,6 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from foamlab import FoamlabError, __version__, pipeline
 from foamlab.methods import Method, load_method
 from foamlab.rundata import RunData
