@@ -144,6 +144,7 @@ class Document:
         from reportlab.lib.pagesizes import A4  # noqa: PLC0415
         from reportlab.lib.units import mm  # noqa: PLC0415
         from reportlab.platypus import SimpleDocTemplate  # noqa: PLC0415
+        from reportlab.platypus.doctemplate import LayoutError  # noqa: PLC0415
 
         footer = self.footer
 
@@ -167,4 +168,7 @@ class Document:
         except OSError as exc:
             tmp.unlink(missing_ok=True)
             raise FoamlabError(f"{out}: cannot write the report ({exc.strerror or exc})") from None
+        except LayoutError as exc:        # a block taller than a page: say so, leave no half file
+            tmp.unlink(missing_ok=True)
+            raise FoamlabError(f"{out}: the report could not be laid out ({str(exc).splitlines()[0]})") from None
         return out
