@@ -19,8 +19,9 @@ examples:
   foamlab fit run.csv --orders 2,3,7          # N damping modes, M residual terms per cycle, P elastic order
   foamlab fit run.csv --compare 1,1,7 2,2,7 3,3,7   # AIC/BIC of several orders
 
-The fit is stored beside the run as <run>.fit.json (loadable as a simulator specimen:
-foamlab sim --specimen <run>.fit.json) and indexed in the run catalog; --no-store skips that.
+The fit of a foamlab run file is stored beside it as <run>.fit.json (loadable as a simulator
+specimen: foamlab sim --specimen <run>.fit.json) and indexed in the run catalog; --no-store
+skips that. Nothing is written beside an imported export unless --out DIR names a folder.
 """
 
 
@@ -48,6 +49,9 @@ def register(subparsers) -> None:
                    help="fit each of these orders too and print their AIC/BIC (lower is better)")
     p.add_argument("--no-store", action="store_true",
                    help="do not write <run>.fit.json beside the run or index it in the catalog")
+    p.add_argument("--out", metavar="DIR",
+                   help="keep <run>.fit.json in this folder (for an imported export nothing is written "
+                        "unless --out is given; a foamlab run file keeps its fit beside it)")
     p.set_defaults(func=run)
 
 
@@ -64,9 +68,12 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_store:
         from foamlab.identification.store import store_fit  # noqa: PLC0415
         try:
-            stored = store_fit(result, args.path)
-            notes.append(f"stored: {stored.path}" + (f" (catalog {stored.catalog})" if stored.catalog
-                                                      else f" ({stored.note})"))
+            stored = store_fit(result, args.path, args.out)
+            if stored.path is None:
+                notes.append(f"not stored: {stored.note}")
+            else:
+                notes.append(f"stored: {stored.path}" + (f" (catalog {stored.catalog})" if stored.catalog
+                                                          else f" ({stored.note})"))
         except FoamlabError as exc:       # the fit itself is fine: say so, do not fail
             notes.append(f"not stored: {exc}")
     if args.plot:
