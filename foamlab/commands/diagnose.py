@@ -7,6 +7,7 @@ import json
 import sys
 
 from foamlab import FoamlabError
+from foamlab.commands.progress import terminal_progress
 
 HELP = "find what the model gets wrong on measured data, name the likely cause, measure the gain"
 
@@ -72,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
 
     causes = _causes(args.causes)
     runs = [load_run(p) for p in args.paths]
-    result = diagnose(runs, causes=causes)
+    with terminal_progress("diagnose", quiet=args.json) as report:
+        result = diagnose(runs, causes=causes, progress=report)
     obj = result.to_dict()
     notes: list[str] = []
     if args.report:

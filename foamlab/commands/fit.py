@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from foamlab import FoamlabError
+from foamlab.commands.progress import terminal_progress
 
 HELP = "identify the model's parameters from a run (paper's three steps + joint refinement)"
 
@@ -43,8 +44,10 @@ def register(subparsers) -> None:
     p.add_argument("--full", action="store_true",
                    help="print the whole report (Table-5 statistics, every parameter, checks, all warnings)")
     p.add_argument("--plot", metavar="OUT.png", help="draw measured vs fitted force per cycle, residuals below")
-    p.add_argument("--orders", metavar="N,M,P", default="3,3,7",
-                   help="damping modes N, residual terms per cycle M, elastic order P (default 3,3,7, the paper's)")
+    p.add_argument("--orders", metavar="N,M,P[,C]", default="3,3,7",
+                   help="damping modes N, residual terms per cycle M, elastic order P, and C cycles with "
+                        "residual terms of their own (later ones reuse the last's; default 3,3,7,3); "
+                        "'paper': 3,3,7 with every cycle's own terms (the paper's table, any run length)")
     p.add_argument("--compare", nargs="+", metavar="N,M,P",
                    help="fit each of these orders too and print their AIC/BIC (lower is better)")
     p.add_argument("--no-store", action="store_true",
@@ -63,7 +66,8 @@ def run(args: argparse.Namespace) -> int:
     orders = Orders.parse(args.orders)
     compare = [Orders.parse(o) for o in args.compare or []]
     run_data = load_run(args.path)
-    result = fit_run(run_data, orders)
+    with terminal_progress("fit", quiet=args.json) as report:
+        result = fit_run(run_data, orders, progress=report)
     notes: list[str] = []
     if not args.no_store:
         from foamlab.identification.store import store_fit  # noqa: PLC0415
