@@ -43,8 +43,10 @@ from foamlab.model.operators import (
 ALPHA_FD_STEP = 1e-6
 #: Samples on each side of a corner of x kept as exact nodes of the fractional operator.
 CORNER_SAMPLES = 1
-#: Cached operator outputs kept before the cache is cleared (memory bound).
+#: Cached operator outputs are cleared beyond this many entries or bytes (a long run's
+#: full-resolution columns are ~1 MB each: a count alone let a 20-cycle fit hold ~0.5 GB).
 CACHE_LIMIT = 512
+CACHE_BYTES = 32 * 2 ** 20
 
 
 class _Interp:
@@ -124,7 +126,8 @@ class _Fractional:
         on_grid = grid_t > tk + tol
         j0 = int(np.argmax(on_grid)) if on_grid.any() else len(grid_t)
         # turning points at or after the start that are not grid nodes
-        tp = np.asarray([i for i in turning if t[i] >= tk - tol], dtype=int)
+        # (a node after the grid's end reaches no row: rows lie on the grid's span)
+        tp = np.asarray([i for i in turning if tk - tol <= t[i] <= grid_t[-1] + tol], dtype=int)
         tp_t = t[tp]
         off = np.abs((tp_t - grid_t[0]) / h - np.round((tp_t - grid_t[0]) / h)) * h > tol
         off |= tp_t <= tk + tol            # the start is always its own node
@@ -258,6 +261,7 @@ class ModelBasis:
         xs = self.x[self.obs] / self.x_scale_mm
         self.elastic = np.vander(xs, layout.P + 1, increasing=True)
         self._cache: dict = {}
+        self._cache_bytes = 0
 
     def _residual_parts(self, starts, peaks, grid_t, grid_x, turning) -> list[tuple[int, float, "_Fractional"]]:
         """(layout cycle, sign, part) of each residual memory. Cycles up to the layout's last
@@ -325,9 +329,12 @@ class ModelBasis:
         return out
 
     def _store(self, key, value) -> None:
-        if len(self._cache) >= CACHE_LIMIT:
+        size = sum(v.nbytes for v in value if v is not None)
+        if len(self._cache) >= CACHE_LIMIT or self._cache_bytes + size > CACHE_BYTES:
             self._cache.clear()
+            self._cache_bytes = 0
         self._cache[key] = value
+        self._cache_bytes += size
 
     # -- design matrix -----------------------------------------------------------------
     def _alphas(self, nonlinear: np.ndarray) -> np.ndarray:
