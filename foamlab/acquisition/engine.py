@@ -42,6 +42,7 @@ from foamlab.acquisition.sampling import Sampler
 from foamlab.acquisition.schedule import CpuWakeupLatency, raise_thread_priority
 from foamlab.methods import Method, PlannedStep
 from foamlab.rundata import Specimen
+from foamlab.safety import check_safe_to_tare
 from foamlab.storage.recorder import Recorder, RecordingFailed
 from foamlab.storage.runfile import now_iso
 
@@ -239,6 +240,7 @@ class RunEngine:
                                         f"limits [{lim.travel_upper_mm:g}, {lim.travel_lower_mm:g}] mm")
         command(crosshead.set_travel_limits, lim.travel_upper_mm, lim.travel_lower_mm)
         self._set_state(TARING)
+        command(check_safe_to_tare, self.machine)   # never tare a squeezed specimen (issue 18)
         command(self.machine.load_cell.tare)
 
     def _contact_search(self) -> None:
