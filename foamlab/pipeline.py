@@ -111,7 +111,7 @@ def diagnose_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
         return a
     progress("diagnosis", 0.0)
     try:
-        a.diagnosis = _diagnose(a.run, a.fit)
+        a.diagnosis = _diagnose(a.run, a.fit, lambda stage, f: progress(f"diagnosis: {stage}", f))
         a.diagnosis_error = ""
     except FoamlabError as exc:
         a.diagnosis_error = str(exc)
@@ -122,9 +122,9 @@ def diagnose_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
     return a
 
 
-def _diagnose(run: RunData, fit: FitResult) -> Diagnosis:
+def _diagnose(run: RunData, fit: FitResult, progress: Progress = _quiet) -> Diagnosis:
     # The one call into the diagnosis: it extends this fit instead of fitting the run again.
-    return diagnose([run], fit=fit)
+    return diagnose([run], fit=fit, progress=progress)
 
 
 def files_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:

@@ -88,6 +88,26 @@ def test_paper_protocol_through_foamlab_run(tmp_path, capsys):
         assert [r.path for r in catalog.runs()] == [str(run_file.resolve())]
 
 
+@pytest.mark.timeout(200)
+def test_twenty_cycles_through_foamlab_run(tmp_path, capsys):
+    """A long run through the drivers (configs/methods/cyclic-20.toml on a 20 mm specimen:
+    20 cycles, ~2 900 samples), fitted with the later cycles sharing the third's terms."""
+    out = tmp_path / "data"
+    code = cli.main(["run", "--method", "cyclic-20", "--specimen-height", "20", "--speedup", "20",
+                     "--out", str(out), "--quiet", "--specimen-label", "long", "--no-diagnose"])
+    printed = capsys.readouterr()
+    assert code == 0, printed.err
+    run_file = next(out.glob("*_long_cyclic-20.csv"))
+    method = load_method("cyclic-20")
+    run = read_run_file(run_file)
+    spans = cycle_spans(method, run)
+    assert len(spans) == 20 and all(s.complete for s in spans)
+    assert all(s.peak_mm == pytest.approx(0.6 * 20, abs=0.05) for s in spans)
+    fit = json.loads(run_file.with_name(f"{run_file.stem}.fit.json").read_text())
+    assert fit["orders"]["C"] == 3 and len(fit["model"]["residual"]["r"]) == 3
+    assert fit["rmse"] < 0.05 * run.force_N.max()
+
+
 @pytest.mark.timeout(400)
 @pytest.mark.parametrize("transport", list(FULL_SPEEDUP))
 def test_full_paper_protocol_through_each_transport(tmp_path, transport):

@@ -260,8 +260,7 @@ def _triangle_run(halves: int, flat: bool = False) -> RunData:
 
 
 @pytest.mark.parametrize("halves, flat, message", [
-    (1, False, "single half-cycle"),
-    (2, False, "too few cycles"),
+    (1, False, "no complete cycle"),
     (6, True, "force is flat"),
 ])
 def test_runs_that_cannot_be_identified_say_what_is_missing(halves, flat, message):

@@ -43,8 +43,10 @@ from foamlab.model.operators import (
 ALPHA_FD_STEP = 1e-6
 #: Samples on each side of a corner of x kept as exact nodes of the fractional operator.
 CORNER_SAMPLES = 1
-#: Cached operator outputs kept before the cache is cleared (memory bound).
+#: Cached operator outputs are cleared beyond this many entries or bytes (a long run's
+#: full-resolution columns are ~1 MB each: a count alone let a 20-cycle fit hold ~0.5 GB).
 CACHE_LIMIT = 512
+CACHE_BYTES = 32 * 2 ** 20
 
 
 class _Interp:
@@ -111,16 +113,21 @@ class _Fractional:
     """
 
     def __init__(self, t, x, start: int, peak: int, obs: np.ndarray, grid_t: np.ndarray,
-                 grid_x: np.ndarray, turning: np.ndarray):
+                 grid_x: np.ndarray, turning: np.ndarray, later_starts=(), rows: np.ndarray | None = None):
+        """later_starts: starts of later cycles whose memories share this one's terms: the sum
+        of their D^beta, each from its own start, is one convolution (the slope changes
+        counted once per memory that has begun). rows: observed rows to evaluate (default:
+        those after the peak)."""
         h = grid_t[1] - grid_t[0]
         tol = 1e-6 * h
         tk = float(t[start])
-        self.rows = np.flatnonzero(obs > peak)
+        self.rows = np.flatnonzero(obs > peak) if rows is None else np.asarray(rows, int)
         obs_t = t[obs[self.rows]]
         on_grid = grid_t > tk + tol
         j0 = int(np.argmax(on_grid)) if on_grid.any() else len(grid_t)
         # turning points at or after the start that are not grid nodes
-        tp = np.asarray([i for i in turning if t[i] >= tk - tol], dtype=int)
+        # (a node after the grid's end reaches no row: rows lie on the grid's span)
+        tp = np.asarray([i for i in turning if tk - tol <= t[i] <= grid_t[-1] + tol], dtype=int)
         tp_t = t[tp]
         off = np.abs((tp_t - grid_t[0]) / h - np.round((tp_t - grid_t[0]) / h)) * h > tol
         off |= tp_t <= tk + tol            # the start is always its own node
@@ -136,6 +143,12 @@ class _Fractional:
         if len(slopes):
             ds[0] = slopes[0]
             ds[1:len(slopes)] = np.diff(slopes)
+        if len(later_starts) and len(slopes):
+            # memory k adds its initial slope at its start and every slope change after it
+            at = np.searchsorted(node_t, t[np.asarray(later_starts, int)] - tol)
+            begun = 1 + np.searchsorted(np.sort(at), np.arange(len(node_t)), side="left")
+            ds[1:] *= begun[1:]
+            np.add.at(ds, at[at < len(slopes)], slopes[at[at < len(slopes)]])
         n = len(grid_t)
         self.h, self.n = h, n
         self.d_grid = np.zeros(n)
@@ -244,11 +257,34 @@ class ModelBasis:
         turning = turning[(turning >= 0) & (turning < len(self.t))]
         self.damping_parts = [_Damping(self.t, self.x, s, p, self.obs, step_s)
                               for s, p in zip(starts, peaks)]
-        self.residual_parts = [_Fractional(self.t, self.x, s, p, self.obs, grid_t, grid_x, turning)
-                               for s, p in zip(starts, peaks)]
+        self.residual_parts = self._residual_parts(starts, peaks, grid_t, grid_x, turning)
         xs = self.x[self.obs] / self.x_scale_mm
         self.elastic = np.vander(xs, layout.P + 1, increasing=True)
         self._cache: dict = {}
+        self._cache_bytes = 0
+
+    def _residual_parts(self, starts, peaks, grid_t, grid_x, turning) -> list[tuple[int, float, "_Fractional"]]:
+        """(layout cycle, sign, part) of each residual memory. Cycles up to the layout's last
+        have a part each; the last and every later cycle share its terms, so their memories
+        are one convolution from the last's start (each later one's own start and slope
+        changes counted as they begin) minus, on each later cycle's loading, that cycle's own
+        memory (not yet switched on there): the cost stays linear in the cycles."""
+        last = self.layout.C - 1
+        parts = [(k, 1.0, _Fractional(self.t, self.x, s, p, self.obs, grid_t, grid_x, turning))
+                 for k, (s, p) in enumerate(zip(starts[:last], peaks[:last]))]
+        if len(starts) <= last:
+            return parts
+        later = list(zip(starts[last + 1:], peaks[last + 1:]))
+        parts.append((last, 1.0, _Fractional(self.t, self.x, starts[last], peaks[last], self.obs, grid_t,
+                                             grid_x, turning, later_starts=[s for s, _ in later])))
+        for s, p in later:
+            loading = np.flatnonzero((self.obs >= s) & (self.obs <= p))
+            if not len(loading):
+                continue
+            window = grid_t[grid_t <= self.t[p] + (grid_t[1] - grid_t[0])]
+            parts.append((last, -1.0, _Fractional(self.t, self.x, s, p, self.obs, window,
+                                                  grid_x[:len(window)], turning, rows=loading)))
+        return parts
 
     # -- columns -----------------------------------------------------------------
     def damping_column(self, alpha: complex, derivative: bool = False):
@@ -281,22 +317,24 @@ class ModelBasis:
             return hit
         col = np.zeros((self.n_obs, len(betas)))
         dcol = np.zeros((self.n_obs, len(betas))) if derivative else None
-        last = self.layout.C - 1
-        for k, part in enumerate(self.residual_parts):
-            if min(k, last) != c or not len(part.rows):
+        for k, sign, part in self.residual_parts:
+            if k != c or not len(part.rows):
                 continue
             y, dy = part.columns(betas, derivative)
-            col[part.rows] += y
+            col[part.rows] += sign * y
             if derivative:
-                dcol[part.rows] += dy
+                dcol[part.rows] += sign * dy
         out = (col, dcol)
         self._store(key, out)
         return out
 
     def _store(self, key, value) -> None:
-        if len(self._cache) >= CACHE_LIMIT:
+        size = sum(v.nbytes for v in value if v is not None)
+        if len(self._cache) >= CACHE_LIMIT or self._cache_bytes + size > CACHE_BYTES:
             self._cache.clear()
+            self._cache_bytes = 0
         self._cache[key] = value
+        self._cache_bytes += size
 
     # -- design matrix -----------------------------------------------------------------
     def _alphas(self, nonlinear: np.ndarray) -> np.ndarray:

@@ -40,6 +40,9 @@ from foamlab.segmentation import HalfCycle, Segmentation, segment
 #: The decimated fit keeps about this many samples per half-cycle (the curves are
 #: smooth over a half-cycle; the final polish and the statistics use every sample).
 FIT_SAMPLES_PER_HALF_CYCLE = 100
+#: ...and at most about this many rows in all: a long run's search costs no more than a short
+#: one's (the polish on every sample is what grows with the run).
+FIT_ROWS_MAX = 2500
 #: Block radius at most (samples since the last turning point) / this.
 CUSP_DISTANCE_RATIO = 4
 #: A force range smaller than this many times the force noise is "flat".
@@ -252,13 +255,10 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
     seg = segment(run)
     cycles = seg.cycles
     halves = seg.half_cycles
-    if len(halves) == 1:
-        raise FoamlabError(f"run has a single half-cycle ({halves[0].direction}); identification "
-                           "needs at least two cycles (loading, unloading, second loading)")
-    if len(cycles) < 2 or cycles[0].unloading is None:
+    if not cycles or cycles[0].unloading is None:
         have = ", ".join(h.label for h in halves) or "none"
-        raise FoamlabError(f"too few cycles: identification needs at least two (the paper's Eq. 15 "
-                           f"subtracts the first unloading from the second loading); found {have}")
+        raise FoamlabError(f"no complete cycle: identification needs at least one loading and its "
+                           f"unloading; found {have}")
     minima, maxima, dwell_starts = _turning_points(run.displacement_mm, seg)
     labels = labels_from_extrema(n, minima, maxima)
     # (first, last, is_maximum) at each turning point, in the order _turning_points found them
@@ -280,7 +280,7 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
     dt = np.diff(run.time_s)
     native = float(np.median(dt))
     half_samples = min(len(h) for h in own_halves)
-    q = max(1, half_samples // FIT_SAMPLES_PER_HALF_CYCLE)
+    q = max(1, half_samples // FIT_SAMPLES_PER_HALF_CYCLE, len(observed) // FIT_ROWS_MAX)
     in_contact = observed[contact]
     # decimated rows: the samples nearest to the operators' grid (every q-th sample
     # from the first cycle's start on a regular clock), plus the turning points

@@ -93,7 +93,7 @@ def loading_time_s(series: list[Series]) -> float:
 def base_bounds(series: list[Series], params: ModelParameters) -> tuple[np.ndarray, np.ndarray]:
     """Identification's bounds of alpha and beta (from the loading time), widened to hold params."""
     lay = params.layout
-    lo, hi = nonlinear_bounds(Orders(N=lay.N, M=lay.M, P=lay.P), lay.C, loading_time_s(series))
+    lo, hi = nonlinear_bounds(Orders(N=lay.N, M=lay.M, P=lay.P, C=lay.C), lay.C, loading_time_s(series))
     phi = lay.from_flat(params.to_vector())[1]
     return np.minimum(lo, phi), np.maximum(hi, phi)
 

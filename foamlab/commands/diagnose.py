@@ -7,6 +7,7 @@ import json
 import sys
 
 from foamlab import FoamlabError
+from foamlab.commands.progress import terminal_progress
 
 HELP = "find what the model gets wrong on measured data, name the likely cause, measure the gain"
 
@@ -46,6 +47,9 @@ def register(subparsers) -> None:
                    help=f"test only these causes (default: all: {', '.join(CAUSES)})")
     p.add_argument("--no-store", action="store_true",
                    help="do not write <run>.diagnosis.json beside a foamlab run file or index it")
+    p.add_argument("--out", metavar="DIR",
+                   help="keep <run>.diagnosis.json in this folder (for an imported export nothing is "
+                        "written unless --out is given)")
     p.set_defaults(func=run)
 
 
@@ -69,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
 
     causes = _causes(args.causes)
     runs = [load_run(p) for p in args.paths]
-    result = diagnose(runs, causes=causes)
+    with terminal_progress("diagnose", quiet=args.json) as report:
+        result = diagnose(runs, causes=causes, progress=report)
     obj = result.to_dict()
     notes: list[str] = []
     if args.report:
@@ -79,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_store and len(args.paths) == 1:
         from foamlab.diagnosis.store import store_diagnosis  # noqa: PLC0415
         try:
-            stored = store_diagnosis(obj, args.paths[0])
+            stored = store_diagnosis(obj, args.paths[0], args.out)
             if stored.path is not None:
                 notes.append(f"stored: {stored.path}" + (f" (catalog {stored.catalog})" if stored.catalog
                                                           else f" ({stored.note})"))

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from foamlab import FoamlabError
+from foamlab.commands.progress import terminal_progress
 
 HELP = "identify the model's parameters from a run (paper's three steps + joint refinement)"
 
@@ -19,8 +20,9 @@ examples:
   foamlab fit run.csv --orders 2,3,7          # N damping modes, M residual terms per cycle, P elastic order
   foamlab fit run.csv --compare 1,1,7 2,2,7 3,3,7   # AIC/BIC of several orders
 
-The fit is stored beside the run as <run>.fit.json (loadable as a simulator specimen:
-foamlab sim --specimen <run>.fit.json) and indexed in the run catalog; --no-store skips that.
+The fit of a foamlab run file is stored beside it as <run>.fit.json (loadable as a simulator
+specimen: foamlab sim --specimen <run>.fit.json) and indexed in the run catalog; --no-store
+skips that. Nothing is written beside an imported export unless --out DIR names a folder.
 """
 
 
@@ -42,12 +44,17 @@ def register(subparsers) -> None:
     p.add_argument("--full", action="store_true",
                    help="print the whole report (Table-5 statistics, every parameter, checks, all warnings)")
     p.add_argument("--plot", metavar="OUT.png", help="draw measured vs fitted force per cycle, residuals below")
-    p.add_argument("--orders", metavar="N,M,P", default="3,3,7",
-                   help="damping modes N, residual terms per cycle M, elastic order P (default 3,3,7, the paper's)")
+    p.add_argument("--orders", metavar="N,M,P[,C]", default="3,3,7",
+                   help="damping modes N, residual terms per cycle M, elastic order P, and C cycles with "
+                        "residual terms of their own (later ones reuse the last's; default 3,3,7,3); "
+                        "'paper': 3,3,7 with every cycle's own terms (the paper's table, any run length)")
     p.add_argument("--compare", nargs="+", metavar="N,M,P",
                    help="fit each of these orders too and print their AIC/BIC (lower is better)")
     p.add_argument("--no-store", action="store_true",
                    help="do not write <run>.fit.json beside the run or index it in the catalog")
+    p.add_argument("--out", metavar="DIR",
+                   help="keep <run>.fit.json in this folder (for an imported export nothing is written "
+                        "unless --out is given; a foamlab run file keeps its fit beside it)")
     p.set_defaults(func=run)
 
 
@@ -59,14 +66,18 @@ def run(args: argparse.Namespace) -> int:
     orders = Orders.parse(args.orders)
     compare = [Orders.parse(o) for o in args.compare or []]
     run_data = load_run(args.path)
-    result = fit_run(run_data, orders)
+    with terminal_progress("fit", quiet=args.json) as report:
+        result = fit_run(run_data, orders, progress=report)
     notes: list[str] = []
     if not args.no_store:
         from foamlab.identification.store import store_fit  # noqa: PLC0415
         try:
-            stored = store_fit(result, args.path)
-            notes.append(f"stored: {stored.path}" + (f" (catalog {stored.catalog})" if stored.catalog
-                                                      else f" ({stored.note})"))
+            stored = store_fit(result, args.path, args.out)
+            if stored.path is None:
+                notes.append(f"not stored: {stored.note}")
+            else:
+                notes.append(f"stored: {stored.path}" + (f" (catalog {stored.catalog})" if stored.catalog
+                                                          else f" ({stored.note})"))
         except FoamlabError as exc:       # the fit itself is fine: say so, do not fail
             notes.append(f"not stored: {exc}")
     if args.plot:

@@ -26,6 +26,7 @@ otherwise (structure, and where it is).
 from __future__ import annotations
 
 import time
+from typing import Callable
 
 from threadpoolctl import threadpool_limits
 
@@ -69,18 +70,23 @@ JOINT_CANDIDATES = 2
 FULL_CANDIDATES = 2
 
 
-def diagnose_prepared(runs: list[PreparedRun], base: Fit, causes: list[str] | None = None) -> Diagnosis:
+def diagnose_prepared(runs: list[PreparedRun], base: Fit, causes: list[str] | None = None,
+                      progress: Callable[[str, float], None] | None = None) -> Diagnosis:
     """Diagnose prepared runs (the first the reference) from a base model fitted on all of them
-    (identification's core fit for one run, analysis.solve.polish for several)."""
+    (identification's core fit for one run, analysis.solve.polish for several). progress:
+    called with (stage, fraction 0..1)."""
     with threadpool_limits(1, user_api="blas"):    # small dense solves: threads only contend
-        return Procedure(runs, base, causes).run()
+        return Procedure(runs, base, causes, progress).run()
 
 
 class Procedure:
     """One diagnosis: the runs, the model found so far, and what each round decided."""
 
-    def __init__(self, runs: list[PreparedRun], base: Fit, causes: list[str] | None):
+    def __init__(self, runs: list[PreparedRun], base: Fit, causes: list[str] | None,
+                 progress: Callable[[str, float], None] | None = None):
         self.started = time.perf_counter()
+        self.report = progress or (lambda stage, fraction: None)
+        self.round_no = 0
         self.ref, self.series = runs[0], [r.series for r in runs]
         self.sigma = series_noise_sigma([s.y for s in self.series])
         self.k = decimation(self.series)
@@ -106,6 +112,13 @@ class Procedure:
     def _coarse(self, fit: Fit) -> Fit:
         return at_full_resolution(fit, self.coarse) if self.k > 1 else fit
 
+    def _progress(self, stage: str, within_round: float) -> None:
+        """Rounds after the first are shorter (fewer causes left): the first gets most of the bar."""
+        done = 0.0 if self.round_no <= 1 else 0.7 + 0.3 * (1 - 0.5 ** (self.round_no - 1))
+        width = 0.7 if self.round_no <= 1 else 0.3 * 0.5 ** (self.round_no - 1)
+        prefix = f"round {self.round_no}: " if self.round_no > 1 else ""
+        self.report(prefix + stage, done + width * within_round)
+
     def _done(self) -> bool:
         """Nothing left to explain: the extended model leaves (nearly) white noise."""
         c = self.current
@@ -117,6 +130,7 @@ class Procedure:
         for _ in range(MAX_FINDINGS):
             if not self.remaining or self._done():
                 break
+            self.round_no += 1
             cands, current_coarse = self.round()
             self.tested.append(cands)
             chosen = self.decide(cands, current_coarse)
@@ -150,8 +164,12 @@ class Procedure:
         """Stages 1-3: every cause probed on the decimated runs, the best fitted jointly,
         compared, and the best and every strong one carried to every sample."""
         accepted = [c.cause for c in self.findings]
-        probes = sorted((probe(self.ref, self.coarse, current_coarse, accepted + [cause])
-                         for cause in self.remaining), key=lambda f: f.rss)
+        probes = []
+        for i, cause in enumerate(self.remaining):
+            self._progress(f"testing {cause.name} ({i + 1} of {len(self.remaining)})", i / len(self.remaining))
+            probes.append(probe(self.ref, self.coarse, current_coarse, accepted + [cause]))
+        probes.sort(key=lambda f: f.rss)
+        self._progress("fitting the strongest candidates jointly", 0.8)
         fits = [fit_joint(self.coarse, f, current_coarse) if i < JOINT_CANDIDATES else f
                 for i, f in enumerate(probes)]
         coarse_cands = [Candidate(f.causes[-1], f, current_coarse) for f in fits]
@@ -236,6 +254,7 @@ class Procedure:
             if c.reason:
                 continue
             checked += 1
+            self._progress(f"held-out check of {c.name}", 0.95)
             c.reason = rule_heldout(c, self.current, current_coarse)
             if c.reason:
                 continue

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Callable
+
 from foamlab import FoamlabError
 from foamlab.analysis.prepared import prepare
 from foamlab.analysis.solve import polish
@@ -10,20 +12,26 @@ from foamlab.diagnosis.result import Diagnosis
 from foamlab.identification import FitResult, fit_run
 from foamlab.rundata import RunData
 
+Progress = Callable[[str, float], None]
+#: Share of the progress a diagnosis that fits its run gives the fit.
+FIT_SHARE = 0.15
+
 
 def diagnose(runs: list[RunData], fit: FitResult | None = None,
-             causes: list[str] | None = None) -> Diagnosis:
+             causes: list[str] | None = None, progress: Progress | None = None) -> Diagnosis:
     """Diagnose one run, or several runs of the same specimen (e.g. at other speeds).
 
     fit: identification's fit of the first run (the reference speed), as the run's own
     pipeline made it; identified here when not given. Its core fit is the base model of
     one run; with several runs the base is polished on all of them from its parameters.
+    progress: called with (stage, fraction 0..1) as the work advances.
     """
+    report = progress or (lambda stage, fraction: None)
     if not runs:
         raise FoamlabError("no run to diagnose")
     names = _names(runs)
     if fit is None:
-        fit = fit_run(runs[0])
+        fit = fit_run(runs[0], progress=lambda stage, f: report(f"fit: {stage}", FIT_SHARE * f))
     if fit.prepared is None:
         raise FoamlabError("the fit given carries no prepared run: fit it with foamlab.identification.fit_run")
     fit.prepared.series.name = names[0]
@@ -32,7 +40,9 @@ def diagnose(runs: list[RunData], fit: FitResult | None = None,
         base = fit.core_fit
     else:
         base = polish([p.series for p in prepared], fit.params)
-    d = diagnose_prepared(prepared, base, causes)
+    start = FIT_SHARE if progress else 0.0
+    d = diagnose_prepared(prepared, base, causes,
+                          progress=lambda stage, f: report(stage, start + (1.0 - start) * f))
     d.notes += [f"{name}: {p.off_schedule} samples taken off the sampling schedule left out "
                 "(their instants are unsure)" for name, p in zip(names, prepared) if p.off_schedule]
     return d

@@ -19,13 +19,7 @@ from threadpoolctl import threadpool_limits
 from foamlab.analysis.noise import WHITE_P, whiteness
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
 from foamlab.analysis.solve import Fit, polish
-from foamlab.identification.joint import (
-    MIN_CENSORED,
-    JointFit,
-    alternative_starts,
-    evaluable,
-    joint_fit,
-)
+from foamlab.identification.joint import MIN_CENSORED, JointFit, JointSearch, evaluable
 from foamlab.identification.paper import paper_steps
 from foamlab.identification.result import FitResult
 from foamlab.identification.statistics import (
@@ -106,13 +100,14 @@ def _fit_prepared(fd: PreparedRun, orders, progress: Progress | None) -> FitResu
         report("the paper's three steps", 0.1)
         paper = paper_steps(fd, orders)
         report("joint refinement", 0.3)
-        jf = joint_fit(fd, orders, paper.start, report)
+        search = JointSearch(fd, orders, paper.start, report)
+        jf = search.fit()
         report("polish on every sample", 0.8)
         base = polish([fd.series], jf.params)
         if not _at_the_noise(base, fd):
             # the data call for another start: the search's next best optimum, polished alike
             report("polish from a second start", 0.85)
-            for params in alternative_starts(fd, orders, paper.start, count=EXTRA_STARTS):
+            for params in search.more(EXTRA_STARTS):
                 other = polish([fd.series], params)
                 if other.rss < base.rss:
                     base = other

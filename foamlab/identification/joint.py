@@ -209,7 +209,7 @@ def _globalise(problem: SeparableProblem, fit, slots, lower, upper, ftol: float,
 
 
 def _layout(fd: PreparedRun, orders: Orders) -> Layout:
-    return Layout(P=orders.P, N=orders.N, M=orders.M, C=fd.n_residual_cycles)
+    return Layout(P=orders.P, N=orders.N, M=orders.M, C=orders.residual_cycles(fd.n_residual_cycles))
 
 
 def _ranked_searches(fd: PreparedRun, orders: Orders, start: ModelParameters | None,
@@ -258,31 +258,38 @@ def search_start(fd: PreparedRun, orders: Orders, start: ModelParameters | None 
     return _template(fd, lay).with_vector(lay.to_flat(fit.linear, fit.nonlinear))
 
 
-def alternative_starts(fd: PreparedRun, orders: Orders, start: ModelParameters | None, count: int = 1):
-    """The search's next best optima after the first (the one joint_fit continued), as
-    parameters: starts for another polish when the first leaves structure."""
-    lay = _layout(fd, orders)
-    for rank, (fit, *_) in enumerate(_ranked_searches(fd, orders, start, None)):
-        if rank > count:
-            return
-        if rank:
-            yield _template(fd, lay).with_vector(lay.to_flat(fit.linear, fit.nonlinear))
+class JointSearch:
+    """The global search, ranked by start, continued as far as it is asked: ``fit()`` polishes
+    the best evaluable optimum (identification's answer), ``more(count)`` yields the next
+    optima as parameters (other starts for the core's polish when the first leaves
+    structure) without searching again."""
+
+    def __init__(self, fd: PreparedRun, orders: Orders, start: ModelParameters | None,
+                 progress: Callable[[str, float], None] | None = None):
+        self.fd, self.lay, self.progress = fd, _layout(fd, orders), progress
+        self._ranked = _ranked_searches(fd, orders, start, progress)
+
+    def fit(self) -> JointFit:
+        # the best start is continued; should its optimum be one the model cannot evaluate
+        # (see evaluable), the next best start is, and so on
+        first = None
+        for fit, fixed, names, lower, upper, nfev in self._ranked:
+            if self.progress:
+                self.progress("joint fit: full-resolution polish", 0.8)
+            jf = _polish(self.fd, self.lay, fit.linear, fit.nonlinear, fixed, lower, upper, nfev, names)
+            first = first or jf
+            if evaluable(self.fd, jf):
+                return jf
+        return first
+
+    def more(self, count: int = 1):
+        for _, (fit, *_) in zip(range(count), self._ranked):
+            yield _template(self.fd, self.lay).with_vector(self.lay.to_flat(fit.linear, fit.nonlinear))
 
 
 def joint_fit(fd: PreparedRun, orders: Orders, start: ModelParameters | None,
               progress: Callable[[str, float], None] | None = None) -> JointFit:
-    lay = _layout(fd, orders)
-    # the best start is continued; should its optimum be one the model cannot evaluate
-    # (see evaluable), the next best start is, and so on
-    first = None
-    for fit, fixed, names, lower, upper, nfev in _ranked_searches(fd, orders, start, progress):
-        if progress:
-            progress("joint fit: full-resolution polish", 0.8)
-        jf = _polish(fd, lay, fit.linear, fit.nonlinear, fixed, lower, upper, nfev, names)
-        first = first or jf
-        if evaluable(fd, jf):
-            return jf
-    return first
+    return JointSearch(fd, orders, start, progress).fit()
 
 
 def evaluable(fd: PreparedRun, jf: "JointFit", rows: np.ndarray | None = None) -> bool:

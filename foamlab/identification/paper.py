@@ -186,8 +186,14 @@ def _rate(fd: PreparedRun, half: HalfCycle) -> float:
 def paper_steps(fd: PreparedRun, orders: Orders) -> PaperResult:
     """The three steps on the run's half-cycles; start values for the joint fit."""
     cycles = fd.seg.cycles
-    C = fd.n_residual_cycles
+    C = orders.residual_cycles(fd.n_residual_cycles)
     warnings: list[str] = []
+    if len(cycles) < 2:
+        # Eq. 15 (damping) and Eq. 16 (the first residual) subtract the first unloading and
+        # loading from the second loading: a single cycle has no difference to take
+        warnings.append("the paper's three steps skipped: they take differences with a second cycle "
+                        "(Eqs. 15-16); a single cycle is fitted by the joint search alone")
+        return PaperResult(None, {}, warnings)
     used: dict[str, HalfCycle] = {"L1": cycles[0].loading, "U1": cycles[0].unloading,
                                   "L2": cycles[1].loading}
     for c in range(2, C + 1):

@@ -151,7 +151,7 @@ class FitResult:
         corr = [[_num(c) for c in row] for row in self.correlation]
         out.update({
             "model": self.params.to_dict(),
-            "orders": {"N": self.orders.N, "M": self.orders.M, "P": self.orders.P},
+            "orders": {"N": self.orders.N, "M": self.orders.M, "P": self.orders.P, "C": self.orders.C},
             "stderr_autocorrelation_corrected": {n: _num(s) for n, s in zip(self.names, self.stderr_autocorr)},
             "autocorrelation_time": _num(self.autocorrelation_time),
             "correlation": {"names": self.names, "matrix": corr},

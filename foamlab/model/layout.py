@@ -20,33 +20,54 @@ ALPHA_LO, ALPHA_HI = 0.1, 100.0
 BETA_LO, BETA_HI = -3.0, 0.99
 
 
+#: Cycles with residual terms of their own by default (the paper's Table 3 has three
+#: columns); later cycles reuse the last one's terms, so a long run costs no more parameters.
+OWN_RESIDUAL_CYCLES = 3
+
+
 @dataclass(frozen=True)
 class Orders:
-    """Model orders: N damping modes, M residual terms per cycle, elastic polynomial order P."""
+    """Model orders: N damping modes, M residual terms per cycle, elastic polynomial order P,
+    and C, the cycles with residual terms of their own (later cycles reuse the last one's;
+    None: every cycle its own, the paper's per-cycle table)."""
 
     N: int = 3
     M: int = 3
     P: int = 7
+    C: int | None = OWN_RESIDUAL_CYCLES
 
     def __post_init__(self) -> None:
         if self.N < 0 or self.M < 0 or self.P < 1:
             raise FoamlabError(f"orders N={self.N}, M={self.M}, P={self.P}: need N >= 0, M >= 0, P >= 1")
+        if self.C is not None and self.C < 1:
+            raise FoamlabError(f"orders C={self.C}: at least one cycle has residual terms of its own")
         if self.N > 6 or self.M > 6 or self.P > 12:
             raise FoamlabError(f"orders N={self.N}, M={self.M}, P={self.P}: at most N=6, M=6, P=12 "
                                "(higher orders are not identifiable from one run)")
 
     @classmethod
     def parse(cls, text: str) -> "Orders":
-        """'N,M,P', e.g. '3,3,7' (the paper's orders)."""
+        """'N,M,P' (e.g. '3,3,7'), 'N,M,P,C' (C cycles with terms of their own) or 'paper'
+        (3,3,7 with every cycle's own terms, the paper's Table 3 for any number of cycles)."""
+        if str(text).strip().lower() == "paper":
+            return cls(3, 3, 7, None)
         parts = [p.strip() for p in str(text).split(",")]
         try:
-            n, m, p = (int(v) for v in parts)
+            values = [int(v) for v in parts]
         except ValueError:
-            raise FoamlabError(f"orders {text!r}: expected three integers N,M,P, e.g. 3,3,7") from None
-        return cls(n, m, p)
+            values = []
+        if len(values) not in (3, 4):
+            raise FoamlabError(f"orders {text!r}: expected N,M,P or N,M,P,C (integers, e.g. 3,3,7) "
+                               "or 'paper'")
+        return cls(*values)
+
+    def residual_cycles(self, cycles: int) -> int:
+        """Cycles with residual terms of their own in a run with this many unloadings."""
+        return cycles if self.C is None else max(1, min(self.C, cycles))
 
     def __str__(self) -> str:
-        return f"N={self.N}, M={self.M}, P={self.P}"
+        own = "every cycle" if self.C is None else f"C={self.C}"
+        return f"N={self.N}, M={self.M}, P={self.P}, {own}"
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from foamlab import FoamlabError
+from foamlab.runformat import is_run_file
 from foamlab.rundata import RunData
 
 CATALOG_NAME = "catalog.sqlite"
@@ -90,6 +91,34 @@ def sidecar_path(run_path: str | Path, kind: str) -> Path:
         raise ValueError(f"sidecar kind must be one of {SIDECAR_KINDS}, not {kind!r}")
     p = Path(run_path)
     return p.with_name(f"{p.stem}.{kind}.json")
+
+
+@dataclass(frozen=True)
+class SidecarTarget:
+    """Where an analysis of a run is kept: beside a foamlab run file (and catalogued), in the
+    folder the user named, or nowhere - never beside someone else's export unasked."""
+
+    path: Path | None
+    ours: bool                    # the run is a foamlab run file (catalogued)
+    note: str = ""
+
+
+def sidecar_target(run_path: str | Path, kind: str, out_dir: str | Path | None = None) -> SidecarTarget:
+    run_path = Path(run_path)
+    try:
+        with open(run_path, encoding="utf-8-sig", errors="replace") as fh:
+            ours = is_run_file(fh.readline())
+    except OSError:
+        ours = False
+    if out_dir is not None:
+        out = Path(out_dir)
+        if not out.is_dir():
+            raise FoamlabError(f"--out {out}: not a folder")
+        return SidecarTarget(out / sidecar_path(run_path, kind).name, ours)
+    if ours:
+        return SidecarTarget(sidecar_path(run_path, kind), True)
+    return SidecarTarget(None, False, f"not a foamlab run file: nothing written beside it "
+                                      f"(--out DIR keeps the {kind})")
 
 
 @dataclass
