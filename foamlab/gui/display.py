@@ -21,6 +21,7 @@ from foamlab.gui.plots import LOADING, LivePlots
 from foamlab.gui.report import Report
 from foamlab.gui.results import ResultsPanel
 from foamlab.gui.status import end_message, missed_flag
+from foamlab.gui.units import UnitsChoice
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +62,9 @@ class RunDisplay(QtWidgets.QWidget):
         self.shown_run = None                  # RunData on display (finished run or opened file)
         self.shown_analysis: pipeline.Analysis | None = None   # its pipeline results so far
         self.plots = LivePlots()
+        self.units_choice = UnitsChoice()
+        self.units_choice.changed.connect(self.plots.set_units)
+        self._run_on_display = False           # live, ended or opened: its specimen sets the axes
         self.progress = QtWidgets.QProgressBar()
         self.progress.setObjectName("run_progress")
         self.progress.setRange(0, 1000)
@@ -73,6 +77,11 @@ class RunDisplay(QtWidgets.QWidget):
         top = QtWidgets.QWidget()
         top_layout = QtWidgets.QVBoxLayout(top)
         top_layout.setContentsMargins(0, 0, 0, 0)
+        axes_row = QtWidgets.QHBoxLayout()
+        axes_row.addWidget(QtWidgets.QLabel("Axes:"))
+        axes_row.addWidget(self.units_choice)
+        axes_row.addStretch(1)
+        top_layout.addLayout(axes_row)
         top_layout.addWidget(self.plots, 1)
         top_layout.addWidget(self.progress)
         top_layout.addWidget(self.run_status)
@@ -87,11 +96,23 @@ class RunDisplay(QtWidgets.QWidget):
     def _say(self, text: str, error: bool = False) -> None:
         self.message.emit(text, error)
 
+    # -- the axes ------------------------------------------------------------------------
+    def preview_specimen(self, specimen) -> None:
+        """The specimen entered, before any run is shown: stress–strain can be chosen for the
+        first run. Once a run is shown its own specimen decides (it is not what is typed next)."""
+        if not self._run_on_display:
+            self.units_choice.set_specimen(specimen)
+
+    def _show_specimen(self, specimen) -> None:
+        self._run_on_display = True
+        self.units_choice.set_specimen(specimen)
+
     # -- a run as it goes ---------------------------------------------------------------
-    def begin_run(self, title: str, n_cycles: int, expected_samples: int) -> None:
+    def begin_run(self, title: str, n_cycles: int, expected_samples: int, specimen=None) -> None:
         self.generation += 1                   # results of an earlier file/analysis no longer apply
         self.shown_run = None
         self.shown_analysis = None
+        self._show_specimen(specimen)
         self.plots.clear(expected_samples=expected_samples)
         self.results.clear()
         self.progress.setValue(0)
@@ -160,6 +181,7 @@ class RunDisplay(QtWidgets.QWidget):
     def _show_loaded(self, loaded, generation: int) -> None:
         run = loaded.run
         self.shown_run, self.shown_analysis = run, None
+        self._show_specimen(run.specimen)
         self.plots.show_run(run.time_s, run.displacement_mm, run.force_N, loaded.cycles, loaded.phases)
         self.progress.setValue(0)
         self.progress.setFormat(f"{Path(run.source).name if run.source else 'file'}: {len(run)} samples")

@@ -28,6 +28,7 @@ from foamlab.gui.forms import ERROR_STYLE
 from foamlab.gui.machine_link import Connection, MachineLink, Readout
 from foamlab.gui.plots import LOADING, UNLOADING
 from foamlab.gui.report import headline_names
+from foamlab.rundata import Specimen
 from foamlab.safety import (
     check_run_fits,
     check_safe_to_tare,
@@ -182,6 +183,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.browser.open_requested.connect(self.open_file)
         self.display.message.connect(lambda text, error: self._status(text, error=error))
         self.display.catalog_changed.connect(self.browser.refresh)
+        self.specimen_form.changed.connect(self._preview_specimen)
+        self._preview_specimen()
 
     # ================================================================ state
     @property
@@ -215,6 +218,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.statusBar().setStyleSheet(ERROR_STYLE if error else "")
         self.statusBar().showMessage(text, timeout_ms)
         (log.warning if error else log.info)("%s", text)
+
+    def _preview_specimen(self) -> None:
+        """Before any run is shown, the plots' axes follow the specimen entered (wrong entries: unknown)."""
+        self.display.preview_specimen(Specimen(**self.specimen_form.values()))
 
     # ================================================================ connection
     def toggle_connection(self) -> None:
@@ -359,7 +366,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self._run_method = method
         if position is not None:
             self._run_start_mm = position
-        self.display.begin_run(self._run_title, method.n_cycles, method.expected_samples(specimen.height_mm))
+        self.display.begin_run(self._run_title, method.n_cycles, method.expected_samples(specimen.height_mm),
+                               specimen)
         self._status(f"{self._run_title} started")      # replaces any earlier e-stop or refusal
         self.tabs.setCurrentIndex(0)
         # Queued behind any idle poll still on its way, so the engine gets the machine to itself.
