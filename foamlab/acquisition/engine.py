@@ -37,12 +37,11 @@ from foamlab.acquisition.events import (ABORTED, CONNECTING, CONTACT_SEARCH, END
                                         IDLE, PARK_AFTER, PARKING, RUNNING, STOPPING, TARING, Listeners,
                                         ProgressReporter, RunAborted, RunResult)
 from foamlab.acquisition.safety import (AT_TARGET_MM, STOP_CONFIRM_S, Limits, StallWatch, Stopper,
-                                        check_crosshead_status, fault_name, park)
+                                        check_crosshead_status, check_safe_to_tare, fault_name, park)
 from foamlab.acquisition.sampling import Sampler
 from foamlab.acquisition.schedule import CpuWakeupLatency, raise_thread_priority
 from foamlab.methods import Method, PlannedStep
 from foamlab.rundata import Specimen
-from foamlab.safety import check_safe_to_tare
 from foamlab.storage.recorder import Recorder, RecordingFailed
 from foamlab.storage.runfile import now_iso
 

@@ -19,6 +19,12 @@ from pathlib import Path
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from foamlab import FoamlabError
+from foamlab.acquisition.safety import (
+    check_run_fits,
+    check_safe_to_tare,
+    remember_contact,
+    shift_contact,
+)
 from foamlab.gui.background import BackgroundQueue
 from foamlab.gui.bridge import EngineBridge
 from foamlab.gui.controls import ControlPanel
@@ -29,12 +35,6 @@ from foamlab.gui.machine_link import Connection, MachineLink, Readout
 from foamlab.gui.plots import LOADING, UNLOADING
 from foamlab.gui.report import headline_names
 from foamlab.rundata import Specimen
-from foamlab.safety import (
-    check_run_fits,
-    check_safe_to_tare,
-    remember_contact,
-    shift_contact,
-)
 
 log = logging.getLogger(__name__)
 
@@ -310,7 +310,7 @@ class MainWindow(QtWidgets.QMainWindow):
                              lambda msg: self._status(f"reset e-stop failed: {msg}", error=True))
 
     def _tare(self, what: str) -> None:
-        """Tare or zero the load cell, refused in words while it carries a load (foamlab.safety)."""
+        """Tare or zero the load cell, refused in words while it carries a load (foamlab.acquisition.safety)."""
         conn = self.link.connection
         if conn is None:
             return
