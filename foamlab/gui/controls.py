@@ -186,6 +186,17 @@ class ControlPanel(QtWidgets.QWidget):
         except (FoamlabError, ImportError) as exc:
             self.method_info.setText(f"<span style='color:#B00020'>{exc}</span>")
 
+    def show_run_inputs(self, run) -> None:
+        """The opened run's method and specimen (what it was run with; a RunData)."""
+        spec = run.specimen
+        self.specimen_form.set_values(spec.label or "", spec.height_mm, spec.width_mm, spec.depth_mm)
+        index = self.method_combo.findText(run.method) if run.method else -1
+        if index >= 0:
+            self.method_combo.setCurrentIndex(index)
+        else:
+            self.method_info.setText(f"The opened run's method, {run.method!r}, is not installed here" if run.method
+                                     else "The opened run records no method (imported data)")
+
     def set_state(self, connected: bool, running: bool, closing: bool) -> None:
         """Enable what may be used now. The e-stop stays enabled whenever connected."""
         connecting = self.connect_button.text() == "Connecting…"

@@ -6,7 +6,8 @@ it holds no test logic of its own.
 Threads: the GUI thread only draws. Machine I/O runs on the MachineLink's thread
 (idle polling, jog, zero/tare, starting a run), e-stops on a thread of their own
 (never queued behind anything), the run on the engine's worker, fits, diagnoses and
-file loading on the Test tab's analysis thread (foamlab.gui.display). Results come
+file loading on the Test tab's analysis thread (foamlab.gui.display); the idle machine's
+commands (jog, return to start, zero, tare) are foamlab.gui.idle's. Results come
 back as queued Qt signals. No dialog of the window is modal: the e-stop (button and
 Esc) is at hand in every state (foamlab.gui.dialogs).
 """
@@ -19,18 +20,14 @@ from pathlib import Path
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from foamlab import FoamlabError
-from foamlab.acquisition.safety import (
-    check_run_fits,
-    check_safe_to_tare,
-    remember_contact,
-    shift_contact,
-)
+from foamlab.acquisition.safety import check_run_fits, remember_contact
 from foamlab.gui.background import BackgroundQueue
 from foamlab.gui.bridge import EngineBridge
 from foamlab.gui.controls import ControlPanel
 from foamlab.gui.dialogs import DialogSlot, EscapeStops, ask, choose_file
 from foamlab.gui.display import RunDisplay
 from foamlab.gui.forms import ERROR_STYLE
+from foamlab.gui.idle import IdleCommands
 from foamlab.gui.machine_link import Connection, MachineLink, Readout
 from foamlab.gui.plots import LOADING, UNLOADING
 from foamlab.gui.report import headline_names
@@ -50,22 +47,6 @@ STATE_TEXT = {
     "aborted": "aborted",
 }
 PHASE_OF_ACTION = {"compress": LOADING, "return": UNLOADING, "dwell": "dwell"}
-
-
-def _zero_position(machine) -> None:
-    """Make the present position the machine's zero; the remembered contact point moves with it."""
-    position = machine.crosshead.read_position()
-    machine.crosshead.set_zero()
-    shift_contact(machine, -position)
-
-
-def _tare_if_safe(machine, what: str) -> None:
-    """On the machine thread: tare ("tare") or zero ("zero force") unless the cell is loaded."""
-    check_safe_to_tare(machine, what)
-    if what == "tare":
-        machine.load_cell.tare()
-    else:
-        machine.load_cell.zero()
 
 
 class MainWindow(QtWidgets.QMainWindow):
@@ -91,6 +72,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.estop_queue = BackgroundQueue("foamlab-estop", self)
 
         self._build_ui(auto_diagnose)
+        self.idle = IdleCommands(self.link, self.controls, self._status, lambda: self._run_start_mm)
         self._fill_choices(profile, method)
         self._wire()
         self._update_controls()
@@ -163,15 +145,15 @@ class MainWindow(QtWidgets.QMainWindow):
         self.poll_timer.timeout.connect(self.link.poll)
         self.frame_timer.timeout.connect(self._on_frame)
         self.method_combo.currentIndexChanged.connect(self.controls.show_method)
-        self.jog_up.pressed.connect(lambda: self._jog(-1))
-        self.jog_down.pressed.connect(lambda: self._jog(+1))
-        self.jog_up.released.connect(self._stop_motion)
-        self.jog_down.released.connect(self._stop_motion)
-        self.zero_position_button.clicked.connect(lambda: self.link.call("zero position", _zero_position))
-        self.zero_force_button.clicked.connect(lambda: self._tare("zero force"))
-        self.tare_button.clicked.connect(lambda: self._tare("tare"))
-        self.return_button.clicked.connect(self._return_to_start)
-        self.reset_button.clicked.connect(self._reset_estop)
+        self.jog_up.pressed.connect(lambda: self.idle.jog(-1))
+        self.jog_down.pressed.connect(lambda: self.idle.jog(+1))
+        self.jog_up.released.connect(self.idle.stop_motion)
+        self.jog_down.released.connect(self.idle.stop_motion)
+        self.zero_position_button.clicked.connect(self.idle.zero_position)
+        self.zero_force_button.clicked.connect(lambda: self.idle.tare("zero force"))
+        self.tare_button.clicked.connect(lambda: self.idle.tare("tare"))
+        self.return_button.clicked.connect(self.idle.return_to_start)
+        self.reset_button.clicked.connect(self.idle.reset_estop)
         self.start_button.clicked.connect(self.start_run)
         self.stop_button.clicked.connect(self.stop_run)
         self.estop_button.clicked.connect(self.emergency_stop)
@@ -272,56 +254,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.last_readout = readout
         self.controls.show_readout(readout)
 
-    # ================================================================ idle machine commands
-    def _move_speed(self, what: str) -> float | None:
-        """The jog speed, capped by the speed limit entered; None (and why) if an entry is wrong."""
-        try:
-            problem = self.jog_speed.problem()
-            if problem:
-                raise FoamlabError(problem)
-            speed = self.jog_speed.value()
-            if self.limits_form.profile_limits is not None:   # the speed limit entered applies too
-                speed = min(speed, self.limits_form.values()["max_speed_mm_min"])
-        except FoamlabError as exc:
-            self._status(f"{what} refused: {exc}", error=True)
-            return None
-        return speed
-
-    def _jog(self, direction: int) -> None:
-        speed = self._move_speed("jog")
-        if speed is not None:
-            self.link.call("jog", lambda m: m.crosshead.jog(direction, speed))
-
-    def _stop_motion(self) -> None:
-        self.link.call("stop", lambda m: m.crosshead.stop())
-
-    def _return_to_start(self) -> None:
-        target, speed = self._run_start_mm, self._move_speed("return to start")
-        if speed is None:
-            return
-        self.link.call("return to start", lambda m: m.crosshead.move_to(target, speed))
-        self._status(f"returning to the start position, {target:.2f} mm, at {speed:g} mm/min (Stop or Esc halts)")
-
-    def _reset_estop(self) -> None:
-        conn = self.link.connection
-        if conn is not None:     # the red EMERGENCY STOP line is replaced once the drive is reset
-            self.link.submit(conn.machine.crosshead.reset_fault,
-                             lambda _: self._status("e-stop reset: the crosshead may move again", timeout_ms=10_000),
-                             lambda msg: self._status(f"reset e-stop failed: {msg}", error=True))
-
-    def _tare(self, what: str) -> None:
-        """Tare or zero the load cell, refused in words while it carries a load (foamlab.acquisition.safety)."""
-        conn = self.link.connection
-        if conn is None:
-            return
-
-        def failed(message: str) -> None:
-            self._status(message if message.startswith(f"{what} refused") else f"{what} failed: {message}",
-                         error=True)
-
-        self.link.submit(lambda: _tare_if_safe(conn.machine, what),
-                         lambda _: self._status(f"{what}: done", timeout_ms=5000), failed)
-
     # ================================================================ run
     def start_run(self) -> bool:
         """Start the method on the connected machine. Returns False (and says why) when refused."""
@@ -385,7 +317,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.engine.request_stop("stopped by the operator")
             self._status("stop requested: the crosshead stops, the data are kept")
         else:
-            self._stop_motion()
+            self.idle.stop_motion()
 
     def emergency_stop(self) -> None:
         """Immediate stop: through the engine during a run, else straight to the crosshead."""
@@ -475,19 +407,8 @@ class MainWindow(QtWidgets.QMainWindow):
     def _on_opened(self, run) -> None:
         self.last_result = None
         self.tabs.setCurrentIndex(0)
-        self._show_run_inputs(run)
+        self.controls.show_run_inputs(run)
         self._status(f"opened {run.source}")
-
-    def _show_run_inputs(self, run) -> None:
-        """The left panels show the opened run's method and specimen (what it was run with)."""
-        spec = run.specimen
-        self.specimen_form.set_values(spec.label or "", spec.height_mm, spec.width_mm, spec.depth_mm)
-        index = self.method_combo.findText(run.method) if run.method else -1
-        if index >= 0:
-            self.method_combo.setCurrentIndex(index)
-        else:
-            self.method_info.setText(f"The opened run's method, {run.method!r}, is not installed here" if run.method
-                                     else "The opened run records no method (imported data)")
 
     def export_png(self, path: str | Path | None = None) -> Path | None:
         if path is None:
