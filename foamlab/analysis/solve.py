@@ -13,6 +13,7 @@ diagnosis extends that fit; neither has a fitting loop of its own.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, Iterable
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -174,11 +175,20 @@ def fit_base(series: list[Series], params: ModelParameters) -> Fit:
     return Fit.of([], model, varpro(model, model.start(), max_nfev=BASE_NFEV))
 
 
-def polish(series: list[Series], params: ModelParameters) -> Fit:
+def polish(series: list[Series], params: ModelParameters,
+           other_starts: Callable[[Fit], Iterable[ModelParameters]] | None = None) -> Fit:
     """The base model on every sample of the runs, from ``params``: all of alpha and beta
     searched with the linear parameters, the contact set and the load cell's zero (on the
     decimated series, then polished on every sample). Identification's last step, and the
-    base of a diagnosis of several runs."""
+    base of a diagnosis of several runs.
+
+    other_starts: given the first decimated fit, more starts to try (none when it needs
+    none); the best decimated fit is the one carried to every sample."""
     k = decimation(series)
     coarse = [s.decimated(k) for s in series]
-    return at_full_resolution(fit_base(coarse, params), series, POLISH_NFEV if k > 1 else 0)
+    best = fit_base(coarse, params)
+    for start in (other_starts(best) if other_starts is not None else ()):
+        other = fit_base(coarse, start)
+        if other.rss < best.rss:
+            best = other
+    return at_full_resolution(best, series, POLISH_NFEV if k > 1 else 0)

@@ -103,14 +103,10 @@ def _fit_prepared(fd: PreparedRun, orders, progress: Progress | None) -> FitResu
         search = JointSearch(fd, orders, paper.start, report)
         jf = search.fit()
         report("polish on every sample", 0.8)
-        base = polish([fd.series], jf.params)
-        if not _at_the_noise(base, fd):
-            # the data call for another start: the search's next best optimum, polished alike
-            report("polish from a second start", 0.85)
-            for params in search.more(EXTRA_STARTS):
-                other = polish([fd.series], params)
-                if other.rss < base.rss:
-                    base = other
+        # the data call for another start when the first leaves structure above the noise:
+        # the search's next best optimum, fitted alike (the better carried to every sample)
+        base = polish([fd.series], jf.params,
+                      lambda first: () if _at_the_noise(first, fd) else search.more(EXTRA_STARTS))
         polished = _from_core(fd, jf, base)
         if polished is not None:
             jf = polished
