@@ -13,6 +13,7 @@ import pytest
 from PySide6 import QtCore, QtWidgets
 
 from foamlab.gui.window import MainWindow
+from tests.gui_support import shut_window
 from foamlab.importers import load_run
 
 pytestmark = [pytest.mark.gui, pytest.mark.hil, pytest.mark.timeout(120)]
@@ -34,14 +35,7 @@ def window(qtbot, tmp_path):
     qtbot.addWidget(w)
     w.show()
     yield w
-    # Whatever the test did: end any run (e-stop), close the link and the simulator.
-    if w.engine is not None:
-        w.engine.emergency_stop()
-        w.engine.wait(10.0)
-        w.engine = None
-    w.link.shutdown()
-    w.analysis.shutdown(wait=True)
-    w.estop_queue.shutdown(wait=True)
+    shut_window(w)
 
 
 def connect(qtbot, w: MainWindow):

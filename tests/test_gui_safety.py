@@ -21,6 +21,7 @@ from test_gui import (
 )
 
 from foamlab.gui.window import MainWindow
+from tests.gui_support import shut_window
 
 pytestmark = [pytest.mark.gui, pytest.mark.hil, pytest.mark.timeout(120)]
 
@@ -31,14 +32,7 @@ def win(qtbot, tmp_path):
     qtbot.addWidget(w)
     w.show()
     yield w
-    w.close_dialog()
-    if w.engine is not None:
-        w.engine.emergency_stop()
-        w.engine.wait(10.0)
-        w.engine = None
-    w.link.shutdown()
-    w.analysis.shutdown(wait=True)
-    w.estop_queue.shutdown(wait=True)
+    shut_window(w)
 
 
 def estop_by(qtbot, w: MainWindow, how: str, dialog: QtWidgets.QWidget) -> None:

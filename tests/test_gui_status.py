@@ -24,6 +24,7 @@ from foamlab.acquisition import RunResult
 from foamlab.gui.forms import ERROR_STYLE
 from foamlab.gui.status import WARNING_STYLE
 from foamlab.gui.window import MainWindow
+from tests.gui_support import shut_window
 from foamlab.rundata import RunData, Specimen
 from foamlab.storage.runfile import write_run_file
 
@@ -39,14 +40,7 @@ def win(qtbot, tmp_path):
     qtbot.addWidget(w)
     w.show()
     yield w
-    w.close_dialog()
-    if w.engine is not None:
-        w.engine.emergency_stop()
-        w.engine.wait(10.0)
-        w.engine = None
-    w.link.shutdown()
-    w.analysis.shutdown(wait=True)
-    w.estop_queue.shutdown(wait=True)
+    shut_window(w)
 
 
 def status(w: MainWindow) -> tuple[str, str]:
