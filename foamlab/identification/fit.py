@@ -101,7 +101,7 @@ def _fit_prepared(fd: PreparedRun, orders, progress: Progress | None) -> FitResu
         paper = paper_steps(fd, orders)
         report("joint refinement", 0.3)
         search = JointSearch(fd, orders, paper.start, report)
-        jf = search.best()
+        jf = search.fit()
         report("polish on every sample", 0.8)
         # the data call for another start when the first leaves structure above the noise:
         # the search's next best optimum, fitted alike (the better carried to every sample)
@@ -110,8 +110,8 @@ def _fit_prepared(fd: PreparedRun, orders, progress: Progress | None) -> FitResu
         polished = _from_core(fd, jf, base)
         if polished is not None:
             jf = polished
-        else:    # an optimum the model's own evaluation cannot reproduce: identification's own
-            jf, base = search.fit(), None
+        else:
+            base = None
         report("statistics", 0.9)
         result = _result(fd, orders, paper, jf, started, base)
     report("done", 1.0)
@@ -152,7 +152,7 @@ def _from_core(fd: PreparedRun, jf: JointFit, base: Fit) -> JointFit | None:
     # the rows identification reports on: the cycles' samples the path determines
     rows = np.intersect1d(fd.observed, np.flatnonzero(fd.series.used))
     residual = sol.residuals[0][rows]
-    if jf.residual is not None and not np.mean(residual ** 2) < np.mean(jf.residual ** 2):
+    if not np.mean(residual ** 2) < np.mean(jf.residual ** 2):
         return None
     theta, phi = sol.theta, base.model.split(base.nu)[0].copy()
     L = lay.n_linear

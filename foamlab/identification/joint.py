@@ -16,7 +16,6 @@
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 from typing import Callable
 
@@ -55,8 +54,8 @@ class JointFit:
     fixed_nonlinear: np.ndarray   # bool: held fixed (Im alpha of a mode made real)
     contact_zero_N: float
     zero_fitted: bool
-    jacobian: np.ndarray | None   # full-resolution, at the solution (rows = fd.observed); None: not yet
-    residual: np.ndarray | None   # measured - prediction at fd.observed; None: not yet
+    jacobian: np.ndarray          # full-resolution, at the solution (rows = fd.observed)
+    residual: np.ndarray          # measured - prediction at fd.observed
     n_free: int
     nfev: int
     starts: list[str]
@@ -269,23 +268,12 @@ class JointSearch:
                  progress: Callable[[str, float], None] | None = None):
         self.fd, self.lay, self.progress = fd, _layout(fd, orders), progress
         self._ranked = _ranked_searches(fd, orders, start, progress)
-        self._taken: list[tuple] = []          # ranks best() handed out, for fit() to revisit
-
-    def best(self) -> JointFit:
-        """The best start's optimum on the decimated run, without full-resolution steps (no
-        Jacobian or residual yet): the start of the analysis core's polish."""
-        found = next(self._ranked)
-        self._taken.append(found)
-        fit, fixed, names, _, _, nfev = found
-        params = _template(self.fd, self.lay).with_vector(self.lay.to_flat(fit.linear, fit.nonlinear))
-        return JointFit(params, self.lay, fit.linear, fit.nonlinear, fixed, self.fd.contact_zero_N, False,
-                        None, None, 0, nfev, names)
 
     def fit(self) -> JointFit:
         # the best start is continued; should its optimum be one the model cannot evaluate
         # (see evaluable), the next best start is, and so on
         first = None
-        for fit, fixed, names, lower, upper, nfev in itertools.chain(self._taken, self._ranked):
+        for fit, fixed, names, lower, upper, nfev in self._ranked:
             if self.progress:
                 self.progress("joint fit: full-resolution polish", 0.8)
             jf = _polish(self.fd, self.lay, fit.linear, fit.nonlinear, fixed, lower, upper, nfev, names)
