@@ -29,7 +29,9 @@ CORNER_AT_SAMPLE = 0.02
 CORNER_STEPS_BEFORE, CORNER_STEPS_AFTER = 1.5, 2.5
 STEADY_NOISE_MULTIPLE = 4.0
 #: A displacement is measured (not an exact synthetic history) when more than this share of its
-#: second differences is not zero.
+#: second differences is not zero - above EXACT_BEND of its range: the rounding of a file written
+#: with 6 decimals (1e-6 mm) is not a bend, a 1 um encoder's step (1.7e-5 of 58 mm) is.
+EXACT_BEND = 1e-7
 MEASURED_BENDS = 0.05
 
 
@@ -46,7 +48,7 @@ def exact_history(x: np.ndarray) -> bool:
     if len(x) < 5:
         return True
     d2 = np.abs(np.diff(x, 2))
-    return not bool(np.mean(d2 > 1e-9 * max(float(np.ptp(x)), 1.0)) > MEASURED_BENDS)
+    return not bool(np.mean(d2 > EXACT_BEND * max(float(np.ptp(x)), 1.0)) > MEASURED_BENDS)
 
 
 def displacement_path(t: np.ndarray, x: np.ndarray, corners) -> np.ndarray:
