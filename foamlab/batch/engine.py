@@ -1,0 +1,170 @@
+"""The batch on Dask distributed: files found, hashed, skipped or submitted, results kept.
+
+One task per run (Client.submit of foamlab.batch.task.analyse_file); results are taken as
+they complete and written at once (foamlab.batch.store). When a worker dies, the scheduler
+gives its runs to another worker (up to distributed's ``scheduler.allowed-failures`` times);
+a run that still has no result becomes a "task" row, retried by the next batch.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+import os
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+
+import pandas as pd
+
+from foamlab import FoamlabError
+from foamlab.batch.rows import BatchRow
+from foamlab.batch.store import Destination, ResultStore
+from foamlab.batch.task import Outcome, analyse_file
+
+#: Files a folder is searched for (a file named on its own is read whatever its name).
+DATA_SUFFIXES = (".csv", ".txt", ".tsv")
+#: No result for this long (s): the runs still out become "task" rows and the batch ends.
+STALL_TIMEOUT_S = 3600.0
+CONNECT_TIMEOUT_S = 30.0
+
+#: on_row(row, done, total): called on the client as each run's row is written.
+OnRow = Callable[[BatchRow, int, int], None]
+
+
+def find_runs(paths: Iterable[str | Path], leave_out: set[Path] = frozenset()) -> list[Path]:
+    """Every data file under the paths (folders walked, sorted; each file once)."""
+    found: dict[Path, None] = {}
+    for given in paths:
+        p = Path(given).expanduser()
+        if p.is_dir():
+            for f in sorted(p.rglob("*")):
+                if f.is_file() and f.suffix.lower() in DATA_SUFFIXES and not _hidden(f, p) \
+                        and ".files" not in f.parent.name:
+                    found.setdefault(f.resolve(), None)
+        elif p.exists():
+            found.setdefault(p.resolve(), None)
+        else:
+            raise FoamlabError(f"{p}: no such file or folder")
+    return [f for f in found if f not in leave_out]
+
+
+def _hidden(f: Path, root: Path) -> bool:
+    return any(part.startswith(".") for part in f.relative_to(root).parts)
+
+
+def sha256_of(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def process(paths: Iterable[str | Path], client=None, *, out: str | Path | None = None,
+            catalog: str | Path | None = None, scheduler: str | None = None, workers: int | None = None,
+            on_row: OnRow | None = None, stall_timeout: float = STALL_TIMEOUT_S) -> pd.DataFrame:
+    """Fit and diagnose every run under `paths`, one Dask task per run; one row per run.
+
+    client: a distributed.Client to use (left open); else one to the scheduler at `scheduler`,
+    else a LocalCluster of `workers` processes (default: one per core), closed at the end.
+    out: a .csv or .parquet file: results are journalled beside it as they come, earlier results
+    of the same content are reused (see foamlab.batch.store). catalog: the SQLite catalog of the
+    runs that are not foamlab run files (default: catalog.sqlite beside `out`).
+    """
+    dest = Destination.choose(out, catalog)
+    files = find_runs(paths, leave_out=dest.written())
+    store = ResultStore(dest)
+    try:
+        earlier = store.previous()
+        rows: dict[Path, BatchRow] = {}
+        todo: list[tuple[Path, str]] = []
+        for f in files:
+            sha = _sha_or_row(f, rows)
+            if sha is None:
+                continue
+            if sha in earlier:
+                rows[f] = _moved(earlier[sha], f)
+            else:
+                todo.append((f, sha))
+        if todo:
+            with _client(client, scheduler, workers) as c:
+                for outcome in _results(c, todo, stall_timeout):
+                    row = store.add(outcome)
+                    rows[Path(row.file)] = row
+                    if on_row is not None:
+                        on_row(row, len(rows), len(files))
+    finally:
+        store.close()
+    return store.finish([rows[f] for f in files])
+
+
+def _sha_or_row(f: Path, rows: dict[Path, BatchRow]) -> str | None:
+    try:
+        return sha256_of(f)
+    except OSError as exc:
+        rows[f] = BatchRow(str(f), "", error=f"{f}: cannot read ({exc.strerror or exc})", error_kind="read")
+        return None
+
+
+def _moved(row: BatchRow, f: Path) -> BatchRow:
+    """An earlier result of this content, now found at `f` (the same file, or a copy)."""
+    row.file = str(f)
+    return row
+
+
+@contextlib.contextmanager
+def _client(client, scheduler: str | None, workers: int | None) -> Iterator:
+    if client is not None:
+        yield client
+        return
+    from distributed import Client, LocalCluster  # noqa: PLC0415 (only a batch needs Dask)
+
+    if scheduler:
+        try:
+            c = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise FoamlabError(f"cannot connect to the Dask scheduler at {scheduler} "
+                               f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        with c:
+            yield c
+        return
+    n = workers or os.cpu_count() or 1
+    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                      silence_logs=logging.ERROR) as cluster, Client(cluster) as c:
+        yield c
+
+
+def _results(client, todo: list[tuple[Path, str]], stall_timeout: float) -> Iterator[Outcome]:
+    """Each run's Outcome as its task completes (any order); lost runs as "task" rows."""
+    from distributed import wait  # noqa: PLC0415
+
+    futures = {client.submit(analyse_file, str(f), sha, key=f"foamlab-batch-{i}-{sha[:16]}"): (f, sha)
+               for i, (f, sha) in enumerate(todo)}
+    pending = set(futures)
+    while pending:
+        try:
+            done, pending = wait(pending, timeout=stall_timeout, return_when="FIRST_COMPLETED")
+        except TimeoutError:
+            done, pending = pending, set()
+        for future in done:
+            f, sha = futures.pop(future)
+            yield _outcome_of(future, f, sha, stall_timeout)
+            future.release()
+
+
+def _outcome_of(future, f: Path, sha: str, stall_timeout: float) -> Outcome:
+    if future.status == "finished":
+        try:
+            return future.result(timeout=stall_timeout)
+        except Exception as exc:   # the worker holding it died between completion and transfer
+            why = f"result lost ({type(exc).__name__}: {exc})"
+    elif future.status == "error":
+        exc = future.exception(timeout=stall_timeout)
+        why = f"{type(exc).__name__}: {exc}"
+    elif future.status == "pending":
+        why = f"no result within {stall_timeout:g} s"
+    else:
+        why = f"task {future.status}"
+    line = next((ln for ln in why.splitlines() if ln.strip()), why)
+    return Outcome(BatchRow(str(f), sha, error=f"not processed: {line}", error_kind="task"))
