@@ -32,21 +32,22 @@ CONNECT_TIMEOUT_S = 30.0
 OnRow = Callable[[BatchRow, int, int], None]
 
 
-def find_runs(paths: Iterable[str | Path], leave_out: set[Path] = frozenset()) -> list[Path]:
-    """Every data file under the paths (folders walked, sorted; each file once)."""
+def find_runs(paths: Iterable[str | Path], leave_out: Iterable[Path] = ()) -> list[Path]:
+    """Every data file under the paths (folders walked, sorted, hidden ones left out; each file
+    once), but for the files and folders in `leave_out` (absolute: what the batch writes)."""
     found: dict[Path, None] = {}
     for given in paths:
         p = Path(given).expanduser()
         if p.is_dir():
             for f in sorted(p.rglob("*")):
-                if f.is_file() and f.suffix.lower() in DATA_SUFFIXES and not _hidden(f, p) \
-                        and ".files" not in f.parent.name:
+                if f.is_file() and f.suffix.lower() in DATA_SUFFIXES and not _hidden(f, p):
                     found.setdefault(f.resolve(), None)
         elif p.exists():
             found.setdefault(p.resolve(), None)
         else:
             raise FoamlabError(f"{p}: no such file or folder")
-    return [f for f in found if f not in leave_out]
+    left_out = set(leave_out)
+    return [f for f in found if f not in left_out and not left_out.intersection(f.parents)]
 
 
 def _hidden(f: Path, root: Path) -> bool:

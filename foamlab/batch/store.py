@@ -62,7 +62,7 @@ class Destination:
 
     def written(self) -> set[Path]:
         """What the batch writes, to be left out when it walks a folder."""
-        return {p.resolve() for p in (self.out, self.journal, self.catalog) if p is not None}
+        return {p.resolve() for p in (self.out, self.journal, self.catalog, self.files) if p is not None}
 
 
 class ResultStore:

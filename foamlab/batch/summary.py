@@ -42,16 +42,19 @@ def series_of(table: pd.DataFrame) -> pd.Series:
 
 
 def odd_ones_out(table: pd.DataFrame) -> pd.DataFrame:
-    """Diagnosed runs whose verdict is not their series' most common one (series of >= 3 runs)."""
+    """Diagnosed runs whose verdict is not their series' usual one: the verdict of more than
+    half of the series' diagnosed runs (series of >= 3 such runs; no majority, no usual verdict)."""
     done = table[table["verdict"].fillna("").astype(str) != ""].copy()
-    if done.empty:
-        return done.assign(series=[], series_verdict=[])
-    done["series"] = series_of(done)
-    usual = done.groupby("series")["verdict"].agg(lambda v: v.value_counts().index[0])
-    sizes = done.groupby("series")["verdict"].size()
-    done["series_verdict"] = done["series"].map(usual)
-    keep = (done["verdict"] != done["series_verdict"]) & done["series"].map(sizes).ge(3)
+    done["series"] = series_of(done) if len(done) else []
+    usual = done.groupby("series")["verdict"].agg(_majority)
+    done["series_verdict"] = done["series"].map(usual) if len(done) else []
+    keep = (done["series_verdict"] != "") & (done["verdict"] != done["series_verdict"])
     return done[keep]
+
+
+def _majority(verdicts: pd.Series) -> str:
+    counts = verdicts.value_counts()
+    return str(counts.index[0]) if len(verdicts) >= 3 and counts.iloc[0] > len(verdicts) / 2 else ""
 
 
 def write_summary(table: pd.DataFrame, path: str | Path, title: str = "foamlab batch") -> Path:
@@ -136,15 +139,21 @@ def _trends(table: pd.DataFrame) -> Figure | None:
                            errors="coerce", utc=True)
     by_date = dates.notna().sum() >= 2
     x = dates if by_date else series_of(table)
+    series = series_of(table)
+    groups = list(series[table["rmse"].notna()].value_counts().index[:10]) if by_date else [None]  # 10 largest
     cols = 3
     rows = -(-len(items) // cols)
     fig = Figure(figsize=(12, 2.8 * rows), layout="constrained")
     for i, (name, values) in enumerate(items):
         ax = fig.add_subplot(rows, cols, i + 1)
-        keep = np.isfinite(values) & (x.notna() if by_date else True)
-        ax.plot(x[keep], values[keep], "o", ms=4, alpha=0.7)
+        for group in groups:
+            keep = np.isfinite(values) & (x.notna() if by_date else True) & \
+                (series == group if group is not None else True)
+            ax.plot(x[keep], values[keep], "o", ms=4, alpha=0.7, label=group)
         ax.set_title(f"{name} against {'test date' if by_date else 'specimen series'}", fontsize=9)
         ax.tick_params(axis="x", labelrotation=30, labelsize=7)
+        if by_date and i == 0:
+            ax.legend(fontsize=7, title="series", title_fontsize=7)
     return fig
 
 

@@ -63,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
     if summary is not None:
         write_summary(table, summary, title=f"foamlab batch: {', '.join(args.paths)}")
     errors = int((table["error"] != "").sum()) if len(table) else 0
-    lines = [f"{len(table)} runs, {len(table) - errors} results, {errors} errors"]
+    ok = len(table) - errors
+    lines = [f"{len(table)} runs: {ok} result{'s' * (ok != 1)}, {errors} error row{'s' * (errors != 1)}"]
     lines += [f"{what}: {p}" for what, p in (("table", args.out), ("summary", summary)) if p]
     if args.out:
         print("\n".join(lines))
