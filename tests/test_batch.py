@@ -143,6 +143,24 @@ def test_a_rerun_skips_current_results_and_redoes_a_changed_file(first, archive,
     assert third.loc[third["file"] == str(changed), "sha256"].item() == engine.sha256_of(changed)
 
 
+def test_the_journal_of_an_interrupted_batch_is_its_results(first, tmp_path):
+    """A batch that died left only its journal: the next one takes every result from it (no
+    cluster is even started: nothing is left to do) and writes the table."""
+    table, _ = first
+    done = table[table["file"].str.contains("series1")]
+    for f in done["file"]:
+        shutil.copy(f, tmp_path / Path(f).name)
+    out = tmp_path / "out" / "again.csv"
+    out.parent.mkdir()
+    journal = out.with_name(out.name + ".journal.jsonl")
+    lines = [json.dumps(BatchRow.from_record(r).to_record()) for r in done.to_dict("records")]
+    journal.write_text("\n".join(lines) + "\n" + lines[0][:40], encoding="utf-8")   # + a torn last line
+    again = process([tmp_path], None, out=out, scheduler="tcp://127.0.0.1:9")        # would fail to connect
+    assert list(again["verdict"]) == list(done["verdict"]) and list(again["sha256"]) == list(done["sha256"])
+    assert set(again["file"]) == {str(tmp_path / Path(f).name) for f in done["file"]}
+    assert out.is_file() and not journal.exists()
+
+
 @pytest.mark.timeout(60)
 def test_cli_on_a_running_cluster_writes_the_table_the_summary_and_sidecars_beside_run_files(
         archive, cluster, tmp_path, capsys):

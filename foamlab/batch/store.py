@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from dataclasses import dataclass
@@ -27,6 +28,8 @@ from foamlab.batch.task import Outcome
 from foamlab.storage.catalog import CATALOG_NAME, sidecar_path
 
 SUFFIXES = (".csv", ".parquet")
+#: Columns read back as text whatever they look like (a specimen "007" stays "007").
+TEXT_COLUMNS = tuple(f.name for f in dataclasses.fields(BatchRow) if f.type == "str")
 
 
 @dataclass
@@ -171,7 +174,7 @@ def _read_table(path: Path) -> list[dict]:
         if path.suffix.lower() == ".parquet":
             table = pd.read_parquet(path)
         else:
-            table = pd.read_csv(path, dtype={"sha256": str, "file": str, "error": str})
+            table = pd.read_csv(path, dtype=dict.fromkeys(TEXT_COLUMNS, str))
     except Exception as exc:
         raise FoamlabError(f"{path}: cannot read the earlier results ({_one_line(exc)}); "
                            "move it away to start afresh") from None
