@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from foamlab import FoamlabError
+from foamlab import FoamlabError, __version__
 from foamlab.batch.rows import BatchRow
 from foamlab.batch.store import Destination, ResultStore
 from foamlab.batch.task import Outcome, analyse_file
@@ -27,6 +27,8 @@ DATA_SUFFIXES = (".csv", ".txt", ".tsv")
 #: No result for this long (s): the runs still out become "task" rows and the batch ends.
 STALL_TIMEOUT_S = 3600.0
 CONNECT_TIMEOUT_S = 30.0
+#: How long a cluster without workers is waited for (s).
+WORKER_TIMEOUT_S = 120.0
 
 #: on_row(row, done, total): called on the client as each run's row is written.
 OnRow = Callable[[BatchRow, int, int], None]
@@ -128,12 +130,39 @@ def _client(client, scheduler: str | None, workers: int | None) -> Iterator:
             raise FoamlabError(f"cannot connect to the Dask scheduler at {scheduler} "
                                f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
         with c:
+            try:
+                c.wait_for_workers(1, timeout=WORKER_TIMEOUT_S)
+            except TimeoutError:
+                raise FoamlabError(f"the Dask scheduler at {scheduler} has no workers (none came in "
+                                   f"{WORKER_TIMEOUT_S:g} s; start some: dask worker {scheduler})") from None
+            _check_workers(c, scheduler)
             yield c
         return
     n = workers or os.cpu_count() or 1
+    # the worker processes import the foamlab this client runs (also from a checkout, not installed)
+    here = str(Path(__file__).resolve().parents[2])
+    env = {"PYTHONPATH": os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH", "")) if p)}
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                      silence_logs=logging.ERROR) as cluster, Client(cluster) as c:
+                      silence_logs=logging.ERROR, env=env) as cluster, Client(cluster) as c:
         yield c
+
+
+def _check_workers(client, scheduler: str) -> None:
+    """Every worker imports foamlab, of this client's version (else every task would fail)."""
+    try:
+        versions = client.run(worker_version)
+    except Exception as exc:
+        raise FoamlabError(f"the workers of {scheduler} cannot run foamlab ({type(exc).__name__}: "
+                           f"{str(exc).splitlines()[0] if str(exc) else ''}); install it on every "
+                           "worker (docs/batch.md)") from None
+    other = {w: v for w, v in versions.items() if v != __version__}
+    if other:
+        raise FoamlabError(f"workers run another foamlab than this client ({__version__}): "
+                           + ", ".join(f"{w} {v}" for w, v in sorted(other.items())))
+
+
+def worker_version() -> str:
+    return __version__
 
 
 def _results(client, todo: list[tuple[Path, str]], stall_timeout: float) -> Iterator[Outcome]:
