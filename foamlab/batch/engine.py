@@ -9,6 +9,7 @@ a run that still has no result becomes a "task" row, retried by the next batch.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import logging
 import os
@@ -112,8 +113,7 @@ def _sha_or_row(f: Path, rows: dict[Path, BatchRow]) -> str | None:
 
 def _moved(row: BatchRow, f: Path) -> BatchRow:
     """An earlier result of this content, now found at `f` (the same file, or a copy)."""
-    row.file = str(f)
-    return row
+    return dataclasses.replace(row, file=str(f), parameters=dict(row.parameters))
 
 
 @contextlib.contextmanager
