@@ -27,7 +27,7 @@ from foamlab.identification import FitResult, fit_run
 from foamlab.identification.store import store_fit
 from foamlab.methods import Method, MethodResults, load_method
 from foamlab.rundata import RunData
-from foamlab.storage.catalog import Catalog
+from foamlab.storage.catalog import CATALOG_NAME, Catalog
 from foamlab.storage.runfile import is_run_file
 
 log = logging.getLogger(__name__)
@@ -153,18 +153,26 @@ def catalog_stage(a: Analysis, folder: str | Path | None = None, progress: Progr
     progress("catalog", 0.0)
     folder = Path(folder) if folder is not None else a.path.parent
     try:
-        with Catalog.for_folder(folder, sync=False) as catalog:
-            catalog.add_run(a.path, a.run)
-            if a.fit_path is not None:
-                catalog.add_fit(a.path, a.fit_path, rmse=a.fit.rmse)
-            if a.diagnosis_path is not None:
-                catalog.add_diagnosis(a.path, a.diagnosis_path, verdict=a.verdict)
-            a.catalog = catalog.path
+        a.catalog = index_run(folder / CATALOG_NAME, a.path, a.run, a.fit_path,
+                              a.fit.rmse if a.fit is not None else None, a.diagnosis_path, a.verdict)
         a.catalog_error = ""
     except Exception as exc:   # the files are the record; `foamlab catalog rebuild` recovers the index
         a.catalog_error = f"not added to the catalog: {exc}"
     progress("catalog", 1.0)
     return a
+
+
+def index_run(catalog_path: Path, path: Path, run: RunData | None, fit_path: Path | None = None,
+              rmse: float | None = None, diagnosis_path: Path | None = None, verdict: str = "") -> Path:
+    """The catalog stage's one write: the run, its fit and its diagnosis files in a catalog
+    (also what `foamlab batch` calls on its client, which holds the results, not the Analysis)."""
+    with Catalog(catalog_path) as catalog:
+        catalog.add_run(path, run)
+        if fit_path is not None:
+            catalog.add_fit(path, fit_path, rmse=rmse)
+        if diagnosis_path is not None:
+            catalog.add_diagnosis(path, diagnosis_path, verdict=verdict)
+        return catalog.path
 
 
 def analyse(run: RunData, path: str | Path | None = None, *, method: Method | None = None,
