@@ -121,7 +121,7 @@ def reidentify(ref: PreparedRun, series: list[Series], fit: Fit, eta: np.ndarray
     lay = fit.params.layout
     try:
         corrected = ref.with_force(ref.series.y - effect)
-        orders = Orders(N=lay.N, M=lay.M, P=lay.P, C=lay.C)
+        orders = Orders(N=lay.N, M=lay.M, P=lay.P, C=lay.C, form=lay.form)
         params = search_start(corrected, orders, paper_steps(corrected, orders).start)
     except FoamlabError:
         return fit

@@ -209,7 +209,7 @@ def _globalise(problem: SeparableProblem, fit, slots, lower, upper, ftol: float,
 
 
 def _layout(fd: PreparedRun, orders: Orders) -> Layout:
-    return Layout(P=orders.P, N=orders.N, M=orders.M, C=orders.residual_cycles(fd.n_residual_cycles))
+    return orders.layout(fd.n_residual_cycles)
 
 
 def _ranked_searches(fd: PreparedRun, orders: Orders, start: ModelParameters | None,
@@ -408,5 +408,5 @@ def _template(fd: PreparedRun, lay: Layout) -> ModelParameters:
     return ModelParameters(
         x_scale_mm=fd.x_scale_mm, elastic_k=np.zeros(lay.P + 1), damping_a=np.zeros(lay.N),
         damping_alpha=np.zeros(lay.N, complex), residual_r=np.zeros((lay.C, lay.M)),
-        residual_beta=np.zeros((lay.C, lay.M)),
+        residual_beta=np.zeros((lay.C, lay.M)), residual_form=lay.form,
         description=f"identified by foamlab fit from {fd.run.source or 'a run'}")

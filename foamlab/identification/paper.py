@@ -18,10 +18,10 @@ a log-spaced grid of decay rates, the fractional orders a grid over their
 range; modes/terms are added greedily (each candidate's linear coefficients
 solved exactly: variable projection), then all are refined together.
 
-These differences hold exactly only if the residual of a cycle were the same
-function of x in every later half-cycle, which the causal model (Eq. 10) does
-not satisfy (docs/model.md, inconsistency 5): the three steps give the paper's
-numbers and STARTING values; the joint refinement fits the real model.
+These differences hold exactly when the residual of a cycle is the same function of x in
+every later half-cycle: the paper form (Eqs. 20b-f as printed), not the causal one (Eq. 10;
+docs/model.md, inconsistency 5). The steps do not depend on the form fitted: they give the
+paper's numbers and STARTING values in either; the joint refinement fits the form's model.
 """
 
 from __future__ import annotations
@@ -293,7 +293,7 @@ def paper_steps(fd: PreparedRun, orders: Orders) -> PaperResult:
     start = ModelParameters(
         x_scale_mm=fd.x_scale_mm, elastic_k=k, damping_a=a,
         damping_alpha=alphas[:, 0] + 1j * alphas[:, 1],
-        residual_r=r_all, residual_beta=b_all,
+        residual_r=r_all, residual_beta=b_all, residual_form=orders.form,
         description="start values: the paper's three-step identification",
     )
     return PaperResult(start, steps, warnings, grid)

@@ -24,19 +24,32 @@ BETA_LO, BETA_HI = -3.0, 0.99
 #: columns); later cycles reuse the last one's terms, so a long run costs no more parameters.
 OWN_RESIDUAL_CYCLES = 3
 
+#: The residual memory's two forms (docs/model.md, "Two forms of the residual force"):
+#: 'causal', Eq. 10 continued through later half-cycles; 'paper', each cycle's Eq. 11 as a
+#: function of x, added again in every later half-cycle as Eqs. 20b-f print it.
+RESIDUAL_FORMS = ("causal", "paper")
+
+
+def check_form(form: str) -> str:
+    if form not in RESIDUAL_FORMS:
+        raise FoamlabError(f"residual form {form!r}: expected one of {', '.join(RESIDUAL_FORMS)}")
+    return form
+
 
 @dataclass(frozen=True)
 class Orders:
     """Model orders: N damping modes, M residual terms per cycle, elastic polynomial order P,
-    and C, the cycles with residual terms of their own (later cycles reuse the last one's;
-    None: every cycle its own, the paper's per-cycle table)."""
+    C, the cycles with residual terms of their own (later cycles reuse the last one's;
+    None: every cycle its own, the paper's per-cycle table), and the residual form."""
 
     N: int = 3
     M: int = 3
     P: int = 7
     C: int | None = OWN_RESIDUAL_CYCLES
+    form: str = "causal"
 
     def __post_init__(self) -> None:
+        check_form(self.form)
         if self.N < 0 or self.M < 0 or self.P < 1:
             raise FoamlabError(f"orders N={self.N}, M={self.M}, P={self.P}: need N >= 0, M >= 0, P >= 1")
         if self.C is not None and self.C < 1:
@@ -67,7 +80,11 @@ class Orders:
 
     def __str__(self) -> str:
         own = "every cycle" if self.C is None else f"C={self.C}"
-        return f"N={self.N}, M={self.M}, P={self.P}, {own}"
+        return f"N={self.N}, M={self.M}, P={self.P}, {own}, {self.form} residual"
+
+    def layout(self, cycles: int) -> "Layout":
+        """The flat layout of a run with this many unloadings."""
+        return Layout(P=self.P, N=self.N, M=self.M, C=self.residual_cycles(cycles), form=self.form)
 
 
 @dataclass(frozen=True)
@@ -82,6 +99,7 @@ class Layout:
     N: int
     M: int
     C: int  # cycles with their own residual terms
+    form: str = "causal"  # what the residual columns are (RESIDUAL_FORMS)
 
     @property
     def n_linear(self) -> int:
