@@ -29,7 +29,8 @@ from foamlab.identification.statistics import (
     parameter_uncertainty,
 )
 from foamlab.model import thermodynamic_checks
-from foamlab.model.layout import BETA_HI, BETA_LO, Orders, nonlinear_bounds
+from foamlab.identification.forms import choose as forms_choose
+from foamlab.model.layout import BETA_HI, BETA_LO, RESIDUAL_FORMS, Orders, check_form, nonlinear_bounds
 from foamlab.rundata import RunData
 
 Progress = Callable[[str, float], None]
@@ -39,29 +40,49 @@ ZERO_T_VALUE = 1.96
 
 
 def fit_run(run: RunData, orders: Orders | str | tuple = Orders(), progress: Progress | None = None,
-            x_scale_mm: float | None = None) -> FitResult:
+            x_scale_mm: float | None = None, form: str = "auto") -> FitResult:
     """Identify the model's parameters from one run (any importer's RunData).
 
     orders: Orders(N, M, P), 'N,M,P' or a tuple; the paper's (3, 3, 7) by default.
     progress: called with (stage, fraction 0..1) as the fit advances.
     x_scale_mm: the elastic polynomial's scale (default: the run's largest compression).
+    form: the residual form, 'causal' or 'paper', or 'auto': both fitted, the one that
+    predicts held-out blocks better kept (identification.forms).
     Raises FoamlabError (one line, what is missing) for runs that cannot be identified.
     """
     report = progress or (lambda stage, fraction: None)
     report("segmenting the run", 0.0)
-    return fit_prepared(prepare(run, x_scale_mm=x_scale_mm), orders, progress)
+    return fit_prepared(prepare(run, x_scale_mm=x_scale_mm), orders, progress, form)
 
 
 def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple = Orders(),
-                 progress: Progress | None = None) -> FitResult:
-    """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run.
+                 progress: Progress | None = None, form: str = "auto") -> FitResult:
+    """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run."""
+    orders = _orders(orders)
+    forms = RESIDUAL_FORMS if form == "auto" else (check_form(form),)
+    report = progress or (lambda stage, fraction: None)
+    started = time.perf_counter()
+    with threadpool_limits(1, user_api="blas"):
+        paper = paper_steps(fd, orders)          # the same in either form (identification.paper)
+    results = []
+    for i, f in enumerate(forms):
+        def scaled(stage: str, fraction: float, i=i, f=f) -> None:
+            report(f"{f} form: {stage}" if len(forms) > 1 else stage, (i + fraction) / len(forms))
+        results.append(_fit_placed(fd, replace(orders, form=f), scaled, paper))
+    chosen = forms_choose(results, forced=form != "auto")
+    chosen.elapsed_s = time.perf_counter() - started
+    return chosen
+
+
+def _fit_placed(fd: PreparedRun, orders: Orders, progress: Progress, paper) -> FitResult:
+    """One form's fit, with its turning points placed where the samples say.
 
     Where the crosshead turned without a stop, the samples cannot say whether it turned at
     the sample at the extreme (a polyline of samples) or between two (a real machine): the
     model switches at the turn, so the samples next to it show which. When they are off by
     more than TURN_MISFIT_MULTIPLE times the noise and their neighbours, the other is fitted too
     and the better kept."""
-    result = _fit_prepared(fd, orders, progress)
+    result = _fit_prepared(fd, orders, progress, paper)
     at_turns, around = _misfit_at_turns(result, fd)
     if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around):
         other = _fit_prepared(fd.other_turns(), orders, progress)
@@ -90,15 +111,14 @@ def _misfit_at_turns(result: FitResult, fd: PreparedRun) -> tuple[float, float]:
     return rms(distance <= 1.0), rms((distance > 2.0) & (distance <= 6.0))
 
 
-def _fit_prepared(fd: PreparedRun, orders, progress: Progress | None) -> FitResult:
-    orders = _orders(orders)
+def _fit_prepared(fd: PreparedRun, orders: Orders, progress: Progress | None, paper=None) -> FitResult:
     report = progress or (lambda stage, fraction: None)
     started = time.perf_counter()
     # The matrices here are small: BLAS threads would only contend (and on a busy
     # machine they slow the fit down many times over).
     with threadpool_limits(1, user_api="blas"):
         report("the paper's three steps", 0.1)
-        paper = paper_steps(fd, orders)
+        paper = paper if paper is not None else paper_steps(fd, orders)
         report("joint refinement", 0.3)
         search = JointSearch(fd, orders, paper.start, report)
         jf = search.fit()
@@ -107,6 +127,12 @@ def _fit_prepared(fd: PreparedRun, orders, progress: Progress | None) -> FitResu
         # the search's next best optimum, fitted alike (the better carried to every sample)
         base = polish([fd.series], jf.params,
                       lambda first: () if _at_the_noise(first, fd) else search.more(EXTRA_STARTS))
+        if paper.start is not None and (orders.form == "paper" or base.rmse > AT_NOISE_RATIO * fd.noise_N):
+            # the paper's three steps are exact in the paper form (and the decimated search can
+            # look white while a few samples misfit): their start is polished too, the better kept
+            other = polish([fd.series], paper.start)
+            if other.rss < base.rss:
+                base = other
         polished = _from_core(fd, jf, base)
         if polished is not None:
             jf = polished
@@ -229,7 +255,7 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
         force = base.model.specimen_force(base.nu, base.solution.theta)[0] + jf.contact_zero_N
     else:
         force = response.force
-    predicted = np.maximum(force, jf.contact_zero_N)
+    predicted = _placed_by_force(fd, params, np.maximum(force, jf.contact_zero_N), jf.contact_zero_N)
     y = fd.f[fd.observed]
     joint = GoodnessOfFit.of(y, predicted[fd.observed], jf.n_free)
     first, last = int(fd.observed[0]), int(fd.observed[-1]) + 1
@@ -261,6 +287,28 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
         status=jf.status, message=jf.message,
         noise_N=fd.noise_N, prepared=fd, core_fit=base,
     )
+
+
+def _placed_by_force(fd: PreparedRun, params, predicted: np.ndarray, zero: float) -> np.ndarray:
+    """The samples next to a turn that the samples cannot place (not evidence: the fit does not
+    use them) predicted with the placement their own force supports. Where the crosshead
+    turned a fraction of a millisecond before the extreme sample, that sample reads the peak
+    within the encoder's step and only its force (tens of newtons apart: damping off, the
+    residual on) says it was already unloading; the parameters do not depend on it."""
+    unused = ~fd.series.used
+    if not unused.any():
+        return predicted
+    groups = np.split(np.flatnonzero(unused), np.flatnonzero(np.diff(np.flatnonzero(unused)) > 1) + 1)
+    misfit = lambda values, g: float(np.sqrt(np.mean((fd.f[g] - values[g]) ** 2)))
+    suspect = [g for g in groups if misfit(predicted, g) > TURN_MISFIT_MULTIPLE * fd.noise_N]
+    if not suspect:
+        return predicted
+    other = np.maximum(model_response(params, fd.other_turns()).force, zero)
+    out = predicted.copy()
+    for g in suspect:
+        if misfit(other, g) < misfit(predicted, g):
+            out[g] = other[g]
+    return out
 
 
 def _bound_warnings(names, values, lay, lower, upper) -> list[str]:

@@ -12,6 +12,7 @@ import numpy as np
 
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import Fit
+from foamlab.identification.forms import FormChoice
 from foamlab.identification.paper import PaperResult
 from foamlab.identification.statistics import GoodnessOfFit
 from foamlab.model import ModelParameters, ModelResponse
@@ -91,6 +92,8 @@ class FitResult:
     noise_N: float = float("nan")     # the load cell's noise level estimated from the run
     prepared: PreparedRun | None = None   # the run as prepared for every fit (foamlab.analysis)
     core_fit: Fit | None = None           # the analysis core's fit: what diagnosis extends
+    form_choice: FormChoice | None = None  # which residual form, and why (identification.forms)
+    alternatives: list["FitResult"] = field(default_factory=list)   # the other forms' fits
 
     # -- views -----------------------------------------------------------------------
     @property
@@ -139,7 +142,19 @@ class FitResult:
         return {"parameters": parameters, "statistics": statistics, "rmse": _num(self.rmse),
                 "constraints": {k: bool(v) for k, v in self.constraints.items()},
                 "noise": _num(self.noise_N),
-                "optimizer": {"success": self.success, "status": self.status, "message": self.message}}
+                "optimizer": {"success": self.success, "status": self.status, "message": self.message},
+                "form": self.params.residual_form, "forms": self._forms_dict()}
+
+    def _forms_dict(self) -> dict:
+        """Each form's RMSE, held-out RMSE, BIC and its BIC minus the chosen one's, and why."""
+        choice = self.form_choice
+        if choice is None:
+            return {"chosen": self.params.residual_form, "reason": "", "scores": []}
+        mine = choice.score(choice.chosen)
+        return {"chosen": choice.chosen, "reason": choice.reason(), "forced": choice.forced,
+                "scores": [{"form": s.form, "rmse": _num(s.rmse), "heldout_rmse": _num(s.heldout_rmse),
+                            "bic": _num(s.bic), "delta_bic": _num(s.bic - mine.bic) if mine else None}
+                           for s in choice.scores]}
 
     def to_json(self, indent: int | None = 2) -> str:
         return json.dumps(self.to_dict(), indent=indent)
@@ -151,7 +166,8 @@ class FitResult:
         corr = [[_num(c) for c in row] for row in self.correlation]
         out.update({
             "model": self.params.to_dict(),
-            "orders": {"N": self.orders.N, "M": self.orders.M, "P": self.orders.P, "C": self.orders.C},
+            "orders": {"N": self.orders.N, "M": self.orders.M, "P": self.orders.P, "C": self.orders.C,
+                       "form": self.orders.form},
             "stderr_autocorrelation_corrected": {n: _num(s) for n, s in zip(self.names, self.stderr_autocorr)},
             "autocorrelation_time": _num(self.autocorrelation_time),
             "correlation": {"names": self.names, "matrix": corr},
@@ -180,6 +196,7 @@ class FitResult:
         joint = self.statistics.get("joint")
         ratio = self.rmse / self.noise_N if self.noise_N > 0 else float("nan")
         lines = [f"fit of {self.source or 'run'}: orders {self.orders}, {self.n_obs} samples, {self.elapsed_s:.2f} s",
+                 f"  {self.form_choice.reason() if self.form_choice else self.params.residual_form + ' residual form'}",
                  f"  RMSE {self.rmse:.4g} N = {ratio:.2f} x the load cell's noise ({self.noise_N:.3g} N)"
                  + (f", R^2 {joint.r2:.6f}" if joint is not None else ""),
                  f"  optimizer: {'converged' if self.success else 'stopped'} ({self.message})"]
@@ -201,6 +218,7 @@ class FitResult:
         """A readable report: statistics per step (Table 5), parameters, checks, warnings."""
         lines = [f"[[Fit]] {self.source or 'run'}",
                  f"    orders            {self.orders}",
+                 f"    residual form     {self.form_choice.reason() if self.form_choice else self.params.residual_form}",
                  f"    samples fitted    {self.n_obs}  (parameters {self.n_params})",
                  f"    RMSE (whole run)  {self.rmse:.4g} N",
                  f"    AIC / BIC         {self.aic:.1f} / {self.bic:.1f}",

@@ -98,17 +98,27 @@ def evaluate(
         hered = HereditaryOperator(params.damping_a, params.damping_alpha)
         n_load = int(np.searchsorted(tk, t[p], side="right")) + 1 if not uniform else p + 1 - s
         damping[s:p + 1] = on_samples(hered.batch(h, xk[:min(n_load, len(xk))]), s, p + 1)
-        if p + 1 >= n:
+        if p + 1 >= n or params.residual_form == "paper":
             continue
         r, beta = params.residual_terms(k + 1)
-        if params.residual_form == "paper":
-            residual[p + 1:] += static_residual(r, beta, x[p + 1:] - x[s], x[p] - x[s], t[p] - t[s])
-            continue
         total = np.zeros(len(xk))
         for r_i, b_i in zip(r, beta):
             total += r_i * FractionalOperator(b_i, h_min=h, t_max=t_span).batch(h, xk)
         residual[p + 1:] += on_samples(total, p + 1, n)
+    if params.residual_form == "paper":
+        residual = paper_residual(params, t, x, labels)
     return ModelResponse(t, x, elastic_force(params, x), damping, residual, labels)
+
+
+def paper_residual(params: ModelParameters, t, x, labels: HistoryLabels) -> np.ndarray:
+    """The paper form's residual force: each cycle's Eq. 11 in x after its peak. Exact on
+    any samples (no memory): its strokes and periods are those of the labels' turning points."""
+    t, x = np.asarray(t, float), np.asarray(x, float)
+    residual = np.zeros(len(t))
+    for k, (s, p) in enumerate(zip(labels.starts, labels.peaks)):
+        r, beta = params.residual_terms(k + 1)
+        residual[p + 1:] += static_residual(r, beta, x[p + 1:] - x[s], x[p] - x[s], t[p] - t[s])
+    return residual
 
 
 def static_residual(r, beta, x_rel, stroke_mm: float, loading_s: float) -> np.ndarray:
