@@ -157,7 +157,7 @@ def _just_before(t: np.ndarray, path: np.ndarray, first: int, v_in: float, v_out
     a = first - 1
     when = (path[first] - path[a] + v_in * t[a] - v_out * t[first]) / (v_in - v_out)
     gap = t[first] - t[a]
-    when = float(np.clip(when, t[a] + CORNER_AT_SAMPLE * gap, t[first] - CORNER_AT_SAMPLE * gap))
+    when = float(np.clip(when, t[a] + 1e-3 * gap, t[first] - 1e-3 * gap))
     return when, float(path[first] - v_out * (t[first] - when)), first
 
 

@@ -18,7 +18,7 @@ from threadpoolctl import threadpool_limits
 
 from foamlab.analysis.noise import WHITE_P, whiteness
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
-from foamlab.analysis.solve import Fit, polish
+from foamlab.analysis.solve import Fit, model_like, polish
 from foamlab.identification.joint import MIN_CENSORED, JointFit, JointSearch, evaluable
 from foamlab.identification.paper import paper_steps
 from foamlab.identification.result import FitResult
@@ -255,7 +255,7 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
         force = base.model.specimen_force(base.nu, base.solution.theta)[0] + jf.contact_zero_N
     else:
         force = response.force
-    predicted = _placed_by_force(fd, params, np.maximum(force, jf.contact_zero_N), jf.contact_zero_N)
+    predicted = _placed_by_force(fd, params, np.maximum(force, jf.contact_zero_N), jf.contact_zero_N, base)
     y = fd.f[fd.observed]
     joint = GoodnessOfFit.of(y, predicted[fd.observed], jf.n_free)
     first, last = int(fd.observed[0]), int(fd.observed[-1]) + 1
@@ -289,7 +289,7 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
     )
 
 
-def _placed_by_force(fd: PreparedRun, params, predicted: np.ndarray, zero: float) -> np.ndarray:
+def _placed_by_force(fd: PreparedRun, params, predicted: np.ndarray, zero: float, base: Fit | None) -> np.ndarray:
     """The samples next to a turn that the samples cannot place (not evidence: the fit does not
     use them) predicted with the placement their own force supports. Where the crosshead
     turned a fraction of a millisecond before the extreme sample, that sample reads the peak
@@ -303,7 +303,12 @@ def _placed_by_force(fd: PreparedRun, params, predicted: np.ndarray, zero: float
     suspect = [g for g in groups if misfit(predicted, g) > TURN_MISFIT_MULTIPLE * fd.noise_N]
     if not suspect:
         return predicted
-    other = np.maximum(model_response(params, fd.other_turns()).force, zero)
+    flipped = fd.other_turns()
+    if base is not None:        # the core's exact columns: right after a turn the force is steep in time
+        force = model_like(base, [flipped.series]).specimen_force(base.nu, base.solution.theta)[0] + zero
+    else:
+        force = model_response(params, flipped).force
+    other = np.maximum(force, zero)
     out = predicted.copy()
     for g in suspect:
         if misfit(other, g) < misfit(predicted, g):
