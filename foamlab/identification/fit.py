@@ -68,13 +68,14 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple = Orders(),
     for i, f in enumerate(forms):
         def scaled(stage: str, fraction: float, i=i, f=f) -> None:
             report(f"{f} form: {stage}" if len(forms) > 1 else stage, (i + fraction) / len(forms))
-        results.append(_fit_placed(fd, replace(orders, form=f), scaled, paper))
+        rival = min((r.rmse for r in results), default=np.inf)
+        results.append(_fit_placed(fd, replace(orders, form=f), scaled, paper, rival))
     chosen = forms_choose(results, forced=form != "auto")
     chosen.elapsed_s = time.perf_counter() - started
     return chosen
 
 
-def _fit_placed(fd: PreparedRun, orders: Orders, progress: Progress, paper) -> FitResult:
+def _fit_placed(fd: PreparedRun, orders: Orders, progress: Progress, paper, rival: float = np.inf) -> FitResult:
     """One form's fit, with its turning points placed where the samples say.
 
     Where the crosshead turned without a stop, the samples cannot say whether it turned at
@@ -82,7 +83,7 @@ def _fit_placed(fd: PreparedRun, orders: Orders, progress: Progress, paper) -> F
     model switches at the turn, so the samples next to it show which. When they are off by
     more than TURN_MISFIT_MULTIPLE times the noise and their neighbours, the other is fitted too
     and the better kept."""
-    result = _fit_prepared(fd, orders, progress, paper)
+    result = _fit_prepared(fd, orders, progress, paper, rival)
     at_turns, around = _misfit_at_turns(result, fd)
     if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around):
         other = _fit_prepared(fd.other_turns(), orders, progress)
@@ -111,7 +112,11 @@ def _misfit_at_turns(result: FitResult, fd: PreparedRun) -> tuple[float, float]:
     return rms(distance <= 1.0), rms((distance > 2.0) & (distance <= 6.0))
 
 
-def _fit_prepared(fd: PreparedRun, orders: Orders, progress: Progress | None, paper=None) -> FitResult:
+def _fit_prepared(fd: PreparedRun, orders: Orders, progress: Progress | None, paper=None,
+                  rival: float = np.inf) -> FitResult:
+    """One form's fit. rival: the RMSE another form already reached; a first optimum further
+    than RIVAL_RATIO from it gets no extra starts (they refine a local optimum's last percent,
+    not a model twice off the data)."""
     report = progress or (lambda stage, fraction: None)
     started = time.perf_counter()
     # The matrices here are small: BLAS threads would only contend (and on a busy
@@ -126,10 +131,11 @@ def _fit_prepared(fd: PreparedRun, orders: Orders, progress: Progress | None, pa
         # the data call for another start when the first leaves structure above the noise:
         # the search's next best optimum, fitted alike (the better carried to every sample)
         base = polish([fd.series], jf.params,
-                      lambda first: () if _at_the_noise(first, fd) else search.more(EXTRA_STARTS))
-        if paper.start is not None and (orders.form == "paper" or base.rmse > AT_NOISE_RATIO * fd.noise_N):
-            # the paper's three steps are exact in the paper form (and the decimated search can
-            # look white while a few samples misfit): their start is polished too, the better kept
+                      lambda first: () if _at_the_noise(first, fd) or first.rmse > RIVAL_RATIO * rival
+                      else search.more(EXTRA_STARTS))
+        if paper.start is not None and AT_NOISE_RATIO * fd.noise_N < base.rmse <= RIVAL_RATIO * rival:
+            # the decimated search can look white while the full run is off the noise: the
+            # paper's three-step start (exact in the paper form) is polished too, the better kept
             other = polish([fd.series], paper.start)
             if other.rss < base.rss:
                 base = other
@@ -148,6 +154,7 @@ def _fit_prepared(fd: PreparedRun, orders: Orders, progress: Progress | None, pa
 #: residuals, is polished again from the search's next best start(s).
 AT_NOISE_RATIO = 1.05
 EXTRA_STARTS = 1
+RIVAL_RATIO = 2.0
 
 
 def _at_the_noise(base: Fit, fd: PreparedRun) -> bool:
