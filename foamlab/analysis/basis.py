@@ -28,6 +28,8 @@ at full resolution.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 from scipy import fft as sfft
 from scipy.signal import lfilter
@@ -226,6 +228,20 @@ class _Lags:
         return -power * (self.log[None] - psi[:, None, None])
 
 
+class _ColumnCache(dict):
+    """Columns by (kind, rate/order): bounded in entries and bytes (a long run's columns are big)."""
+
+    nbytes = 0
+
+    def store(self, key, value) -> None:
+        size = sum(v.nbytes for v in value if v is not None)
+        if len(self) >= CACHE_LIMIT or self.nbytes + size > CACHE_BYTES:
+            self.clear()
+            self.nbytes = 0
+        self[key] = value
+        self.nbytes += size
+
+
 class ModelBasis:
     """Design matrix of the model at the observed samples ``obs`` of a run.
 
@@ -260,8 +276,17 @@ class ModelBasis:
         self.residual_parts = self._residual_parts(starts, peaks, grid_t, grid_x, turning)
         xs = self.x[self.obs] / self.x_scale_mm
         self.elastic = np.vander(xs, layout.P + 1, increasing=True)
-        self._cache: dict = {}
-        self._cache_bytes = 0
+        self._cache = _ColumnCache()
+
+    def with_layout(self, layout: Layout) -> "ModelBasis":
+        """The same basis for another layout of the same cycles and elastic order (other orders
+        N, M, shared or not): the operators and their cached columns are shared, so the
+        structures a selection tries cost their solves, not their columns again."""
+        if (layout.C, layout.P) != (self.layout.C, self.layout.P):
+            raise ValueError("another layout of a basis must keep its cycles and elastic order")
+        other = copy.copy(self)
+        other.layout = layout
+        return other
 
     def _residual_parts(self, starts, peaks, grid_t, grid_x, turning) -> list[tuple[int, float, "_Fractional"]]:
         """(layout cycle, sign, part) of each residual memory. Cycles up to the layout's last
@@ -329,12 +354,7 @@ class ModelBasis:
         return out
 
     def _store(self, key, value) -> None:
-        size = sum(v.nbytes for v in value if v is not None)
-        if len(self._cache) >= CACHE_LIMIT or self._cache_bytes + size > CACHE_BYTES:
-            self._cache.clear()
-            self._cache_bytes = 0
-        self._cache[key] = value
-        self._cache_bytes += size
+        self._cache.store(key, value)
 
     # -- design matrix -----------------------------------------------------------------
     def _alphas(self, nonlinear: np.ndarray) -> np.ndarray:
@@ -350,20 +370,21 @@ class ModelBasis:
         for al in self._alphas(nonlinear):
             out[:, j] = self.damping_column(al)[0]
             j += 1
-        betas = np.asarray(nonlinear[2 * lay.N:], float).reshape(lay.C, lay.M)
+        betas = lay.betas(nonlinear)
         for c in range(lay.C):
             out[:, j:j + lay.M] = self.residual_columns(c, betas[c])[0]
             j += lay.M
         return out
 
     def design_derivatives(self, nonlinear: np.ndarray) -> np.ndarray:
-        """(n_obs, n_nonlinear): d(column of j)/d(nonlinear_j) for each j."""
+        """(n_obs, pairs): for each (parameter, column) of Layout.derivative_pairs, the column's
+        derivative in its parameter (Layout.combine sums a shared order's over its cycles)."""
         lay = self.layout
-        out = np.empty((self.n_obs, lay.n_nonlinear))
+        out = np.empty((self.n_obs, len(lay.derivative_pairs[0])))
         for i, al in enumerate(self._alphas(nonlinear)):
             _, d_re, d_im = self.damping_column(al, derivative=True)
             out[:, 2 * i], out[:, 2 * i + 1] = d_re, d_im
-        betas = np.asarray(nonlinear[2 * lay.N:], float).reshape(lay.C, lay.M)
+        betas = lay.betas(nonlinear)
         j = 2 * lay.N
         for c in range(lay.C):
             out[:, j:j + lay.M] = self.residual_columns(c, betas[c], derivative=True)[1]

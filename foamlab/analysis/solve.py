@@ -20,7 +20,7 @@ from scipy.optimize import least_squares
 
 from foamlab.analysis.design import ExtendedModel, Series, Solution
 from foamlab.model import ModelParameters
-from foamlab.model.layout import Orders, nonlinear_bounds
+from foamlab.model.layout import nonlinear_bounds
 
 #: Samples per run in the parameter search (decimated; decisions are made at full resolution).
 SEARCH_SAMPLES = 3000
@@ -94,7 +94,7 @@ def loading_time_s(series: list[Series]) -> float:
 def base_bounds(series: list[Series], params: ModelParameters) -> tuple[np.ndarray, np.ndarray]:
     """Identification's bounds of alpha and beta (from the loading time), widened to hold params."""
     lay = params.layout
-    lo, hi = nonlinear_bounds(Orders(N=lay.N, M=lay.M, P=lay.P, C=lay.C), lay.C, loading_time_s(series))
+    lo, hi = nonlinear_bounds(lay.orders, lay.C, loading_time_s(series))
     phi = lay.from_flat(params.to_vector())[1]
     return np.minimum(lo, phi), np.maximum(hi, phi)
 

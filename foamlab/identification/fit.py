@@ -22,6 +22,7 @@ from foamlab.analysis.solve import Fit, polish
 from foamlab.identification.joint import MIN_CENSORED, JointFit, JointSearch, evaluable
 from foamlab.identification.paper import paper_steps
 from foamlab.identification.result import FitResult
+from foamlab.identification.structure import forced, select_structure
 from foamlab.identification.statistics import (
     GoodnessOfFit,
     autocorrelation_time,
@@ -38,11 +39,12 @@ Progress = Callable[[str, float], None]
 ZERO_T_VALUE = 1.96
 
 
-def fit_run(run: RunData, orders: Orders | str | tuple = Orders(), progress: Progress | None = None,
+def fit_run(run: RunData, orders: Orders | str | tuple | None = None, progress: Progress | None = None,
             x_scale_mm: float | None = None) -> FitResult:
     """Identify the model's parameters from one run (any importer's RunData).
 
-    orders: Orders(N, M, P), 'N,M,P' or a tuple; the paper's (3, 3, 7) by default.
+    orders: Orders(N, M, P[, C]), 'N,M,P' or a tuple to force a structure; None (default): the
+    structure the data determine, chosen from LARGEST down (identification.structure).
     progress: called with (stage, fraction 0..1) as the fit advances.
     x_scale_mm: the elastic polynomial's scale (default: the run's largest compression).
     Raises FoamlabError (one line, what is missing) for runs that cannot be identified.
@@ -52,7 +54,7 @@ def fit_run(run: RunData, orders: Orders | str | tuple = Orders(), progress: Pro
     return fit_prepared(prepare(run, x_scale_mm=x_scale_mm), orders, progress)
 
 
-def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple = Orders(),
+def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
                  progress: Progress | None = None) -> FitResult:
     """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run.
 
@@ -91,7 +93,8 @@ def _misfit_at_turns(result: FitResult, fd: PreparedRun) -> tuple[float, float]:
 
 
 def _fit_prepared(fd: PreparedRun, orders, progress: Progress | None) -> FitResult:
-    orders = _orders(orders)
+    given = _orders(orders)
+    orders = given or LARGEST
     report = progress or (lambda stage, fraction: None)
     started = time.perf_counter()
     # The matrices here are small: BLAS threads would only contend (and on a busy
@@ -100,7 +103,15 @@ def _fit_prepared(fd: PreparedRun, orders, progress: Progress | None) -> FitResu
         report("the paper's three steps", 0.1)
         paper = paper_steps(fd, orders)
         report("joint refinement", 0.3)
-        search = JointSearch(fd, orders, paper.start, report)
+        if given is None:
+            structure, found, kin = select_structure(fd, orders, paper.start, report)
+            if structure.chosen != orders:      # Table 5 of the structure chosen
+                paper = paper_steps(fd, structure.chosen)
+            orders = structure.chosen
+            search = JointSearch(fd, orders, paper.start, report, found=[found], kin=kin)
+        else:
+            structure = forced(orders)
+            search = JointSearch(fd, orders, paper.start, report)
         jf = search.fit()
         report("polish on every sample", 0.8)
         # the data call for another start when the first leaves structure above the noise:
@@ -114,6 +125,7 @@ def _fit_prepared(fd: PreparedRun, orders, progress: Progress | None) -> FitResu
             base = None
         report("statistics", 0.9)
         result = _result(fd, orders, paper, jf, started, base)
+        result.structure = structure
     report("done", 1.0)
     return result
 
@@ -129,8 +141,13 @@ def _at_the_noise(base: Fit, fd: PreparedRun) -> bool:
     return rmse <= AT_NOISE_RATIO * fd.noise_N or whiteness(base.solution.residual).min_p >= WHITE_P
 
 
-def _orders(orders) -> Orders:
-    if isinstance(orders, Orders):
+#: The structure the selection starts from (issue 19): the paper's orders, three cycles with terms
+#: of their own.
+LARGEST = Orders()
+
+
+def _orders(orders) -> Orders | None:
+    if orders is None or isinstance(orders, Orders):
         return orders
     if isinstance(orders, str):
         return Orders.parse(orders)

@@ -14,6 +14,7 @@ from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import Fit
 from foamlab.identification.paper import PaperResult
 from foamlab.identification.statistics import GoodnessOfFit
+from foamlab.identification.structure import StructureChoice
 from foamlab.model import ModelParameters, ModelResponse
 from foamlab.model.layout import Orders
 
@@ -91,6 +92,7 @@ class FitResult:
     noise_N: float = float("nan")     # the load cell's noise level estimated from the run
     prepared: PreparedRun | None = None   # the run as prepared for every fit (foamlab.analysis)
     core_fit: Fit | None = None           # the analysis core's fit: what diagnosis extends
+    structure: StructureChoice | None = None   # the structures tried and the one chosen (or forced)
 
     # -- views -----------------------------------------------------------------------
     @property

@@ -70,9 +70,16 @@ class ModelParameters:
         return self.residual_r.shape[0]
 
     @property
+    def shared_orders(self) -> bool:
+        """Every cycle's terms have the same orders (a fit of shared orders: refitted so)."""
+        b = self.residual_beta
+        return b.shape[0] > 1 and b.shape[1] > 0 and bool(np.all(b == b[:1]))
+
+    @property
     def layout(self) -> Layout:
         """Where each entry of to_vector() goes when the model is fitted (linear / nonlinear)."""
-        return Layout(P=self.order_P, N=self.order_N, M=self.order_M, C=self.n_residual_cycles)
+        return Layout(P=self.order_P, N=self.order_N, M=self.order_M, C=self.n_residual_cycles,
+                      shared=self.shared_orders)
 
     def residual_terms(self, cycle: int) -> tuple[np.ndarray, np.ndarray]:
         """(r, beta) of a 1-based cycle; cycles beyond those identified reuse the last."""
