@@ -105,8 +105,10 @@ def test_fitted_curve_rmse_is_the_noise_level(default_params, noise):
 def test_fit_reports_table5_statistics_checks_and_json(default_fit, default_params):
     run, result = default_fit
     d = result.to_dict()
-    # DESIGN.md's four keys, then the noise level and the optimizer's end (as lmfit reports it)
-    assert list(d) == ["parameters", "statistics", "rmse", "constraints", "noise", "optimizer"]
+    # DESIGN.md's four keys, then the noise level, the optimizer's end (as lmfit reports it) and
+    # the residual form with every form's scores (identification.forms)
+    assert list(d) == ["parameters", "statistics", "rmse", "constraints", "noise", "optimizer", "form", "forms"]
+    assert d["form"] == d["forms"]["chosen"] and {s["form"] for s in d["forms"]["scores"]} == {"causal", "paper"}
     assert set(d["optimizer"]) == {"success", "status", "message"} and d["optimizer"]["message"]
     assert d["optimizer"]["success"] == (d["optimizer"]["status"] > 0)
     assert list(d["statistics"]) == ["damping", "residual", "elastic", "joint"]

@@ -35,6 +35,7 @@ from scipy import fft as sfft
 from scipy.signal import lfilter
 from scipy.special import digamma, gammaln
 
+from foamlab.model.components import residual_static
 from foamlab.model.history import HistoryLabels
 from foamlab.model.layout import Layout
 from foamlab.model.operators import (
@@ -213,6 +214,19 @@ class _Fractional:
         return out
 
 
+class _Static:
+    """The paper form's residual of cycle k (Eq. 11 in x, model.components.residual_static)
+    at the observed samples after its peak: no memory, so no grid and no convolution."""
+
+    def __init__(self, t, x, start: int, peak: int, obs: np.ndarray):
+        self.rows = np.flatnonzero(obs > peak)
+        self.x_rel = x[obs[self.rows]] - x[start]
+        self.stroke, self.period = float(x[peak] - x[start]), 2.0 * float(t[peak] - t[start])
+
+    def columns(self, betas: np.ndarray, derivative: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        return residual_static(self.x_rel, self.stroke, self.period, betas, derivative)
+
+
 class _Lags:
     """Positive time lags (others contribute nothing) as logs, for lag^nu terms."""
 
@@ -289,12 +303,15 @@ class ModelBasis:
         return other
 
     def _residual_parts(self, starts, peaks, grid_t, grid_x, turning) -> list[tuple[int, float, "_Fractional"]]:
-        """(layout cycle, sign, part) of each residual memory. Cycles up to the layout's last
+        """(layout cycle, sign, part) of each residual memory (paper form: of each cycle's Eq. 11,
+        later cycles on the last one's terms). Cycles up to the layout's last
         have a part each; the last and every later cycle share its terms, so their memories
         are one convolution from the last's start (each later one's own start and slope
         changes counted as they begin) minus, on each later cycle's loading, that cycle's own
         memory (not yet switched on there): the cost stays linear in the cycles."""
         last = self.layout.C - 1
+        if self.layout.form == "paper":
+            return [(min(k, last), 1.0, _Static(self.t, self.x, s, p, self.obs)) for k, (s, p) in enumerate(zip(starts, peaks))]
         parts = [(k, 1.0, _Fractional(self.t, self.x, s, p, self.obs, grid_t, grid_x, turning))
                  for k, (s, p) in enumerate(zip(starts[:last], peaks[:last]))]
         if len(starts) <= last:

@@ -191,6 +191,8 @@ class Series:
         memory_lag releases the force), and a k-times coarser grid would cut it."""
         if k <= 1 or self.full is not None:
             return self
+        if ("decimated", k) in self._bases:     # one copy: its columns are cached with it
+            return self._bases[("decimated", k)]
         n = len(self.t)
         turning = np.concatenate([np.asarray(self.labels.starts, int), np.asarray(self.labels.peaks, int)])
         halves = np.diff(np.sort(turning))
@@ -198,10 +200,12 @@ class Series:
         after = (turning[:, None] + np.arange(dense + 1)[None, :]).ravel()
         keep = np.unique(np.concatenate([np.arange(0, n, k), turning, after, [n - 1]]))
         keep = keep[(keep >= 0) & (keep < n)]
-        return Series(self.name, self.t[keep], self.x[keep], self.y[keep], self.labels,
-                      self.velocity[keep], self.rate[keep], self.speed_mm_min, full=self, obs=keep,
-                      evidence=self.used[keep],
-                      no_contact=None if self.no_contact is None else self.no_contact[keep])
+        out = Series(self.name, self.t[keep], self.x[keep], self.y[keep], self.labels,
+                     self.velocity[keep], self.rate[keep], self.speed_mm_min, full=self, obs=keep,
+                     evidence=self.used[keep],
+                     no_contact=None if self.no_contact is None else self.no_contact[keep])
+        self._bases[("decimated", k)] = out
+        return out
 
 
 def specimen_gains(chain: EffectChain, cycle, velocity, rate) -> tuple[tuple[np.ndarray, ...], np.ndarray]:

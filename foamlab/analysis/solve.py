@@ -73,6 +73,17 @@ class Fit:
         """The base model's parameters in this fit (effects aside)."""
         return self.model.parameters(self.nu, self.solution.theta)
 
+    def jacobian(self, rows: np.ndarray | None = None) -> np.ndarray:
+        """Of the prediction in [the model's linear parameters (k, a, r), nu, the load cell's
+        zero] at the solution (contact set held), at the rows of the first series (default:
+        its used samples)."""
+        sol = self.solution
+        rows = np.flatnonzero(sol.used[0]) if rows is None else rows
+        design = sol.designs[0][0][rows]
+        deriv = self.model.prediction_derivatives(self.nu, sol)[rows]
+        L = self.model.n_model
+        return np.hstack([design[:, :L], deriv, design[:, L:L + 1]])
+
     def effect_values(self) -> list[dict]:
         """Fitted values of each effect in the chain, with standard errors."""
         out, i = [], 0

@@ -19,6 +19,7 @@ examples:
   foamlab fit run.csv --plot fit.png          # measured vs fitted per cycle, residuals below
   foamlab fit run.csv --orders 2,3,7          # N damping modes, M residual terms per cycle, P elastic order
   foamlab fit run.csv --compare 1,1,7 2,2,7 3,3,7   # AIC/BIC of several orders
+  foamlab fit run.csv --form paper            # the residual as the paper prints it (Eqs. 20b-f)
 
 The fit of a foamlab run file is stored beside it as <run>.fit.json (loadable as a simulator
 specimen: foamlab sim --specimen <run>.fit.json) and indexed in the run catalog; --no-store
@@ -48,6 +49,10 @@ def register(subparsers) -> None:
                    help="damping modes N, residual terms per cycle M, elastic order P, and C cycles with "
                         "residual terms of their own (later ones reuse the last's; default 3,3,7,3); "
                         "'paper': 3,3,7 with every cycle's own terms (the paper's table, any run length)")
+    p.add_argument("--form", choices=("auto", "causal", "paper"), default="auto",
+                   help="the residual force: 'causal' (Eq. 10, a memory of the history), 'paper' (each "
+                        "cycle's Eq. 11 in x, in every later half-cycle, as Eqs. 20b-f print it) or "
+                        "'auto' (default: both fitted, the one that predicts held-out blocks better kept)")
     p.add_argument("--compare", nargs="+", metavar="N,M,P",
                    help="fit each of these orders too and print their AIC/BIC (lower is better)")
     p.add_argument("--no-store", action="store_true",
@@ -67,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     compare = [Orders.parse(o) for o in args.compare or []]
     run_data = load_run(args.path)
     with terminal_progress("fit", quiet=args.json) as report:
-        result = fit_run(run_data, orders, progress=report)
+        result = fit_run(run_data, orders, progress=report, form=args.form)
     notes: list[str] = []
     if not args.no_store:
         from foamlab.identification.store import store_fit  # noqa: PLC0415

@@ -18,11 +18,18 @@ from threadpoolctl import threadpool_limits
 
 from foamlab.analysis.noise import WHITE_P, whiteness
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
-from foamlab.analysis.solve import Fit, polish
-from foamlab.identification.joint import MIN_CENSORED, JointFit, JointSearch, evaluable
+from foamlab.analysis.solve import Fit, model_like, polish
+from foamlab.identification.joint import (
+    MIN_CENSORED,
+    REAL_MODE_RATIO,
+    JointFit,
+    JointSearch,
+    evaluable,
+    unpolished,
+)
 from foamlab.identification.paper import paper_steps
 from foamlab.identification.result import FitResult
-from foamlab.identification.structure import forced, select_structure
+from foamlab.identification.structure import forced, select
 from foamlab.identification.statistics import (
     GoodnessOfFit,
     autocorrelation_time,
@@ -30,7 +37,8 @@ from foamlab.identification.statistics import (
     parameter_uncertainty,
 )
 from foamlab.model import thermodynamic_checks
-from foamlab.model.layout import BETA_HI, BETA_LO, Orders, nonlinear_bounds
+from foamlab.identification.forms import choose as forms_choose
+from foamlab.model.layout import BETA_HI, BETA_LO, RESIDUAL_FORMS, Orders, check_form, nonlinear_bounds
 from foamlab.rundata import RunData
 
 Progress = Callable[[str, float], None]
@@ -40,33 +48,57 @@ ZERO_T_VALUE = 1.96
 
 
 def fit_run(run: RunData, orders: Orders | str | tuple | None = None, progress: Progress | None = None,
-            x_scale_mm: float | None = None) -> FitResult:
+            x_scale_mm: float | None = None, form: str = "auto") -> FitResult:
     """Identify the model's parameters from one run (any importer's RunData).
 
     orders: Orders(N, M, P[, C]), 'N,M,P' or a tuple to force a structure; None (default): the
     structure the data determine, chosen from LARGEST down (identification.structure).
     progress: called with (stage, fraction 0..1) as the fit advances.
     x_scale_mm: the elastic polynomial's scale (default: the run's largest compression).
+    form: the residual form, 'causal' or 'paper', or 'auto': both fitted, the one that
+    predicts held-out blocks better kept (identification.forms).
     Raises FoamlabError (one line, what is missing) for runs that cannot be identified.
     """
     report = progress or (lambda stage, fraction: None)
     report("segmenting the run", 0.0)
-    return fit_prepared(prepare(run, x_scale_mm=x_scale_mm), orders, progress)
+    return fit_prepared(prepare(run, x_scale_mm=x_scale_mm), orders, progress, form)
 
 
 def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
-                 progress: Progress | None = None) -> FitResult:
-    """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run.
+                 progress: Progress | None = None, form: str = "auto") -> FitResult:
+    """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run."""
+    given = _orders(orders)
+    orders = given or LARGEST
+    forms = RESIDUAL_FORMS if form == "auto" else (check_form(form),)
+    report = progress or (lambda stage, fraction: None)
+    started = time.perf_counter()
+    with threadpool_limits(1, user_api="blas"):
+        paper = paper_steps(fd, orders)          # the same in either form (identification.paper)
+    results = []
+    for i, f in enumerate(forms):
+        def scaled(stage: str, fraction: float, i=i, f=f) -> None:
+            report(f"{f} form: {stage}" if len(forms) > 1 else stage, (i + fraction) / len(forms))
+        results.append(_fit_placed(fd, replace(orders, form=f), given is None, scaled, paper))
+    chosen = forms_choose(results, forced=form != "auto")
+    chosen.elapsed_s = time.perf_counter() - started
+    return chosen
+
+
+def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progress, paper) -> FitResult:
+    """One form's fit (select: of the structure the data determine, from orders down), with its
+    turning points placed where the samples say.
 
     Where the crosshead turned without a stop, the samples cannot say whether it turned at
     the sample at the extreme (a polyline of samples) or between two (a real machine): the
     model switches at the turn, so the samples next to it show which. When they are off by
     more than TURN_MISFIT_MULTIPLE times the noise and their neighbours, the other is fitted too
     and the better kept."""
-    result = _fit_prepared(fd, orders, progress)
+    result = _fit_prepared(fd, orders, select, progress, paper)
     at_turns, around = _misfit_at_turns(result, fd)
     if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around):
-        other = _fit_prepared(fd.other_turns(), orders, progress)
+        # the structure the data chose, with the turns placed the other way
+        other = _fit_prepared(fd.other_turns(), result.orders, False, progress)
+        other.structure = result.structure
         where = "between samples" if other.prepared.nodes.between_samples else "at the sample at the extreme"
         if other.rmse < result.rmse:
             other.notes.append(f"turning points without a stop placed {where}: the samples next to "
@@ -92,42 +124,90 @@ def _misfit_at_turns(result: FitResult, fd: PreparedRun) -> tuple[float, float]:
     return rms(distance <= 1.0), rms((distance > 2.0) & (distance <= 6.0))
 
 
-def _fit_prepared(fd: PreparedRun, orders, progress: Progress | None) -> FitResult:
-    given = _orders(orders)
-    orders = given or LARGEST
+def _fit_prepared(fd: PreparedRun, orders: Orders, select: bool, progress: Progress | None,
+                  paper=None) -> FitResult:
     report = progress or (lambda stage, fraction: None)
     started = time.perf_counter()
     # The matrices here are small: BLAS threads would only contend (and on a busy
     # machine they slow the fit down many times over).
     with threadpool_limits(1, user_api="blas"):
         report("the paper's three steps", 0.1)
-        paper = paper_steps(fd, orders)
+        paper = paper if paper is not None else paper_steps(fd, orders)
         report("joint refinement", 0.3)
-        if given is None:
-            structure, found, kin = select_structure(fd, orders, paper.start, report)
-            if structure.chosen != orders:      # Table 5 of the structure chosen
-                paper = paper_steps(fd, structure.chosen)
-            orders = structure.chosen
-            search = JointSearch(fd, orders, paper.start, report, found=[found], kin=kin)
+        if not select:
+            result = _fit_structure(fd, orders, paper, JointSearch(fd, orders, paper.start, report), report)
+            result.structure = forced(orders)
         else:
-            structure = forced(orders)
-            search = JointSearch(fd, orders, paper.start, report)
-        jf = search.fit()
-        report("polish on every sample", 0.8)
-        # the data call for another start when the first leaves structure above the noise:
-        # the search's next best optimum, fitted alike (the better carried to every sample)
-        base = polish([fd.series], jf.params,
-                      lambda first: () if _at_the_noise(first, fd) else search.more(EXTRA_STARTS))
-        polished = _from_core(fd, jf, base)
-        if polished is not None:
-            jf = polished
-        else:
-            base = None
-        report("statistics", 0.9)
-        result = _result(fd, orders, paper, jf, started, base)
-        result.structure = structure
+            result = _fit_selected(fd, orders, paper, report)
+        result.elapsed_s = time.perf_counter() - started
     report("done", 1.0)
     return result
+
+
+def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress) -> FitResult:
+    """The structure the data determine (identification.structure), carried to every sample."""
+
+    def core_fit(orders: Orders, params, more, extra: bool) -> Fit:
+        # the core's polish with identification's other starts (extra): the search's next optimum
+        # when the first leaves structure above the noise, and the paper's start (exact in the
+        # paper form; the decimated search can look white while a few samples misfit)
+        def others(first: Fit):
+            out = [] if not extra or _at_the_noise(first, fd) else list(more())
+            if extra and paper.start is not None and orders == largest and (
+                    orders.form == "paper" or first.rmse > AT_NOISE_RATIO * fd.noise_N):
+                out.append(paper.start)
+            return out
+        return polish([fd.series], params, others)
+
+    polished: dict[int, JointFit | None] = {}    # by id of the core fit: checked once
+
+    def reproduced(orders: Orders, found: tuple, core: Fit) -> JointFit | None:
+        if id(core) not in polished:
+            polished[id(core)] = _from_core(fd, unpolished(fd, orders.layout(fd.n_residual_cycles), found), core)
+        return polished[id(core)]
+
+    selection = select(fd, largest, paper.start, core_fit, lambda *a: reproduced(*a) is not None, report)
+    rejected: set[int] = set()
+    for i in selection.ranking():
+        chosen = selection.fitted[i]
+        jf = reproduced(chosen.orders, chosen.found, chosen.core)
+        if jf is not None:
+            steps = paper if chosen.orders == largest else paper_steps(fd, chosen.orders)   # its Table 5
+            report("statistics", 0.9)
+            result = _result(fd, chosen.orders, steps, jf, time.perf_counter(), chosen.core)
+            result.structure = selection.choice(i, rejected)
+            return result
+        rejected.add(i)
+    # no fit the model's evaluation reproduces: the screening's choice fitted as a structure given
+    orders = selection.fitted[0].orders
+    steps = paper if orders == largest else paper_steps(fd, orders)
+    result = _fit_structure(fd, orders, steps, JointSearch(fd, orders, steps.start, report), report)
+    result.structure = selection.choice(0, rejected)
+    return result
+
+
+def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, report: Progress) -> FitResult:
+    """One structure: the search's best optimum polished, then carried to every sample by the
+    analysis core."""
+    jf = search.fit()
+    report("polish on every sample", 0.8)
+    # the data call for another start when the first leaves structure above the noise:
+    # the search's next best optimum, fitted alike (the better carried to every sample)
+    base = polish([fd.series], jf.params,
+                  lambda first: () if _at_the_noise(first, fd) else search.more(EXTRA_STARTS))
+    if paper.start is not None and (orders.form == "paper" or base.rmse > AT_NOISE_RATIO * fd.noise_N):
+        # the paper's three steps are exact in the paper form (and the decimated search can
+        # look white while a few samples misfit): their start is polished too, the better kept
+        other = polish([fd.series], paper.start)
+        if other.rss < base.rss:
+            base = other
+    polished = _from_core(fd, jf, base)
+    if polished is not None:
+        jf = polished
+    else:
+        base = None
+    report("statistics", 0.9)
+    return _result(fd, orders, paper, jf, time.perf_counter(), base)
 
 
 #: A polished fit further than this from the noise level, with structure left in its
@@ -156,8 +236,6 @@ def _orders(orders) -> Orders | None:
 
 #: Samples this many steps from a corner of the path are not in the evaluation check.
 CORNER_STEPS = 2.0
-#: A damping mode whose Im alpha ends below this fraction of its Re alpha stays real (fixed).
-REAL_MODE_RATIO = 1e-6
 
 
 def _from_core(fd: PreparedRun, jf: JointFit, base: Fit) -> JointFit | None:
@@ -234,6 +312,10 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
     flat_lower[nl_idx], flat_upper[nl_idx] = lower, upper
     varied = np.ones(len(names), bool)
     varied[nl_idx[jf.fixed_nonlinear]] = False
+    # shared orders: a later cycle's beta is the first cycle's (the same parameter, its statistics)
+    for i, j in lay.tied().items():
+        stderr[i], flat_lower[i], flat_upper[i], varied[i] = stderr[j], flat_lower[j], flat_upper[j], varied[j]
+        corr[i, :], corr[:, i] = corr[j, :], corr[:, j]
     notes = [f"{names[i]} = 0 (fixed): the data do not support an oscillation of damping mode "
              f"{names[i][5:-3]} (BIC), so it is a real mode" for i in nl_idx[jf.fixed_nonlinear]]
 
@@ -246,7 +328,7 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
         force = base.model.specimen_force(base.nu, base.solution.theta)[0] + jf.contact_zero_N
     else:
         force = response.force
-    predicted = np.maximum(force, jf.contact_zero_N)
+    predicted = _placed_by_force(fd, params, np.maximum(force, jf.contact_zero_N), jf.contact_zero_N, base)
     y = fd.f[fd.observed]
     joint = GoodnessOfFit.of(y, predicted[fd.observed], jf.n_free)
     first, last = int(fd.observed[0]), int(fd.observed[-1]) + 1
@@ -277,7 +359,35 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
         lower=flat_lower, upper=flat_upper, varied=varied,
         status=jf.status, message=jf.message,
         noise_N=fd.noise_N, prepared=fd, core_fit=base,
+        tied={names[i]: names[j] for i, j in lay.tied().items()},
     )
+
+
+def _placed_by_force(fd: PreparedRun, params, predicted: np.ndarray, zero: float, base: Fit | None) -> np.ndarray:
+    """The samples next to a turn that the samples cannot place (not evidence: the fit does not
+    use them) predicted with the placement their own force supports. Where the crosshead
+    turned a fraction of a millisecond before the extreme sample, that sample reads the peak
+    within the encoder's step and only its force (tens of newtons apart: damping off, the
+    residual on) says it was already unloading; the parameters do not depend on it."""
+    unused = ~fd.series.used
+    if not unused.any():
+        return predicted
+    groups = np.split(np.flatnonzero(unused), np.flatnonzero(np.diff(np.flatnonzero(unused)) > 1) + 1)
+    misfit = lambda values, g: float(np.sqrt(np.mean((fd.f[g] - values[g]) ** 2)))
+    suspect = [g for g in groups if misfit(predicted, g) > TURN_MISFIT_MULTIPLE * fd.noise_N]
+    if not suspect:
+        return predicted
+    flipped = fd.other_turns()
+    if base is not None:        # the core's exact columns: right after a turn the force is steep in time
+        force = model_like(base, [flipped.series]).specimen_force(base.nu, base.solution.theta)[0] + zero
+    else:
+        force = model_response(params, flipped).force
+    other = np.maximum(force, zero)
+    out = predicted.copy()
+    for g in suspect:
+        if misfit(other, g) < misfit(predicted, g):
+            out[g] = other[g]
+    return out
 
 
 def _bound_warnings(names, values, lay, lower, upper) -> list[str]:
@@ -300,13 +410,16 @@ def _bound_warnings(names, values, lay, lower, upper) -> list[str]:
 
 
 def _zero_warnings(names, values, stderr, lay) -> list[str]:
-    out = []
+    zero = []
     for i in lay.flat_index_of_linear():
         n = names[i]
         if n.startswith("k"):
             continue
         s = stderr[i]
         if np.isfinite(s) and abs(values[i]) < ZERO_T_VALUE * s:
-            out.append(f"{n} = {values[i]:.3g} +/- {s:.2g} is indistinguishable from zero: its term "
-                       "adds nothing the data can see (consider a lower order)")
-    return out
+            zero.append(f"{n} = {values[i]:.3g} +/- {s:.2g}")
+    if len(zero) == 1:
+        return [f"{zero[0]} is indistinguishable from zero: its term adds nothing the data can see "
+                "(consider a lower order)"]
+    return [f"{', '.join(zero)} are indistinguishable from zero: their terms add nothing the data can "
+            "see (consider a lower order)"] if zero else []

@@ -44,6 +44,8 @@ POLISH_NFEV = 3
 MAX_JUMPS = 2
 #: Fit the unloaded reading z0 only with at least this many samples out of contact.
 MIN_CENSORED = 20
+#: A damping mode whose Im alpha ends below this fraction of its Re alpha stays real (fixed).
+REAL_MODE_RATIO = 1e-6
 
 
 @dataclass
@@ -278,13 +280,21 @@ class DecimatedProblem:
         problem, lower, upper, ftol = self.problem, self.lower, self.upper, self.ftol
         fit = problem.fit(theta0, lower, upper, max_nfev=FIT_NFEV, ftol=ftol, xtol=1e-6)
         fit = _globalise(problem, fit, self.slots, lower, upper, ftol)
-        return _real_modes(problem, self.lay, fit, lower, upper, ftol)
+        return self.real_modes(fit)
 
-    def refine_locally(self, theta0: np.ndarray) -> tuple[SeparableFit, np.ndarray]:
-        """The local fit and the real modes, without global moves: a warm start's continuation."""
-        problem, lower, upper, ftol = self.problem, self.lower, self.upper, self.ftol
-        fit = problem.fit(theta0, lower, upper, max_nfev=FIT_NFEV, ftol=ftol, xtol=1e-6)
-        return _real_modes(problem, self.lay, fit, lower, upper, ftol)
+    def local(self, theta0: np.ndarray, fixed: np.ndarray) -> SeparableFit:
+        """The local fit alone (the ``fixed`` nonlinear parameters held at theta0), without global
+        moves: a warm start's continuation."""
+        if not fixed.any():
+            return self.problem.fit(theta0, self.lower, self.upper, max_nfev=FIT_NFEV, ftol=self.ftol, xtol=1e-6)
+        free = ~fixed
+        sub, expand = _restricted(self.problem, fixed, np.asarray(theta0, float))
+        fit = sub.fit(theta0[free], self.lower[free], self.upper[free], max_nfev=FIT_NFEV, ftol=self.ftol, xtol=1e-6)
+        return SeparableFit(expand(fit.nonlinear), fit.linear, fit.residual, fit.nfev, fit.status, fit.message)
+
+    def real_modes(self, fit: SeparableFit) -> tuple[SeparableFit, np.ndarray]:
+        """The damping modes whose oscillation the data do not support made real: (fit, fixed)."""
+        return _real_modes(self.problem, self.lay, fit, self.lower, self.upper, self.ftol)
 
     def jacobian(self, fit: SeparableFit, fixed: np.ndarray) -> np.ndarray:
         """Of the weighted residual in (k, a, r, the free alpha and beta), at the fit."""
@@ -294,11 +304,12 @@ class DecimatedProblem:
 
 
 def ranked_searches(search: DecimatedProblem, start: ModelParameters | None,
-                    progress: Callable[[str, float], None] | None):
+                    progress: Callable[[str, float], None] | None,
+                    other_starts: Iterable[tuple[str, np.ndarray]] = ()):
     """The global search of alpha and beta on the decimated run, from each start in turn, best
     short probe first: yields (fit, fixed nonlinear, the starts' names, the lower and upper
-    bounds, the evaluations so far)."""
-    candidates: list[tuple[str, np.ndarray]] = []
+    bounds, the evaluations so far). other_starts: (name, alpha and beta) tried too."""
+    candidates: list[tuple[str, np.ndarray]] = list(other_starts)
     if start is not None:
         candidates.append(("paper three-step", search.lay.from_flat(start.to_vector())[1]))
     for name, residual_first in (("forward selection", False), ("forward selection, residual first", True)):
@@ -321,6 +332,16 @@ def search_start(fd: PreparedRun, orders: Orders, start: ModelParameters | None 
     return params_of(fd, _layout(fd, orders), fit)
 
 
+def unpolished(fd: PreparedRun, lay: Layout, found: tuple) -> JointFit:
+    """A search optimum (as ranked_searches yields it) as a joint fit, without identification's
+    full-resolution steps: the analysis core has carried it to every sample (its residual is
+    not known here: the core's fit replaces it)."""
+    fit, fixed, starts, _, _, nfev = found
+    return JointFit(params_of(fd, lay, fit), lay, fit.linear, fit.nonlinear, fixed, fd.contact_zero_N, False,
+                    np.zeros((0, 0)), np.array([np.inf]), lay.n_linear + int(np.count_nonzero(~fixed)), nfev,
+                    list(starts), fit.status, fit.message)
+
+
 def params_of(fd: PreparedRun, lay: Layout, fit: SeparableFit) -> ModelParameters:
     """A search's optimum as the model's parameters."""
     return _template(fd, lay).with_vector(lay.to_flat(fit.linear, fit.nonlinear))
@@ -334,13 +355,14 @@ class JointSearch:
 
     def __init__(self, fd: PreparedRun, orders: Orders, start: ModelParameters | None,
                  progress: Callable[[str, float], None] | None = None, found: Iterable[tuple] = (),
-                 kin: DecimatedProblem | None = None):
+                 kin: DecimatedProblem | None = None, other_starts: Iterable[tuple[str, np.ndarray]] = ()):
         """found: optima of this structure already searched (the structure selection's), tried
-        before the ranked search's, which then runs only if asked for more (on kin's columns)."""
+        before the ranked search's, which then runs only if asked for more (on kin's columns);
+        other_starts: (name, alpha and beta) the ranked search probes too."""
         self.fd, self.lay, self.progress = fd, _layout(fd, orders), progress
 
         def search():                 # a generator: nothing is computed until it is asked for
-            yield from ranked_searches(DecimatedProblem(fd, orders, kin), start, progress)
+            yield from ranked_searches(DecimatedProblem(fd, orders, kin), start, progress, other_starts)
 
         self._ranked = itertools.chain(found, search())
 
@@ -483,5 +505,5 @@ def _template(fd: PreparedRun, lay: Layout) -> ModelParameters:
     return ModelParameters(
         x_scale_mm=fd.x_scale_mm, elastic_k=np.zeros(lay.P + 1), damping_a=np.zeros(lay.N),
         damping_alpha=np.zeros(lay.N, complex), residual_r=np.zeros((lay.C, lay.M)),
-        residual_beta=np.zeros((lay.C, lay.M)),
+        residual_beta=np.zeros((lay.C, lay.M)), residual_form=lay.form, shared_orders=lay.shared,
         description=f"identified by foamlab fit from {fd.run.source or 'a run'}")

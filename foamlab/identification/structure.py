@@ -1,34 +1,41 @@
 """The model structure the data determine (issue 19; docs/identification.md, "Structure").
 
-The largest structure (by default 3 damping modes, 3 residual terms, 3 cycles with orders of
-their own) is searched once, globally. Smaller ones are made from it by moves, each removing what
-the data do not determine: the orders shared by every cycle (one beta per term, each cycle its
-own amplitudes: the paper's Table 3 finds nearly the same orders in its three cycles), a damping
-mode less, a residual term less, a cycle fewer with terms of its own. Each is refitted from the
-larger one's values on the search's block means (a warm start: cheap), then scored by the
-analysis core on the decimated run: RMSE, held-out RMSE (analysis.heldout, as diagnosis predicts), BIC.
+Structures are made from the largest (by default 3 damping modes, 3 residual terms, 3 cycles with
+orders of their own) by moves, each removing something: the orders shared by every cycle (one
+beta per term, each cycle its own amplitudes: the paper's Table 3 finds nearly the same orders in
+its three cycles), a damping mode less, a residual term less, a cycle fewer with terms of its own.
 
-A structure is admissible when no two of its terms cancel (two amplitudes of large opposite
-value whose sum is small: a derivative of the model's terms in their order, not two terms of the
-model) and the data determine every one of its parameters. The choice is the admissible structure
-with the lowest BIC, or the one with the fewest parameters among those within BIC_TIE of it. The
-moves are greedy: from the current structure, every move is tried and the best one taken while
-it is better (admissible where the current one is not; else no worse than BIC_TIE).
+1. Screening (``screen``): the largest is searched globally; from it, every move is refitted from
+   the larger one's values on the search's block means (a warm start: cheap) and scored by the
+   analysis core on the decimated run: RMSE, held-out RMSE (analysis.heldout, as diagnosis
+   predicts), BIC. The best move is taken while it costs at most BIC_TIE (fewer parameters at no
+   real cost). The screening's choice: the lowest BIC, or the fewest parameters within BIC_TIE of it.
+2. The fit (identification.fit): the screening's choice is fitted on every sample. A fit is
+   admissible when the data determine every one of its parameters and no two of its terms cancel
+   (two amplitudes of large opposite value whose sum is small: a derivative of the model's terms in
+   their order, not two terms of the model). While it is not, the structure one move smaller that
+   removes the defect is fitted from its values (``repair``). The result: the admissible fit with
+   the lowest BIC (the fewest parameters within BIC_TIE), else the one with the fewest defects.
+
+Only the fits on every sample judge admissibility: the search's optima are rougher (on the
+simulated main job the screening's optimum of the right structure had a damping mode the search
+could not place; the fit on every sample determines it).
 """
 
 from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, field, replace
-from typing import Callable
+from typing import Callable, Iterable
 
 import numpy as np
 
 from foamlab.analysis.design import ExtendedModel, Series
+from foamlab.analysis.heldout import heldout_rmse
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import Fit, base_bounds, decimation
-from foamlab.analysis.heldout import heldout_rmse
-from foamlab.identification.joint import DecimatedProblem, params_of, ranked_searches
+from foamlab.identification.joint import REAL_MODE_RATIO, DecimatedProblem, params_of, ranked_searches
+from foamlab.identification.paper import paper_steps
 from foamlab.identification.statistics import information_criteria, parameter_uncertainty
 from foamlab.identification.varpro import SeparableFit
 from foamlab.model import ModelParameters
@@ -41,28 +48,31 @@ CANCEL_RATIO = 0.2
 #: A structure with fewer parameters is preferred unless a larger one's BIC is lower by more than
 #: this ("very strong" evidence, as diagnosis' DELTA_BIC_MIN).
 BIC_TIE = 10.0
-#: At most this many structures are fitted (the largest included).
-MAX_CANDIDATES = 12
+#: At most this many structures are screened (the largest included), and fitted on every sample.
+MAX_SCREENED, MAX_FITTED = 10, 6
+#: The defect of a fit the model's own evaluation does not reproduce (identification.joint.evaluable).
+NOT_EVALUABLE = "the model's own evaluation does not reproduce its fit"
 
 
 @dataclass(frozen=True)
 class Candidate:
-    """One structure tried: how it was made, its scores on the decimated run, its defects."""
+    """One structure tried: how it was made, its scores, its defects (fits on every sample only)."""
 
     orders: Orders
     how: str                          # the move that made it ("the largest", "orders shared", ...)
+    stage: str                        # "screened" (search, decimated run) or "fitted" (every sample)
     n_params: int                     # free parameters (the load cell's zero included)
-    rmse: float                       # N, on the decimated run (the core's samples)
+    rmse: float                       # N
     heldout_rmse: float               # N, blocks predicted by the model fitted without them
-    bic: float                        # Gaussian, on the decimated run's samples
-    defects: tuple[str, ...] = ()     # why it is not admissible (cancelling terms, undetermined)
+    bic: float
+    defects: tuple[str, ...] = ()     # why a fit is not admissible (undetermined, cancelling)
 
     @property
     def admissible(self) -> bool:
-        return not self.defects
+        return self.stage == "fitted" and not self.defects
 
     def to_dict(self) -> dict:
-        return {"orders": str(self.orders), "how": self.how, "n_params": self.n_params,
+        return {"orders": str(self.orders), "how": self.how, "stage": self.stage, "n_params": self.n_params,
                 "rmse": self.rmse, "heldout_rmse": self.heldout_rmse, "bic": self.bic,
                 "defects": list(self.defects)}
 
@@ -75,20 +85,25 @@ class StructureChoice:
     why: str
     candidates: list[Candidate] = field(default_factory=list)
     forced: bool = False
+    taken: int = -1                   # the candidate whose fit is the result (-1: given, none tried)
 
     def to_dict(self) -> dict:
         return {"chosen": str(self.chosen), "forced": self.forced, "why": self.why,
-                "candidates": [c.to_dict() for c in self.candidates]}
+                "candidates": [dict(c.to_dict(), chosen=i == self.taken) for i, c in enumerate(self.candidates)]}
 
     def lines(self) -> list[str]:
         """The candidates as table rows (the chosen one marked)."""
-        out = [f"    {'orders':<36}{'params':>7}{'RMSE':>9}{'held out':>10}{'BIC':>12}  how / defects"]
-        for c in self.candidates:
-            mark = "  <- chosen" if c.orders == self.chosen else ""
+        out = [f"    {'orders':<50}{'stage':>9}{'params':>7}{'RMSE':>9}{'held out':>10}{'BIC':>12}  how; defects"]
+        for i, c in enumerate(self.candidates):
+            mark = "  <- chosen" if i == self.taken else ""
             note = c.how + (f"; {'; '.join(c.defects)}" if c.defects else "")
-            out.append(f"    {str(c.orders):<36}{c.n_params:>7d}{c.rmse:>9.4g}{c.heldout_rmse:>10.4g}"
+            out.append(f"    {str(c.orders):<50}{c.stage:>9}{c.n_params:>7d}{c.rmse:>9.4g}{c.heldout_rmse:>10.4g}"
                        f"{c.bic:>12.1f}  {note}{mark}")
         return out
+
+
+def forced(orders: Orders) -> StructureChoice:
+    return StructureChoice(orders, "given (--orders): no selection", forced=True)
 
 
 @dataclass
@@ -99,119 +114,327 @@ class _Trial:
     fit: SeparableFit
     fixed: np.ndarray
     candidate: Candidate
-    weak: list[int]                   # amplitude columns by what to drop first (defective, smallest)
     starts: list[str]
 
     @property
     def lay(self) -> Layout:
         return self.problem.lay
 
+    def found(self) -> tuple:
+        """The optimum as the joint search yields it (a start for the fit on every sample)."""
+        p = self.problem
+        return self.fit, self.fixed, self.starts, p.lower, p.upper, p.problem.nfev
 
-def forced(orders: Orders) -> StructureChoice:
-    return StructureChoice(orders, "given (--orders): no selection", forced=True)
+    def by_size(self) -> list[int]:
+        """Its amplitude columns, the smallest contribution (on the block means) first."""
+        return _by_size(self.lay, self.problem.problem.design(self.fit.nonlinear) * self.fit.linear[None, :])
 
 
-def select_structure(fd: PreparedRun, largest: Orders, start: ModelParameters | None,
-                     progress: Callable[[str, float], None] | None = None
-                     ) -> tuple[StructureChoice, tuple, DecimatedProblem]:
-    """Choose the structure (module docstring). Returns the choice, the chosen structure's
-    optimum as the joint search yields it (a start for its polish) and its search problem."""
+@dataclass
+class _Fitted:
+    """A structure fitted by the analysis core on every sample, judged."""
+
+    found: tuple                      # its search optimum (JointSearch's found)
+    core: Fit                         # the core's fit on every sample
+    candidate: Candidate
+    weak: list[int]                   # amplitude columns by what to drop first
+
+    @property
+    def orders(self) -> Orders:
+        return self.candidate.orders
+
+
+@dataclass
+class Selection:
+    """The structures screened and fitted; which fit to take, in order of preference."""
+
+    screened: list[Candidate]
+    fitted: list[_Fitted]             # the screening's choice first, then the repairs
+    kin: DecimatedProblem             # a search problem whose columns others reuse
+
+    def ranking(self) -> list[int]:
+        """The fits by preference (module docstring)."""
+        judged = [f.candidate for f in self.fitted]
+        order: list[int] = []
+        while len(order) < len(judged):
+            left = [i for i in range(len(judged)) if i not in order]
+            order.append(left[_conclude([judged[i] for i in left])[0]])
+        return order
+
+    def choice(self, taken: int, rejected: set[int] = frozenset()) -> StructureChoice:
+        """The choice of fit ``taken`` (the ones before it in the ranking rejected: the model's
+        own evaluation does not reproduce them)."""
+        judged = [replace(f.candidate, defects=f.candidate.defects + ((NOT_EVALUABLE,) if i in rejected else ()))
+                  for i, f in enumerate(self.fitted)]
+        left = [i for i in range(len(judged)) if i not in rejected]
+        why = _conclude([judged[i] for i in left])[1] if taken in left else "no fit the model's evaluation reproduces"
+        out = StructureChoice(judged[taken].orders, why, self.screened + judged)
+        out.taken = len(self.screened) + taken
+        return out
+
+
+@dataclass(frozen=True)
+class Move:
+    """A structure one move smaller and where its search starts."""
+
+    orders: Orders
+    start: np.ndarray                 # alpha and beta (the larger structure's, what remains)
+    fixed: np.ndarray                 # held there (a real damping mode stays real)
+    how: str
+
+
+#: The core's polish as identification runs it: (structure, its search's params, its own further
+#: starts when the first fit leaves structure, whether to try them) -> its fit on every sample.
+CoreFit = Callable[[Orders, ModelParameters, Callable[[], Iterable[ModelParameters]], bool], Fit]
+
+
+def select(fd: PreparedRun, largest: Orders, start: ModelParameters | None, core_fit: CoreFit,
+           evaluable: Callable[[Orders, tuple, Fit], bool], progress: Callable[[str, float], None] | None = None
+           ) -> Selection:
+    """Screen (phase 1), then judge fits on every sample and repair (phase 2). evaluable: does the
+    model's own evaluation reproduce a fit (structure, search optimum, core fit)? Asked of fits
+    without other defects (it costs an evaluation of the model)."""
+    screened, first = screen(fd, largest, start, progress)
+    kin = first.problem
+
+    def fitted(orders: Orders, found: tuple, how: str, more: Callable, extra: bool) -> _Fitted:
+        core = core_fit(orders, params_of(fd, orders.layout(fd.n_residual_cycles), found[0]), more, extra)
+        defects, weak = core_defects(core)
+        if not defects and not evaluable(orders, found, core):
+            defects.append(NOT_EVALUABLE)
+        heldout = heldout_rmse(core)
+        _, bic = information_criteria(core.rss, core.n, _n_params(core))
+        return _Fitted(found, core, Candidate(orders, how, "fitted", _n_params(core), core.rmse, heldout, bic,
+                                              tuple(defects)), weak)
+
+    def more_of(orders: Orders, other_starts=()) -> Callable[[], Iterable[ModelParameters]]:
+        lay = orders.layout(fd.n_residual_cycles)
+        ranked = ranked_searches(DecimatedProblem(fd, orders, kin), _start_of(fd, orders, largest, start),
+                                 progress, other_starts)
+        return lambda: (params_of(fd, lay, f) for f, *_ in itertools.islice(ranked, 1))
+
+    done = [fitted(first.candidate.orders, first.found(), "the screening's choice",
+                   more_of(first.candidate.orders), True)]
+    current = done[0]
+    while current.candidate.defects and len(done) < MAX_FITTED:
+        if progress:
+            progress(f"structure: repairing {current.candidate.orders}", 0.7)
+        moves = _repairs(current)
+        if not moves:
+            break
+        trials = []
+        for move in moves[:MAX_FITTED - len(done)]:
+            ranked = ranked_searches(DecimatedProblem(fd, move.orders, kin), _start_of(fd, move.orders, largest, start),
+                                     None, [("the larger fit's values", move.start)])
+            trials.append(fitted(move.orders, next(ranked), move.how, lambda: (), False))
+        done += trials
+        current = min(trials, key=lambda f: (not f.candidate.admissible, len(f.candidate.defects), f.candidate.bic))
+    return Selection(screened, done, kin)
+
+
+def _start_of(fd: PreparedRun, orders: Orders, largest: Orders, start: ModelParameters | None):
+    """The paper's three-step start of a structure (the largest's is given)."""
+    return start if orders == largest else paper_steps(fd, orders).start
+
+
+def _conclude(judged: list[Candidate]) -> tuple[int, str]:
+    """The fit chosen (module docstring) and why."""
+    admissible = [i for i, c in enumerate(judged) if c.admissible]
+    if not admissible:
+        best = min(range(len(judged)), key=lambda i: (len(judged[i].defects), judged[i].bic))
+        return best, f"no structure fitted is free of defects: the one with the fewest ({len(judged[best].defects)})"
+    low = min(judged[i].bic for i in admissible)
+    best = min((i for i in admissible if judged[i].bic <= low + BIC_TIE), key=lambda i: (judged[i].n_params, judged[i].bic))
+    if best == 0:
+        return best, "the screening's choice (lowest BIC, fewest parameters within a tie): every parameter determined, no terms cancel"
+    return best, (f"every parameter determined, no terms cancel, the lowest BIC of such (the fewest parameters "
+                  f"within {BIC_TIE:g}); the screening's choice: {'; '.join(judged[0].defects)}")
+
+
+def screen(fd: PreparedRun, largest: Orders, start: ModelParameters | None,
+           progress: Callable[[str, float], None] | None = None) -> tuple[list[Candidate], _Trial]:
+    """Phase 1 (module docstring): the largest searched globally, smaller structures by moves;
+    returns the candidates screened and the screening's choice."""
     big = DecimatedProblem(fd, largest)
     fit, fixed, names, *_ = next(ranked_searches(big, start, progress))
     scorer = _Scorer(fd)
     current = scorer.trial(big, fit, fixed, "the largest (global search)", names)
     tried = {largest: current}
-    while len(tried) < MAX_CANDIDATES:
+    while len(tried) < MAX_SCREENED:
         if progress:
             progress(f"structure: from {current.candidate.orders}", 0.6)
-        moves = [m for m in _moves(current) if m[0] not in tried][:MAX_CANDIDATES - len(tried)]
+        moves = [m for m in _moves(current.lay, current.fit.nonlinear, current.fixed, current.by_size())
+                 if m.orders not in tried][:MAX_SCREENED - len(tried)]
         if not moves:
             break
         trials = []
-        for orders, theta0, how in moves:
-            problem = DecimatedProblem(fd, orders, kin=current.problem)
-            refit, refixed = problem.refine_locally(theta0)
-            trials.append(scorer.trial(problem, refit, refixed, how, current.starts))
+        for move in moves:
+            problem = DecimatedProblem(fd, move.orders, kin=current.problem)
+            trials.append(scorer.trial(problem, problem.local(move.start, move.fixed), move.fixed, move.how,
+                                       current.starts))
         tried.update((t.candidate.orders, t) for t in trials)
-        best = min(trials, key=lambda t: _rank(t.candidate))
-        if not _replaces(best.candidate, current.candidate):
+        best = min(trials, key=lambda t: t.candidate.bic)
+        if best.candidate.bic > current.candidate.bic + BIC_TIE:
             break
         current = best
-    chosen, why = _choose([t.candidate for t in tried.values()])
-    trial = tried[chosen]
-    found = (trial.fit, trial.fixed, trial.starts, trial.problem.lower, trial.problem.upper,
-             trial.problem.problem.nfev)
-    return StructureChoice(chosen, why, [t.candidate for t in tried.values()]), found, trial.problem
+    screened = [t.candidate for t in tried.values()]
+    low = min(c.bic for c in screened)
+    chosen = min((c for c in screened if c.bic <= low + BIC_TIE), key=lambda c: (c.n_params, c.bic))
+    trial = tried[chosen.orders]
+    if chosen.orders != largest and not trial.fixed.any():   # an oscillation the data do not support
+        trial.fit, trial.fixed = trial.problem.real_modes(trial.fit)
+    return screened, trial
 
 
-def _rank(c: Candidate) -> tuple:
-    """Best first: admissible, then fewer defects, then lower BIC."""
-    return (not c.admissible, len(c.defects), c.bic)
+def _repairs(fitted: _Fitted) -> list[Move]:
+    """The moves that remove a defect of a fit: orders shared by every cycle when a later cycle's
+    are not determined; a damping mode less when one is defective; a residual term less when one is."""
+    core = fitted.core
+    lay = core.params.layout
+    nonlinear = core.model.split(core.nu)[0]
+    moves = _moves(lay, nonlinear, _real(lay, nonlinear), fitted.weak)
+    named = [d.split(" ", 1)[0] for d in fitted.candidate.defects]
+    out = []
+    if any(_cycle_of(n) > 1 for n in named):
+        out += [m for m in moves if m.orders.shared and not lay.shared]
+    # a fit the model's evaluation does not reproduce: either kind of term dropped
+    odd = NOT_EVALUABLE in fitted.candidate.defects
+    if odd or any(n.startswith("alpha") or (n[:1] == "a" and n[1:2].isdigit()) for n in named):
+        out += [m for m in moves if m.orders.N < lay.N]
+    if odd or any(n.startswith(("beta", "r")) for n in named):
+        out += [m for m in moves if m.orders.M < lay.M]
+    return out
 
 
-def _replaces(smaller: Candidate, current: Candidate) -> bool:
-    """Does a structure made by one move from the current one take its place?"""
-    if smaller.admissible != current.admissible:
-        return smaller.admissible
-    if not smaller.admissible:
-        return (len(smaller.defects), smaller.bic) < (len(current.defects), current.bic)
-    return smaller.bic <= current.bic + BIC_TIE
+def core_defects(core: Fit) -> tuple[list[str], list[int]]:
+    """What makes a fit inadmissible - parameters the data do not determine, amplitude pairs that
+    cancel - and its amplitude columns by what to drop first: those of defective terms, then by
+    the size of their contribution. A real mode's Im alpha (at its bound 0) is not a parameter."""
+    lay = core.params.layout
+    theta = core.solution.theta
+    phi = core.model.split(core.nu)[0]
+    L = lay.n_linear
+    names = np.array(_design_names(lay) + _nonlinear_names(lay) + ["zero"])
+    lo, hi = core.model.bounds()
+    keep = np.concatenate([np.ones(L, bool), ~_real(lay, phi), [True]])
+    values = np.concatenate([theta[:L], phi, theta[L:L + 1]])
+    ranges = np.concatenate([np.full(L, np.inf), hi[:len(phi)] - lo[:len(phi)], [np.inf]])
+    unc = parameter_uncertainty(core.jacobian()[:, keep], core.solution.residual, values[keep],
+                                list(names[keep]), ranges=ranges[keep])
+    undetermined = names[keep][~unc.determined]
+    defects = [f"{n} not determined" for n in undetermined]
+    bad = {_column_of_name(lay, str(n)) for n in undetermined} - {-1}
+    rows = np.flatnonzero(core.solution.used[0])
+    parts = core.solution.designs[0][0][rows, :L] * theta[None, :L]
+    for i, j in _cancelling(lay, parts):
+        defects.append(f"{names[i]} = {theta[i]:.4g} and {names[j]} = {theta[j]:.4g} cancel")
+        bad.update((i, j))
+    return defects, _by_size(lay, parts, bad)
 
 
-def _choose(candidates: list[Candidate]) -> tuple[Orders, str]:
-    admissible = [c for c in candidates if c.admissible]
-    if not admissible:
-        best = min(candidates, key=_rank)
-        return best.orders, (f"no structure tried is free of defects; the fewest ({len(best.defects)}), "
-                             "then the lowest BIC")
-    low = min(c.bic for c in admissible)
-    tied = [c for c in admissible if c.bic <= low + BIC_TIE]
-    best = min(tied, key=lambda c: (c.n_params, c.bic))
-    why = "the lowest BIC of the structures whose terms the data determine and none cancel"
-    if best.bic > low:
-        why = (f"the fewest parameters of the admissible structures within {BIC_TIE:g} of the lowest BIC "
-               "(terms determined, none cancelling)")
-    return best.orders, why
+def _real(lay: Layout, phi: np.ndarray) -> np.ndarray:
+    """Nonlinear parameters at a real mode's Im alpha = 0 (its bound)."""
+    out = np.zeros(len(phi), bool)
+    im = np.arange(1, 2 * lay.N, 2)
+    out[im] = phi[im] <= REAL_MODE_RATIO * phi[im - 1]
+    return out
+
+
+def _n_params(core: Fit) -> int:
+    lay = core.params.layout
+    return lay.n_linear + int(np.count_nonzero(~_real(lay, core.model.split(core.nu)[0]))) + 1
 
 
 # ----------------------------------------------------------------------------- moves
 
-def _moves(trial: _Trial) -> list[tuple[Orders, np.ndarray, str]]:
-    """(orders, warm start of alpha and beta, how) of each structure one move smaller."""
-    lay, theta = trial.lay, trial.fit.nonlinear
+def _moves(lay: Layout, nonlinear: np.ndarray, fixed: np.ndarray, weak: list[int]) -> list[Move]:
+    """Each structure one move smaller, from the larger one's alpha and beta (weak: its amplitude
+    columns by what to drop first)."""
     orders = lay.orders
     p1, N, M, C = lay.P + 1, lay.N, lay.M, lay.C
-    alphas, betas = theta[:2 * N].reshape(N, 2), theta[2 * N:]
+    alphas, betas = nonlinear[:2 * N].reshape(N, 2), nonlinear[2 * N:]
+    real = fixed[:2 * N].reshape(N, 2)
     out = []
+
+    def move(new: Orders, keep_modes: np.ndarray, kept_betas: np.ndarray, how: str) -> None:
+        start = np.concatenate([alphas[keep_modes].ravel(), kept_betas])
+        held = np.concatenate([real[keep_modes].ravel(), np.zeros(len(kept_betas), bool)])
+        out.append(Move(new, start, held, how))
+
+    every = np.ones(N, bool)
     if not lay.shared and C > 1:
         # the first cycle's orders for all: its terms are the largest, the best determined
-        out.append((replace(orders, shared=True), np.concatenate([alphas.ravel(), betas[:M]]),
-                    "orders shared by every cycle"))
-    modes = [j - p1 for j in trial.weak if p1 <= j < p1 + N]
+        move(replace(orders, shared=True), every, betas[:M], "orders shared by every cycle")
+    modes = [j - p1 for j in weak if p1 <= j < p1 + N]
     if modes:
-        out.append((replace(orders, N=N - 1), np.concatenate([np.delete(alphas, modes[0], 0).ravel(), betas]),
-                    f"damping mode {modes[0] + 1} dropped"))
-    terms = [j - p1 - N for j in trial.weak if j >= p1 + N]
+        move(replace(orders, N=N - 1), np.arange(N) != modes[0], betas, f"damping mode {modes[0] + 1} dropped")
+    terms = [j - p1 - N for j in weak if j >= p1 + N]
     if M > 1 and terms:
         if lay.shared:
             m = terms[0] % M
-            out.append((replace(orders, M=M - 1), np.concatenate([alphas.ravel(), np.delete(betas, m)]),
-                        f"residual term {m + 1} dropped"))
+            move(replace(orders, M=M - 1), every, np.delete(betas, m), f"residual term {m + 1} dropped")
         else:   # each cycle its weakest term
             drop = [next(t for t in terms if t // M == c) for c in range(C)]
-            out.append((replace(orders, M=M - 1), np.concatenate([alphas.ravel(), np.delete(betas, drop)]),
-                        "each cycle's weakest residual term dropped"))
+            move(replace(orders, M=M - 1), every, np.delete(betas, drop), "each cycle's weakest residual term dropped")
     if C > 1:
-        kept = betas if lay.shared else betas[:(C - 1) * M]
-        out.append((replace(orders, C=C - 1), np.concatenate([alphas.ravel(), kept]),
-                    f"cycles from {C - 1} on share the terms of cycle {C - 1}"))
+        move(replace(orders, C=C - 1), every, betas if lay.shared else betas[:(C - 1) * M],
+             f"cycles from {C - 1} on share the terms of cycle {C - 1}")
     return out
 
 
-# ----------------------------------------------------------------------------- scores
+def _cancelling(lay: Layout, parts: np.ndarray) -> list[tuple[int, int]]:
+    """Amplitude columns (damping with damping, residual with residual) whose contributions cancel."""
+    p1 = lay.P + 1
+    size = np.linalg.norm(parts, axis=0)
+    out = []
+    for group in (range(p1, p1 + lay.N), range(p1 + lay.N, lay.n_linear)):
+        for i, j in itertools.combinations(group, 2):
+            if min(size[i], size[j]) > 0 and \
+                    np.linalg.norm(parts[:, i] + parts[:, j]) < CANCEL_RATIO * max(size[i], size[j]):
+                out.append((i, j))
+    return out
+
+
+def _by_size(lay: Layout, parts: np.ndarray, bad: set[int] = frozenset()) -> list[int]:
+    """Amplitude columns (damping and residual) by what to drop first: defective, then smallest."""
+    size = np.linalg.norm(parts, axis=0)
+    return sorted(range(lay.P + 1, lay.n_linear), key=lambda j: (j not in bad, size[j]))
+
+
+def _design_names(lay: Layout) -> list[str]:
+    names = [f"k{i}" for i in range(lay.P + 1)] + [f"a{i + 1}" for i in range(lay.N)]
+    return names + [f"r{c + 1}_{m + 1}" for c in range(lay.C) for m in range(lay.M)]
+
+
+def _column_of_name(lay: Layout, name: str) -> int:
+    """The amplitude column of the term a parameter belongs to (-1: an elastic coefficient)."""
+    digits = name.lstrip("abelphrt").split("_")
+    if name.startswith(("a", "alpha")):
+        return lay.P + int(digits[0])
+    if name.startswith(("r", "beta")):
+        c, m = int(digits[0]), int(digits[1])
+        return lay.P + 1 + lay.N + (c - 1) * lay.M + (m - 1)
+    return -1
+
+
+def _nonlinear_names(lay: Layout) -> list[str]:
+    """As FitResult names them (a shared order by its first cycle's name)."""
+    names = [f"alpha{i + 1}_{part}" for i in range(lay.N) for part in ("re", "im")]
+    cycles = 1 if lay.shared else lay.C
+    return names + [f"beta{c + 1}_{m + 1}" for c in range(cycles) for m in range(lay.M)]
+
+
+def _cycle_of(name: str) -> int:
+    """The cycle a parameter belongs to (r2_1, beta3_2 -> 2, 3; 0 for none)."""
+    if name.startswith(("r", "beta")) and "_" in name:
+        return int(name.lstrip("abert").split("_")[0])
+    return 0
+
+
+# ----------------------------------------------------------------------------- screening scores
 
 class _Scorer:
-    """Each structure's scores by the analysis core on the decimated run (the samples
+    """Each screened structure's scores by the analysis core on the decimated run (the samples
     diagnosis searches on): the linear parameters and the contact set solved for the
     structure's alpha and beta, the held-out blocks as diagnosis predicts them."""
 
@@ -228,56 +451,5 @@ class _Scorer:
         core = Fit([], model, nu, np.zeros(0), model.solve(nu))
         n_params = problem.lay.n_linear + int(np.count_nonzero(~fixed)) + 1
         _, bic = information_criteria(core.rss, core.n, n_params)
-        defects, weak = _defects(problem, fit, fixed)
-        candidate = Candidate(problem.lay.orders, how, n_params, core.rmse, heldout_rmse(core), bic,
-                              tuple(defects))
-        return _Trial(problem, fit, fixed, candidate, weak, list(starts))
-
-
-def _defects(problem: DecimatedProblem, fit: SeparableFit, fixed: np.ndarray) -> tuple[list[str], list[int]]:
-    """What makes the structure inadmissible, and its amplitude columns by what to drop first:
-    those of defective terms (undetermined, cancelling), then by the size of their contribution."""
-    lay = problem.lay
-    names = np.array(_design_names(lay) + [n for n, f in zip(_nonlinear_names(lay), fixed) if not f])
-    jac = problem.jacobian(fit, fixed)
-    values = np.concatenate([fit.linear, fit.nonlinear[~fixed]])
-    lower, upper = problem.lower[~fixed], problem.upper[~fixed]
-    ranges = np.concatenate([np.full(lay.n_linear, np.inf), upper - lower])
-    unc = parameter_uncertainty(jac, fit.residual, values, list(names), ranges=ranges)
-    p1 = lay.P + 1
-    term_of = _term_of_columns(lay, fixed)                  # Jacobian column -> amplitude column
-    bad = {int(term_of[i]) for i in np.flatnonzero(~unc.determined) if term_of[i] >= p1}
-    defects = [f"{n} not determined" for n in names[~unc.determined]]
-    design = problem.problem.design(fit.nonlinear)
-    parts = design * fit.linear[None, :]
-    size = np.linalg.norm(parts, axis=0)
-    groups = [range(p1, p1 + lay.N), range(p1 + lay.N, lay.n_linear)]
-    for group in groups:
-        for i, j in itertools.combinations(group, 2):
-            if min(size[i], size[j]) > 0 and np.linalg.norm(parts[:, i] + parts[:, j]) < CANCEL_RATIO * max(size[i], size[j]):
-                defects.append(f"{names[i]} = {fit.linear[i]:.4g} and {names[j]} = {fit.linear[j]:.4g} cancel")
-                bad.update((i, j))
-    weak = sorted(range(p1, lay.n_linear), key=lambda j: (j not in bad, size[j]))
-    return defects, weak
-
-
-def _design_names(lay: Layout) -> list[str]:
-    names = [f"k{i}" for i in range(lay.P + 1)] + [f"a{i + 1}" for i in range(lay.N)]
-    return names + [f"r{c + 1}_{m + 1}" for c in range(lay.C) for m in range(lay.M)]
-
-
-def _nonlinear_names(lay: Layout) -> list[str]:
-    names = [f"alpha{i + 1}_{part}" for i in range(lay.N) for part in ("re", "im")]
-    if lay.shared:
-        return names + [f"beta{m + 1}" for m in range(lay.M)]
-    return names + [f"beta{c + 1}_{m + 1}" for c in range(lay.C) for m in range(lay.M)]
-
-
-def _term_of_columns(lay: Layout, fixed: np.ndarray) -> np.ndarray:
-    """For each Jacobian column (linear, then free nonlinear): the amplitude column of its term
-    (a shared order: its term's column in the first cycle; -1 for none)."""
-    linear = np.arange(lay.n_linear)
-    nonlinear = np.array([lay.column_of_nonlinear(j) for j in range(lay.n_nonlinear)])[~fixed]
-    out = np.concatenate([linear, nonlinear])
-    out[:lay.P + 1] = -1
-    return out
+        candidate = Candidate(problem.lay.orders, how, "screened", n_params, core.rmse, heldout_rmse(core), bic)
+        return _Trial(problem, fit, fixed, candidate, list(starts))

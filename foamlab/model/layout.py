@@ -25,22 +25,35 @@ BETA_LO, BETA_HI = -3.0, 0.99
 #: columns); later cycles reuse the last one's terms, so a long run costs no more parameters.
 OWN_RESIDUAL_CYCLES = 3
 
+#: The residual memory's two forms (docs/model.md, "Two forms of the residual force"):
+#: 'causal', Eq. 10 continued through later half-cycles; 'paper', each cycle's Eq. 11 as a
+#: function of x, added again in every later half-cycle as Eqs. 20b-f print it.
+RESIDUAL_FORMS = ("causal", "paper")
+
+
+def check_form(form: str) -> str:
+    if form not in RESIDUAL_FORMS:
+        raise FoamlabError(f"residual form {form!r}: expected one of {', '.join(RESIDUAL_FORMS)}")
+    return form
+
 
 @dataclass(frozen=True)
 class Orders:
     """Model orders: N damping modes, M residual terms per cycle, elastic polynomial order P,
-    and C, the cycles with residual terms of their own (later cycles reuse the last one's;
-    None: every cycle its own, the paper's per-cycle table). shared: the M fractional orders
-    are common to every cycle, each cycle keeps amplitudes of its own (the paper's Table 3
-    finds nearly the same orders in its three cycles)."""
+    C, the cycles with residual terms of their own (later cycles reuse the last one's;
+    None: every cycle its own, the paper's per-cycle table), the residual form, and shared: the
+    M fractional orders are common to every cycle, each cycle keeps amplitudes of its own (the
+    paper's Table 3 finds nearly the same orders in its three cycles)."""
 
     N: int = 3
     M: int = 3
     P: int = 7
     C: int | None = OWN_RESIDUAL_CYCLES
+    form: str = "causal"
     shared: bool = False
 
     def __post_init__(self) -> None:
+        check_form(self.form)
         if self.N < 0 or self.M < 0 or self.P < 1:
             raise FoamlabError(f"orders N={self.N}, M={self.M}, P={self.P}: need N >= 0, M >= 0, P >= 1")
         if self.C is not None and self.C < 1:
@@ -71,13 +84,15 @@ class Orders:
         """Cycles with residual terms of their own in a run with this many unloadings."""
         return cycles if self.C is None else max(1, min(self.C, cycles))
 
-    def layout(self, cycles: int) -> "Layout":
-        """The flat layout of a run with this many unloadings."""
-        return Layout(P=self.P, N=self.N, M=self.M, C=self.residual_cycles(cycles), shared=self.shared)
-
     def __str__(self) -> str:
         own = "every cycle" if self.C is None else f"C={self.C}"
-        return f"N={self.N}, M={self.M}, P={self.P}, {own}" + (", shared orders" if self.shared else "")
+        return (f"N={self.N}, M={self.M}, P={self.P}, {own}" + (", shared orders" if self.shared else "")
+                + f", {self.form} residual")
+
+    def layout(self, cycles: int) -> "Layout":
+        """The flat layout of a run with this many unloadings."""
+        return Layout(P=self.P, N=self.N, M=self.M, C=self.residual_cycles(cycles), form=self.form,
+                      shared=self.shared)
 
 
 @dataclass(frozen=True)
@@ -93,6 +108,7 @@ class Layout:
     N: int
     M: int
     C: int  # cycles with their own residual terms
+    form: str = "causal"  # what the residual columns are (RESIDUAL_FORMS)
     shared: bool = False  # one order per residual term for all cycles (amplitudes per cycle)
 
     @property
@@ -118,7 +134,7 @@ class Layout:
 
     @property
     def orders(self) -> Orders:
-        return Orders(N=self.N, M=self.M, P=self.P, C=self.C, shared=self.shared)
+        return Orders(N=self.N, M=self.M, P=self.P, C=self.C, form=self.form, shared=self.shared)
 
     def betas(self, nonlinear: np.ndarray) -> np.ndarray:
         """(C, M): the order of each cycle's terms."""
