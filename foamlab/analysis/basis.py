@@ -293,11 +293,11 @@ class ModelBasis:
         self._cache = _ColumnCache()
 
     def with_layout(self, layout: Layout) -> "ModelBasis":
-        """The same basis for another layout of the same cycles and elastic order (other orders
-        N, M, shared or not): the operators and their cached columns are shared, so the
+        """The same basis for another layout of the same columns (Layout.same_columns: other
+        orders N, M, shared or not): the operators and their cached columns are shared, so the
         structures a selection tries cost their solves, not their columns again."""
-        if (layout.C, layout.P) != (self.layout.C, self.layout.P):
-            raise ValueError("another layout of a basis must keep its cycles and elastic order")
+        if not layout.same_columns(self.layout):
+            raise ValueError("another layout of a basis must keep its cycles, elastic order and form")
         other = copy.copy(self)
         other.layout = layout
         return other

@@ -165,7 +165,7 @@ class Series:
         deflects under (machine_compliance subtracts C times its memory columns)."""
         key = (layout, x_scale_mm, frame_tau_s)
         kin = next((v for k, v in self._bases.items() if isinstance(v, ModelBasis) and k[1:] == key[1:]
-                    and (k[0].C, k[0].P) == (layout.C, layout.P)), None)
+                    and k[0].same_columns(layout)), None)
         if key not in self._bases and kin is not None:     # another structure of the same cycles
             self._bases[key] = kin.with_layout(layout)
         if key not in self._bases:

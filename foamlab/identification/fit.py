@@ -178,11 +178,17 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress) -> 
             result.structure = selection.choice(i, rejected)
             return result
         rejected.add(i)
-    # no fit the model's evaluation reproduces: the screening's choice fitted as a structure given
-    orders = selection.fitted[0].orders
-    steps = paper if orders == largest else paper_steps(fd, orders)
-    result = _fit_structure(fd, orders, steps, JointSearch(fd, orders, steps.start, report), report)
-    result.structure = selection.choice(0, rejected)
+    # none is reproduced by the model's evaluation (within a tenth of the noise): the first choice
+    # as the core fitted it (exact columns), and a warning that the simulator runs it differently
+    first = selection.ranking()[0]
+    chosen = selection.fitted[first]
+    steps = paper if chosen.orders == largest else paper_steps(fd, chosen.orders)
+    jf = _from_core(fd, unpolished(fd, chosen.orders.layout(fd.n_residual_cycles), chosen.found), chosen.core,
+                    reproduced=False)
+    result = _result(fd, chosen.orders, steps, jf, time.perf_counter(), chosen.core)
+    result.warnings.append("the model's own evaluation (what the simulator runs) does not reproduce this fit "
+                           "within a tenth of the noise, nor any other structure's tried")
+    result.structure = selection.choice(first, rejected - {first})
     return result
 
 
@@ -238,10 +244,10 @@ def _orders(orders) -> Orders | None:
 CORNER_STEPS = 2.0
 
 
-def _from_core(fd: PreparedRun, jf: JointFit, base: Fit) -> JointFit | None:
+def _from_core(fd: PreparedRun, jf: JointFit, base: Fit, reproduced: bool = True) -> JointFit | None:
     """The core's polished base in identification's terms (canonical order, the zero offset in
     k0, the Jacobian of every free parameter at the solution); None when the polish found no
-    better optimum, or one the model's own evaluation cannot reproduce (see evaluable)."""
+    better optimum, or (reproduced) one the model's own evaluation cannot reproduce (see evaluable)."""
     lay = jf.layout
     sol = base.solution
     # the rows identification reports on: the cycles' samples the path determines
@@ -282,7 +288,7 @@ def _from_core(fd: PreparedRun, jf: JointFit, base: Fit) -> JointFit | None:
         near |= np.abs(fd.t - tc) <= CORNER_STEPS * step
     checked = ~near[rows]
     polished_check = replace(polished, residual=residual[checked])
-    return polished if evaluable(fd, polished_check, rows[checked]) else None
+    return polished if not reproduced or evaluable(fd, polished_check, rows[checked]) else None
 
 
 def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float,

@@ -12,8 +12,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import numpy as np
+
+from foamlab.analysis.design import ExtendedModel
 from foamlab.analysis.heldout import heldout_rmse
-from foamlab.analysis.solve import Fit, fit_base
+from foamlab.analysis.solve import Fit
 
 if TYPE_CHECKING:
     from foamlab.identification.result import FitResult
@@ -57,10 +60,13 @@ class FormChoice:
 
 
 def core_fit_of(result: "FitResult") -> Fit:
-    """The analysis core's fit behind a result (fitted now if identification kept its own)."""
+    """The analysis core's fit behind a result; where identification kept its own, the core's
+    solution at the result's alpha and beta (refitting them would score another model: one the
+    model's evaluation did not reproduce can predict far better than the result)."""
     if result.core_fit is not None:
         return result.core_fit
-    return fit_base([result.prepared.series], result.params)
+    model = ExtendedModel([result.prepared.series], result.params)
+    return Fit([], model, np.zeros(0), np.zeros(0), model.solve())
 
 
 def score(result: "FitResult") -> FormScore:

@@ -247,7 +247,7 @@ class DecimatedProblem:
         self.fd, self.orders = fd, orders
         self.lay = lay = _layout(fd, orders)
         self.lower, self.upper = nonlinear_bounds(orders, lay.C, fd.loading_time_s)
-        if kin is not None and (kin.lay.C, kin.lay.P) == (lay.C, lay.P):
+        if kin is not None and kin.lay.same_columns(lay):
             self.coarse = kin.coarse.with_layout(lay)
         else:
             self.coarse = fd.nodes.basis(fd.fit_rows, lay, fd.x_scale_mm, fd.fit_step_s)

@@ -49,7 +49,7 @@ CANCEL_RATIO = 0.2
 #: this ("very strong" evidence, as diagnosis' DELTA_BIC_MIN).
 BIC_TIE = 10.0
 #: At most this many structures are screened (the largest included), and fitted on every sample.
-MAX_SCREENED, MAX_FITTED = 10, 6
+MAX_SCREENED, MAX_FITTED = 10, 5
 #: The defect of a fit the model's own evaluation does not reproduce (identification.joint.evaluable).
 NOT_EVALUABLE = "the model's own evaluation does not reproduce its fit"
 

@@ -136,6 +136,11 @@ class Layout:
     def orders(self) -> Orders:
         return Orders(N=self.N, M=self.M, P=self.P, C=self.C, form=self.form, shared=self.shared)
 
+    def same_columns(self, other: "Layout") -> bool:
+        """Are the columns of one a basis of the other's (the same cycles, elastic order and
+        residual form; the orders N, M and their sharing may differ)?"""
+        return (self.C, self.P, self.form) == (other.C, other.P, other.form)
+
     def betas(self, nonlinear: np.ndarray) -> np.ndarray:
         """(C, M): the order of each cycle's terms."""
         beta = np.asarray(nonlinear[2 * self.N:], float)
