@@ -144,7 +144,7 @@ class FitResult:
         constraints. Standard errors of parameters the data do not determine are null."""
         parameters = {p.name: p.to_dict() for p in self.parameters.values()}
         parameters["x_scale_mm"] = {"value": float(self.params.x_scale_mm), "stderr": None, "lower": None,
-                                    "upper": None, "varied": False, "unit": "mm"}
+                                    "upper": None, "varied": False, "unit": "mm", "determined": False}
         statistics = {}
         for step in STEPS:
             st = self.statistics.get(step)
