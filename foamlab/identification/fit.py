@@ -159,36 +159,22 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress) -> 
             return out
         return polish([fd.series], params, others)
 
-    polished: dict[int, JointFit | None] = {}    # by id of the core fit: checked once
-
-    def reproduced(orders: Orders, found: tuple, core: Fit) -> JointFit | None:
-        if id(core) not in polished:
-            polished[id(core)] = _from_core(fd, unpolished(fd, orders.layout(fd.n_residual_cycles), found), core)
-        return polished[id(core)]
-
-    selection = select(fd, largest, paper.start, core_fit, lambda *a: reproduced(*a) is not None, report)
-    rejected: set[int] = set()
-    for i in selection.ranking():
-        chosen = selection.fitted[i]
-        jf = reproduced(chosen.orders, chosen.found, chosen.core)
-        if jf is not None:
-            steps = paper if chosen.orders == largest else paper_steps(fd, chosen.orders)   # its Table 5
-            report("statistics", 0.9)
-            result = _result(fd, chosen.orders, steps, jf, time.perf_counter(), chosen.core)
-            result.structure = selection.choice(i, rejected)
-            return result
-        rejected.add(i)
-    # none is reproduced by the model's evaluation (within a tenth of the noise): the first choice
-    # as the core fitted it (exact columns), and a warning that the simulator runs it differently
-    first = selection.ranking()[0]
-    chosen = selection.fitted[first]
-    steps = paper if chosen.orders == largest else paper_steps(fd, chosen.orders)
-    jf = _from_core(fd, unpolished(fd, chosen.orders.layout(fd.n_residual_cycles), chosen.found), chosen.core,
-                    reproduced=False)
-    result = _result(fd, chosen.orders, steps, jf, time.perf_counter(), chosen.core)
-    result.warnings.append("the model's own evaluation (what the simulator runs) does not reproduce this fit "
-                           "within a tenth of the noise, nor any other structure's tried")
-    result.structure = selection.choice(first, rejected - {first})
+    selection = select(fd, largest, paper.start, core_fit, report)
+    chosen = selection.chosen
+    steps = paper if chosen.orders == largest else paper_steps(fd, chosen.orders)   # its Table 5
+    jf = unpolished(fd, chosen.orders.layout(fd.n_residual_cycles), chosen.found)
+    polished = _from_core(fd, jf, chosen.core)
+    unreproduced = polished is None
+    if unreproduced:
+        # the model's evaluation (what the simulator runs) does not reproduce the core's fit; its
+        # terms neither cancel nor escape the data (the selection's defects): the fit is kept
+        polished = _from_core(fd, jf, chosen.core, reproduced=False)
+    report("statistics", 0.9)
+    result = _result(fd, chosen.orders, steps, polished, time.perf_counter(), chosen.core)
+    if unreproduced:
+        result.warnings.append("the model's own evaluation (what the simulator runs) does not reproduce this fit "
+                               "within a tenth of its residual")
+    result.structure = selection.choice()
     return result
 
 

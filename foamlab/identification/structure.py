@@ -5,28 +5,34 @@ orders of their own) by moves, each removing something: the orders shared by eve
 beta per term, each cycle its own amplitudes: the paper's Table 3 finds nearly the same orders in
 its three cycles), a damping mode less, a residual term less, a cycle fewer with terms of its own.
 
-1. Screening (``screen``): the largest is searched globally; from it, every move is refitted from
-   the larger one's values on the search's block means (a warm start: cheap) and scored by the
-   analysis core on the decimated run: RMSE, held-out RMSE (analysis.heldout, as diagnosis
-   predicts), BIC. The best move is taken while it costs at most BIC_TIE (fewer parameters at no
-   real cost). The screening's choice: the lowest BIC, or the fewest parameters within BIC_TIE of it.
-2. The fit (identification.fit): the screening's choice is fitted on every sample. A fit is
-   admissible when the data determine every one of its parameters and no two of its terms cancel
-   (two amplitudes of large opposite value whose sum is small: a derivative of the model's terms in
-   their order, not two terms of the model). While it is not, the structure one move smaller that
-   removes the defect is fitted from its values (``repair``). The result: the admissible fit with
-   the lowest BIC (the fewest parameters within BIC_TIE), else the one with the fewest defects.
+1. The largest is fitted as a given structure is (global search, the analysis core's polish on
+   every sample with identification's other starts).
+2. Screening (``screen``): from that fit's values, every move is refitted on the search's block
+   means (a warm start: cheap) and scored by the analysis core on the decimated run: RMSE,
+   held-out RMSE (analysis.heldout, as diagnosis predicts), BIC. The best move is taken while it
+   costs at most BIC_TIE (fewer parameters at no real cost); the screening's choice is the lowest
+   BIC, or the fewest parameters within BIC_TIE of it.
+3. The screening's choice is fitted on every sample. A fit is admissible when the data determine
+   every one of its parameters and no two of its terms cancel (two amplitudes of large opposite
+   value whose sum is small: a derivative of the model's terms in their order, not two terms of
+   the model) or are one term seen twice (amplitudes correlated beyond TWIN_CORRELATION). While
+   the fit is not, the structures that remove its defects are fitted (one move smaller: shared
+   orders for a later cycle's, a damping mode or a residual term less for theirs; the same
+   structure from another start when it is only a local optimum), at most MAX_FITTED in all; the
+   smallest structure when none is admissible.
+4. The result: the admissible fit with the lowest BIC, or the one with the fewest parameters
+   within BIC_TIE of it; else the one with the fewest defects.
 
 Only the fits on every sample judge admissibility: the search's optima are rougher (on the
-simulated main job the screening's optimum of the right structure had a damping mode the search
-could not place; the fit on every sample determines it).
+simulated main job the search's optimum of the right structure had two terms of nearly one order
+and a damping mode it could not place; the fit on every sample, from another start, had neither).
 """
 
 from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, field, replace
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -49,9 +55,11 @@ CANCEL_RATIO = 0.2
 #: this ("very strong" evidence, as diagnosis' DELTA_BIC_MIN).
 BIC_TIE = 10.0
 #: At most this many structures are screened (the largest included), and fitted on every sample.
-MAX_SCREENED, MAX_FITTED = 10, 5
-#: The defect of a fit the model's own evaluation does not reproduce (identification.joint.evaluable).
-NOT_EVALUABLE = "the model's own evaluation does not reproduce its fit"
+MAX_SCREENED, MAX_FITTED = 10, 6
+#: Two amplitudes of one component correlated beyond this are one term the data see twice (the
+#: main job's fits: 0.997 between one term's amplitudes in consecutive cycles; 1.0000 where two
+#: terms of nearly one order share what one of them would do).
+TWIN_CORRELATION = 0.999
 
 
 @dataclass(frozen=True)
@@ -138,6 +146,7 @@ class _Fitted:
     core: Fit                         # the core's fit on every sample
     candidate: Candidate
     weak: list[int]                   # amplitude columns by what to drop first
+    optima: Iterator[tuple] = field(default_factory=lambda: iter(()), repr=False)   # its other starts
 
     @property
     def orders(self) -> Orders:
@@ -152,25 +161,15 @@ class Selection:
     fitted: list[_Fitted]             # the screening's choice first, then the repairs
     kin: DecimatedProblem             # a search problem whose columns others reuse
 
-    def ranking(self) -> list[int]:
-        """The fits by preference (module docstring)."""
+    def choice(self) -> StructureChoice:
+        """The fit chosen (module docstring), and why."""
         judged = [f.candidate for f in self.fitted]
-        order: list[int] = []
-        while len(order) < len(judged):
-            left = [i for i in range(len(judged)) if i not in order]
-            order.append(left[_conclude([judged[i] for i in left])[0]])
-        return order
+        taken, why = _conclude(judged)
+        return StructureChoice(judged[taken].orders, why, self.screened + judged, taken=len(self.screened) + taken)
 
-    def choice(self, taken: int, rejected: set[int] = frozenset()) -> StructureChoice:
-        """The choice of fit ``taken`` (the ones before it in the ranking rejected: the model's
-        own evaluation does not reproduce them)."""
-        judged = [replace(f.candidate, defects=f.candidate.defects + ((NOT_EVALUABLE,) if i in rejected else ()))
-                  for i, f in enumerate(self.fitted)]
-        left = [i for i in range(len(judged)) if i not in rejected]
-        why = _conclude([judged[i] for i in left])[1] if taken in left else "no fit the model's evaluation reproduces"
-        out = StructureChoice(judged[taken].orders, why, self.screened + judged)
-        out.taken = len(self.screened) + taken
-        return out
+    @property
+    def chosen(self) -> "_Fitted":
+        return self.fitted[_conclude([f.candidate for f in self.fitted])[0]]
 
 
 @dataclass(frozen=True)
@@ -189,47 +188,65 @@ CoreFit = Callable[[Orders, ModelParameters, Callable[[], Iterable[ModelParamete
 
 
 def select(fd: PreparedRun, largest: Orders, start: ModelParameters | None, core_fit: CoreFit,
-           evaluable: Callable[[Orders, tuple, Fit], bool], progress: Callable[[str, float], None] | None = None
-           ) -> Selection:
-    """Screen (phase 1), then judge fits on every sample and repair (phase 2). evaluable: does the
-    model's own evaluation reproduce a fit (structure, search optimum, core fit)? Asked of fits
-    without other defects (it costs an evaluation of the model)."""
-    screened, first = screen(fd, largest, start, progress)
-    kin = first.problem
+           progress: Callable[[str, float], None] | None = None) -> Selection:
+    """The largest fitted, the screening from its fit, the screening's choice fitted and repaired
+    (module docstring)."""
+    big = DecimatedProblem(fd, largest)
 
-    def fitted(orders: Orders, found: tuple, how: str, more: Callable, extra: bool) -> _Fitted:
-        core = core_fit(orders, params_of(fd, orders.layout(fd.n_residual_cycles), found[0]), more, extra)
+    def fitted(orders: Orders, optima: Iterator[tuple], how: str, extra: bool) -> _Fitted | None:
+        """The structure's next search optimum fitted by the core (extra: with identification's
+        other starts, the next optima), judged; its remaining optima kept for a restart. None when
+        no optimum is left."""
+        lay = orders.layout(fd.n_residual_cycles)
+        found = next(optima, None)
+        if found is None:
+            return None
+        core = core_fit(orders, params_of(fd, lay, found[0]),
+                        lambda: (params_of(fd, lay, f) for f, *_ in itertools.islice(optima, 1)), extra)
         defects, weak = core_defects(core)
-        if not defects and not evaluable(orders, found, core):
-            defects.append(NOT_EVALUABLE)
         heldout = heldout_rmse(core)
         _, bic = information_criteria(core.rss, core.n, _n_params(core))
         return _Fitted(found, core, Candidate(orders, how, "fitted", _n_params(core), core.rmse, heldout, bic,
-                                              tuple(defects)), weak)
+                                              tuple(defects)), weak, optima)
 
-    def more_of(orders: Orders, other_starts=()) -> Callable[[], Iterable[ModelParameters]]:
-        lay = orders.layout(fd.n_residual_cycles)
-        ranked = ranked_searches(DecimatedProblem(fd, orders, kin), _start_of(fd, orders, largest, start),
-                                 progress, other_starts)
-        return lambda: (params_of(fd, lay, f) for f, *_ in itertools.islice(ranked, 1))
+    def optima(orders: Orders, *first: tuple, warm: np.ndarray | None = None) -> Iterator[tuple]:
+        starts = [("the larger fit's values", warm)] if warm is not None else []
+        problem = DecimatedProblem(fd, orders, big) if orders != largest else big
+        return itertools.chain(first, ranked_searches(problem, _start_of(fd, orders, largest, start), None, starts))
 
-    done = [fitted(first.candidate.orders, first.found(), "the screening's choice",
-                   more_of(first.candidate.orders), True)]
-    current = done[0]
+    done = [fitted(largest, ranked_searches(big, start, progress), "the largest (global search)", True)]
+    screened, choice = screen(fd, done[0], big, progress)
+    if choice.candidate.orders != largest:
+        done.append(fitted(choice.candidate.orders, optima(choice.candidate.orders, choice.found()),
+                           "the screening's choice", False))
+    current = done[-1]
     while current.candidate.defects and len(done) < MAX_FITTED:
         if progress:
             progress(f"structure: repairing {current.candidate.orders}", 0.7)
-        moves = _repairs(current)
-        if not moves:
-            break
         trials = []
-        for move in moves[:MAX_FITTED - len(done)]:
-            ranked = ranked_searches(DecimatedProblem(fd, move.orders, kin), _start_of(fd, move.orders, largest, start),
-                                     None, [("the larger fit's values", move.start)])
-            trials.append(fitted(move.orders, next(ranked), move.how, lambda: (), False))
+        if _degenerate(current.candidate):           # a local optimum: the same structure, another start
+            trials.append(fitted(current.orders, current.optima, "the same, from another start", False))
+        for move in _repairs(current):
+            if len(done) + len(trials) < MAX_FITTED and move.orders not in {f.orders for f in done + trials if f}:
+                trials.append(fitted(move.orders, optima(move.orders, warm=move.start), move.how, False))
+        trials = [t for t in trials if t is not None]
+        if not trials:
+            break
         done += trials
         current = min(trials, key=lambda f: (not f.candidate.admissible, len(f.candidate.defects), f.candidate.bic))
-    return Selection(screened, done, kin)
+    if not any(f.candidate.admissible for f in done):
+        # none: the smallest structure (one damping mode, one residual term, orders shared), whose
+        # terms real data determine where larger ones cancel
+        smallest = replace(largest, N=min(largest.N, 1), M=min(largest.M, 1), shared=True)
+        if smallest not in {f.orders for f in done}:
+            done.append(fitted(smallest, optima(smallest), "the smallest (global search)", True))
+    return Selection(screened, done, big)
+
+
+def _degenerate(c: Candidate) -> bool:
+    """Only defects of a local optimum the same structure can leave: terms that cancel or that the
+    data cannot tell apart (two terms of nearly one order), no parameter the data do not determine."""
+    return bool(c.defects) and all(" cancel" in d or "not told apart" in d for d in c.defects)
 
 
 def _start_of(fd: PreparedRun, orders: Orders, largest: Orders, start: ModelParameters | None):
@@ -251,37 +268,39 @@ def _conclude(judged: list[Candidate]) -> tuple[int, str]:
                   f"within {BIC_TIE:g}); the screening's choice: {'; '.join(judged[0].defects)}")
 
 
-def screen(fd: PreparedRun, largest: Orders, start: ModelParameters | None,
+def screen(fd: PreparedRun, largest: _Fitted, big: DecimatedProblem,
            progress: Callable[[str, float], None] | None = None) -> tuple[list[Candidate], _Trial]:
-    """Phase 1 (module docstring): the largest searched globally, smaller structures by moves;
-    returns the candidates screened and the screening's choice."""
-    big = DecimatedProblem(fd, largest)
-    fit, fixed, names, *_ = next(ranked_searches(big, start, progress))
+    """Phase 1 (module docstring), from the largest structure's fit on every sample: each move
+    refitted on the search's block means from its values; returns the candidates screened and
+    the screening's choice."""
     scorer = _Scorer(fd)
-    current = scorer.trial(big, fit, fixed, "the largest (global search)", names)
-    tried = {largest: current}
+    theta = largest.core.model.split(largest.core.nu)[0]
+    fixed = _real(big.lay, theta)
+    current = scorer.trial(big, big.local(theta, fixed), fixed, "the largest, from its fit", largest.found[2])
+    tried = {big.lay.orders: current}
+    weak = largest.weak                      # its defective terms first
     while len(tried) < MAX_SCREENED:
         if progress:
             progress(f"structure: from {current.candidate.orders}", 0.6)
-        moves = [m for m in _moves(current.lay, current.fit.nonlinear, current.fixed, current.by_size())
+        moves = [m for m in _moves(current.lay, current.fit.nonlinear, current.fixed, weak)
                  if m.orders not in tried][:MAX_SCREENED - len(tried)]
         if not moves:
             break
         trials = []
         for move in moves:
-            problem = DecimatedProblem(fd, move.orders, kin=current.problem)
+            problem = DecimatedProblem(fd, move.orders, kin=big)
             trials.append(scorer.trial(problem, problem.local(move.start, move.fixed), move.fixed, move.how,
                                        current.starts))
         tried.update((t.candidate.orders, t) for t in trials)
         best = min(trials, key=lambda t: t.candidate.bic)
         if best.candidate.bic > current.candidate.bic + BIC_TIE:
             break
-        current = best
+        current, weak = best, best.by_size()
     screened = [t.candidate for t in tried.values()]
     low = min(c.bic for c in screened)
     chosen = min((c for c in screened if c.bic <= low + BIC_TIE), key=lambda c: (c.n_params, c.bic))
     trial = tried[chosen.orders]
-    if chosen.orders != largest and not trial.fixed.any():   # an oscillation the data do not support
+    if not trial.fixed.any():   # a damping mode whose oscillation the data do not support: made real
         trial.fit, trial.fixed = trial.problem.real_modes(trial.fit)
     return screened, trial
 
@@ -297,11 +316,9 @@ def _repairs(fitted: _Fitted) -> list[Move]:
     out = []
     if any(_cycle_of(n) > 1 for n in named):
         out += [m for m in moves if m.orders.shared and not lay.shared]
-    # a fit the model's evaluation does not reproduce: either kind of term dropped
-    odd = NOT_EVALUABLE in fitted.candidate.defects
-    if odd or any(n.startswith("alpha") or (n[:1] == "a" and n[1:2].isdigit()) for n in named):
+    if any(n.startswith("alpha") or (n[:1] == "a" and n[1:2].isdigit()) for n in named):
         out += [m for m in moves if m.orders.N < lay.N]
-    if odd or any(n.startswith(("beta", "r")) for n in named):
+    if any(n.startswith(("beta", "r")) for n in named):
         out += [m for m in moves if m.orders.M < lay.M]
     return out
 
@@ -329,6 +346,13 @@ def core_defects(core: Fit) -> tuple[list[str], list[int]]:
     for i, j in _cancelling(lay, parts):
         defects.append(f"{names[i]} = {theta[i]:.4g} and {names[j]} = {theta[j]:.4g} cancel")
         bad.update((i, j))
+    # two amplitudes of one component the data cannot tell apart (two terms of nearly one order)
+    corr = unc.correlation[:L, :L]            # the linear parameters lead the kept columns
+    for group in (range(lay.P + 1, lay.P + 1 + lay.N), range(lay.P + 1 + lay.N, L)):
+        for i, j in itertools.combinations(group, 2):
+            if abs(corr[i, j]) > TWIN_CORRELATION and {i, j} - bad:
+                defects.append(f"{names[i]} and {names[j]} are not told apart (correlation {corr[i, j]:+.4f})")
+                bad.update((i, j))
     return defects, _by_size(lay, parts, bad)
 
 
