@@ -180,6 +180,14 @@ def at_full_resolution(fit: Fit, full: list[Series], polish_nfev: int = 0) -> Fi
     return Fit(list(fit.causes), model, nu, fit.stderr, model.solve(nu), status=fit.status, message=fit.message)
 
 
+def solved_at(series: list[Series], params: ModelParameters) -> Fit:
+    """The base model at these alpha and beta (free in the model: its Jacobian has them), the
+    linear parameters and the contact set solved, nothing searched."""
+    model = ExtendedModel(series, params, [], free_base=True, base_bounds=base_bounds(series, params))
+    nu = model.start()
+    return Fit([], model, nu, np.zeros(0), model.solve(nu))
+
+
 def fit_base(series: list[Series], params: ModelParameters) -> Fit:
     """The base model on all runs: identification's alpha/beta polished with the rest."""
     model = ExtendedModel(series, params, [], free_base=True, base_bounds=base_bounds(series, params))

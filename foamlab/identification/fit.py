@@ -18,7 +18,7 @@ from threadpoolctl import threadpool_limits
 
 from foamlab.analysis.noise import WHITE_P, whiteness
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
-from foamlab.analysis.solve import Fit, model_like, polish
+from foamlab.analysis.solve import Fit, model_like, polish, solved_at
 from foamlab.identification.joint import (
     MIN_CENSORED,
     REAL_MODE_RATIO,
@@ -147,30 +147,35 @@ def _fit_prepared(fd: PreparedRun, orders: Orders, select: bool, progress: Progr
 def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress) -> FitResult:
     """The structure the data determine (identification.structure), carried to every sample."""
 
-    def core_fit(orders: Orders, params, more, extra: bool) -> Fit:
-        # the core's polish with identification's other starts (extra): the search's next optimum
-        # when the first leaves structure above the noise, and the paper's start (exact in the
-        # paper form; the decimated search can look white while a few samples misfit)
-        def others(first: Fit):
-            out = [] if not extra or _at_the_noise(first, fd) else list(more())
-            if extra and paper.start is not None and orders == largest and (
-                    orders.form == "paper" or first.rmse > AT_NOISE_RATIO * fd.noise_N):
-                out.append(paper.start)
-            return out
-        return polish([fd.series], params, others)
+    def core_fit(orders: Orders, optima, given: bool):
+        if given:                 # as a given structure: the same steps as _fit_structure
+            search = JointSearch(fd, orders, None, report, found=optima)
+            jf = search.fit()
+            base = _polished(fd, orders, jf, search, paper if orders == largest else None)
+            # the core's polish can end above identification's own fit (as _from_core checks):
+            # then the core's solution at identification's alpha and beta is the fit judged
+            own = solved_at([fd.series], jf.params)
+            return jf, (own if own.rss < base.rss else base)
+        found = next(optima, None)
+        if found is None:
+            return None
+        jf = unpolished(fd, orders.layout(fd.n_residual_cycles), found)
+        return jf, polish([fd.series], jf.params)
 
     selection = select(fd, largest, paper.start, core_fit, report)
     chosen = selection.chosen
     steps = paper if chosen.orders == largest else paper_steps(fd, chosen.orders)   # its Table 5
-    jf = unpolished(fd, chosen.orders.layout(fd.n_residual_cycles), chosen.found)
-    polished = _from_core(fd, jf, chosen.core)
-    unreproduced = polished is None
+    jf, base = chosen.joint, chosen.core
+    polished = _from_core(fd, jf, base)
+    unreproduced = polished is None and not np.isfinite(jf.residual).all()
     if unreproduced:
         # the model's evaluation (what the simulator runs) does not reproduce the core's fit; its
         # terms neither cancel nor escape the data (the selection's defects): the fit is kept
-        polished = _from_core(fd, jf, chosen.core, reproduced=False)
+        polished = _from_core(fd, jf, base, reproduced=False)
+    elif polished is None:    # identification's own full-resolution fit is the better (as given)
+        polished, base = jf, None
     report("statistics", 0.9)
-    result = _result(fd, chosen.orders, steps, polished, time.perf_counter(), chosen.core)
+    result = _result(fd, chosen.orders, steps, polished, time.perf_counter(), base)
     if unreproduced:
         result.warnings.append("the model's own evaluation (what the simulator runs) does not reproduce this fit "
                                "within a tenth of its residual")
@@ -178,21 +183,27 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress) -> 
     return result
 
 
+def _polished(fd: PreparedRun, orders: Orders, jf: JointFit, search: JointSearch, paper) -> Fit:
+    """The core's polish of identification's fit on every sample, with identification's other
+    starts: the search's next optimum when the first leaves structure above the noise, and the
+    paper's start (exact in the paper form; the decimated search can look white while a few
+    samples misfit), the better kept."""
+    base = polish([fd.series], jf.params,
+                  lambda first: () if _at_the_noise(first, fd) else search.more(EXTRA_STARTS))
+    if paper is not None and paper.start is not None and (orders.form == "paper"
+                                                          or base.rmse > AT_NOISE_RATIO * fd.noise_N):
+        other = polish([fd.series], paper.start)
+        if other.rss < base.rss:
+            base = other
+    return base
+
+
 def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, report: Progress) -> FitResult:
     """One structure: the search's best optimum polished, then carried to every sample by the
     analysis core."""
     jf = search.fit()
     report("polish on every sample", 0.8)
-    # the data call for another start when the first leaves structure above the noise:
-    # the search's next best optimum, fitted alike (the better carried to every sample)
-    base = polish([fd.series], jf.params,
-                  lambda first: () if _at_the_noise(first, fd) else search.more(EXTRA_STARTS))
-    if paper.start is not None and (orders.form == "paper" or base.rmse > AT_NOISE_RATIO * fd.noise_N):
-        # the paper's three steps are exact in the paper form (and the decimated search can
-        # look white while a few samples misfit): their start is polished too, the better kept
-        other = polish([fd.series], paper.start)
-        if other.rss < base.rss:
-            base = other
+    base = _polished(fd, orders, jf, search, paper)
     polished = _from_core(fd, jf, base)
     if polished is not None:
         jf = polished

@@ -282,6 +282,12 @@ class DecimatedProblem:
         fit = _globalise(problem, fit, self.slots, lower, upper, ftol)
         return self.real_modes(fit)
 
+    def at(self, theta: np.ndarray) -> SeparableFit:
+        """The problem at these alpha and beta, nothing searched (the linear parameters solved)."""
+        theta = np.clip(np.asarray(theta, float), self.lower, self.upper)
+        sol = self.problem.solve(theta)
+        return SeparableFit(theta, sol.coef, sol.residual, 0, 1, "another fit's values, not searched")
+
     def local(self, theta0: np.ndarray, fixed: np.ndarray) -> SeparableFit:
         """The local fit alone (the ``fixed`` nonlinear parameters held at theta0), without global
         moves: a warm start's continuation."""

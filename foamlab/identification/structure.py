@@ -32,15 +32,15 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, field, replace
-from typing import Callable, Iterable, Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
-from foamlab.analysis.design import ExtendedModel, Series
+from foamlab.analysis.design import Series
 from foamlab.analysis.heldout import heldout_rmse
 from foamlab.analysis.prepared import PreparedRun
-from foamlab.analysis.solve import Fit, base_bounds, decimation
-from foamlab.identification.joint import REAL_MODE_RATIO, DecimatedProblem, params_of, ranked_searches
+from foamlab.analysis.solve import Fit, decimation, solved_at
+from foamlab.identification.joint import REAL_MODE_RATIO, DecimatedProblem, JointFit, params_of, ranked_searches
 from foamlab.identification.paper import paper_steps
 from foamlab.identification.statistics import information_criteria, parameter_uncertainty
 from foamlab.identification.varpro import SeparableFit
@@ -142,7 +142,7 @@ class _Trial:
 class _Fitted:
     """A structure fitted by the analysis core on every sample, judged."""
 
-    found: tuple                      # its search optimum (JointSearch's found)
+    joint: JointFit                   # identification's fit it continues (the search's optimum, polished or not)
     core: Fit                         # the core's fit on every sample
     candidate: Candidate
     weak: list[int]                   # amplitude columns by what to drop first
@@ -182,9 +182,11 @@ class Move:
     how: str
 
 
-#: The core's polish as identification runs it: (structure, its search's params, its own further
-#: starts when the first fit leaves structure, whether to try them) -> its fit on every sample.
-CoreFit = Callable[[Orders, ModelParameters, Callable[[], Iterable[ModelParameters]], bool], Fit]
+#: A structure fitted as identification fits it: (structure, its search's optima in order, whether
+#: as a given structure is fitted - identification's full-resolution steps and its other starts -
+#: or from the first optimum alone) -> (identification's joint fit, the core's fit on every sample),
+#: None when no optimum is left.
+CoreFit = Callable[[Orders, Iterator[tuple], bool], "tuple[JointFit, Fit] | None"]
 
 
 def select(fd: PreparedRun, largest: Orders, start: ModelParameters | None, core_fit: CoreFit,
@@ -194,19 +196,16 @@ def select(fd: PreparedRun, largest: Orders, start: ModelParameters | None, core
     big = DecimatedProblem(fd, largest)
 
     def fitted(orders: Orders, optima: Iterator[tuple], how: str, extra: bool) -> _Fitted | None:
-        """The structure's next search optimum fitted by the core (extra: with identification's
-        other starts, the next optima), judged; its remaining optima kept for a restart. None when
-        no optimum is left."""
-        lay = orders.layout(fd.n_residual_cycles)
-        found = next(optima, None)
-        if found is None:
+        """The structure's next search optimum fitted (core_fit), judged; its remaining optima
+        kept for a restart. None when no optimum is left."""
+        out = core_fit(orders, optima, extra)
+        if out is None:
             return None
-        core = core_fit(orders, params_of(fd, lay, found[0]),
-                        lambda: (params_of(fd, lay, f) for f, *_ in itertools.islice(optima, 1)), extra)
+        joint, core = out
         defects, weak = core_defects(core)
         heldout = heldout_rmse(core)
         _, bic = information_criteria(core.rss, core.n, _n_params(core))
-        return _Fitted(found, core, Candidate(orders, how, "fitted", _n_params(core), core.rmse, heldout, bic,
+        return _Fitted(joint, core, Candidate(orders, how, "fitted", _n_params(core), core.rmse, heldout, bic,
                                               tuple(defects)), weak, optima)
 
     def optima(orders: Orders, *first: tuple, warm: np.ndarray | None = None) -> Iterator[tuple]:
@@ -271,12 +270,13 @@ def _conclude(judged: list[Candidate]) -> tuple[int, str]:
 def screen(fd: PreparedRun, largest: _Fitted, big: DecimatedProblem,
            progress: Callable[[str, float], None] | None = None) -> tuple[list[Candidate], _Trial]:
     """Phase 1 (module docstring), from the largest structure's fit on every sample: each move
-    refitted on the search's block means from its values; returns the candidates screened and
-    the screening's choice."""
+    scored at the larger fit's alpha and beta (the linear parameters solved); returns the
+    candidates screened and the screening's choice. Not refitted: on a 20-cycle run the search's
+    block means moved a fit at the noise to 10 x the noise; the fit of the choice refits it."""
     scorer = _Scorer(fd)
     theta = largest.core.model.split(largest.core.nu)[0]
     fixed = _real(big.lay, theta)
-    current = scorer.trial(big, big.local(theta, fixed), fixed, "the largest, from its fit", largest.found[2])
+    current = scorer.trial(big, big.at(theta), fixed, "the largest, at its fit", largest.joint.starts)
     tried = {big.lay.orders: current}
     weak = largest.weak                      # its defective terms first
     while len(tried) < MAX_SCREENED:
@@ -289,8 +289,7 @@ def screen(fd: PreparedRun, largest: _Fitted, big: DecimatedProblem,
         trials = []
         for move in moves:
             problem = DecimatedProblem(fd, move.orders, kin=big)
-            trials.append(scorer.trial(problem, problem.local(move.start, move.fixed), move.fixed, move.how,
-                                       current.starts))
+            trials.append(scorer.trial(problem, problem.at(move.start), move.fixed, move.how, current.starts))
         tried.update((t.candidate.orders, t) for t in trials)
         best = min(trials, key=lambda t: t.candidate.bic)
         if best.candidate.bic > current.candidate.bic + BIC_TIE:
@@ -299,10 +298,7 @@ def screen(fd: PreparedRun, largest: _Fitted, big: DecimatedProblem,
     screened = [t.candidate for t in tried.values()]
     low = min(c.bic for c in screened)
     chosen = min((c for c in screened if c.bic <= low + BIC_TIE), key=lambda c: (c.n_params, c.bic))
-    trial = tried[chosen.orders]
-    if not trial.fixed.any():   # a damping mode whose oscillation the data do not support: made real
-        trial.fit, trial.fixed = trial.problem.real_modes(trial.fit)
-    return screened, trial
+    return screened, tried[chosen.orders]
 
 
 def _repairs(fitted: _Fitted) -> list[Move]:
@@ -469,10 +465,7 @@ class _Scorer:
     def trial(self, problem: DecimatedProblem, fit: SeparableFit, fixed: np.ndarray, how: str,
               starts: list[str]) -> _Trial:
         params = params_of(self.fd, problem.lay, fit)
-        model = ExtendedModel(self.series, params, [], free_base=True,
-                              base_bounds=base_bounds(self.series, params))
-        nu = model.start()
-        core = Fit([], model, nu, np.zeros(0), model.solve(nu))
+        core = solved_at(self.series, params)
         n_params = problem.lay.n_linear + int(np.count_nonzero(~fixed)) + 1
         _, bic = information_criteria(core.rss, core.n, n_params)
         candidate = Candidate(problem.lay.orders, how, "screened", n_params, core.rmse, heldout_rmse(core), bic)
