@@ -46,9 +46,9 @@ from foamlab.model.operators import (
 ALPHA_FD_STEP = 1e-6
 #: Samples on each side of a corner of x kept as exact nodes of the fractional operator.
 CORNER_SAMPLES = 1
-#: Samples off the operators' grid within this many grid steps after a corner are computed
-#: directly, not interpolated between grid nodes (the memory's cusp there).
-CUSP_STEPS = 4
+#: Samples between the operators' grid nodes: what a line between the nodes misses of the
+#: sources this many grid nodes before them is added exactly (the memory's cusp after a corner).
+NEAR_STEPS = 16
 #: Cached operator outputs are cleared beyond this many entries or bytes (a long run's
 #: full-resolution columns are ~1 MB each: a count alone let a 20-cycle fit hold ~0.5 GB).
 CACHE_LIMIT = 512
@@ -115,7 +115,8 @@ class _Fractional:
     nodes would otherwise be cut, and the residual is switched on right at one). Then
     D^beta x(t) = sum_n ds_n (t - t_n)_+^nu / Gamma(nu + 1) over the nodes' slope
     changes ds_n (the cycle's start is a node: x - x(t_k) is zero before it). Grid
-    sources by FFT convolution, turning-point sources and off-grid samples directly.
+    sources by FFT convolution, turning-point sources directly; samples between grid nodes
+    from the line through their nodes, corrected by what it misses of the near sources.
     """
 
     def __init__(self, t, x, start: int, peak: int, obs: np.ndarray, grid_t: np.ndarray,
@@ -135,7 +136,6 @@ class _Fractional:
         # (a node after the grid's end reaches no row: rows lie on the grid's span)
         tp = np.asarray([i for i in turning if tk - tol <= t[i] <= grid_t[-1] + tol], dtype=int)
         tp_t = t[tp]
-        corner_t = np.sort(tp_t)
         off = np.abs((tp_t - grid_t[0]) / h - np.round((tp_t - grid_t[0]) / h)) * h > tol
         off |= tp_t <= tk + tol            # the start is always its own node
         tp, tp_t = tp[off], tp_t[off]
@@ -164,33 +164,31 @@ class _Fractional:
         self.log_m_h = np.log(h * np.arange(1, n))
         self.nfft = sfft.next_fast_len(2 * n - 1, real=True)
         self.d_hat = sfft.rfft(self.d_grid[:-1], self.nfft)
-        # where each observed sample's value comes from
+        # where each observed sample's value comes from: a grid node, or between two nodes their
+        # line, corrected by what it misses of the sources near before the sample (all the
+        # turning points, the last NEAR_STEPS grid nodes): after a corner the memory has a cusp,
+        # (t - t_c)^nu, that a line through the nodes cuts (10 x the noise on a 20-cycle run
+        # decimated 8-fold, whose samples right after each turn are kept); sources further back
+        # are smooth over a step
         pos = (obs_t - grid_t[0]) / h
         near = np.round(pos).astype(int)
         exact = np.abs(pos - near) * h <= tol
-        special = np.isin(obs[self.rows], turning)
-        # samples between grid nodes just after a corner: there the memory has a cusp,
-        # (t - t_c)^nu, that a line between grid nodes misses (10 x the noise on a 20-cycle run
-        # decimated 8-fold, where samples right after each turn are kept): summed directly
-        if len(corner_t):
-            last = np.searchsorted(corner_t, obs_t + tol, side="right") - 1
-            since = obs_t - corner_t[np.clip(last, 0, None)]
-            special |= (last >= 0) & (since < CUSP_STEPS * h)
         self.at_grid = np.flatnonzero(exact)
         self.at_grid_idx = np.clip(near[exact], 0, n - 1)
-        direct = ~exact & special
-        self.direct = np.flatnonzero(direct)
-        interp = ~exact & ~special
-        self.interp_rows = np.flatnonzero(interp)
-        self.interp = _Interp(float(grid_t[0]), h, obs_t[interp], n)
-        # grid nodes whose value is used, and the lags of the non-grid terms:
-        # extra sources -> used grid nodes, grid and extra sources -> direct samples
-        used = np.union1d(self.at_grid_idx, np.concatenate([self.interp.i0, self.interp.i0 + 1]))
-        self.used = used.astype(int)
-        dt = obs_t[direct][:, None]
+        self.between = np.flatnonzero(~exact)
+        bt = obs_t[~exact]
+        self.interp = _Interp(float(grid_t[0]), h, bt, n)
+        i0 = self.interp.i0
+        window = i0[:, None] - np.arange(NEAR_STEPS)[None, :]
+        self.near_grid = np.clip(window, 0, n - 1)
+        self.near_valid = window >= 0
+        a, b = grid_t[i0], grid_t[np.minimum(i0 + 1, n - 1)]
+        self.miss_grid = _Missed(bt, a, b, self.interp.w, grid_t[self.near_grid])
+        self.miss_src = _Missed(bt, a, b, self.interp.w, np.broadcast_to(self.src_t, (len(bt), len(self.src_t))))
+        # grid nodes whose value is used, and the turning points' terms there
+        used = np.union1d(self.at_grid_idx, np.concatenate([i0, i0 + 1]))
+        self.used = np.clip(used, 0, n - 1).astype(int)
         self.lag_src_grid = _Lags(grid_t[None, self.used] - self.src_t[:, None])
-        self.lag_direct_grid = _Lags(dt - grid_t[None, :])
-        self.lag_direct_src = _Lags(dt - self.src_t[None, :])
 
     def columns(self, betas: np.ndarray, derivative: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """D^beta on the observed rows for each beta (rows x M) and, with derivative,
@@ -199,17 +197,19 @@ class _Fractional:
         m = len(nu)
         lg = gammaln(nu + 1.0)
         kern = np.exp(nu[:, None] * self.log_m_h[None, :] - lg[:, None])   # (m h)^nu / Gamma(nu+1)
-        lags = (self.lag_src_grid, self.lag_direct_grid, self.lag_direct_src)
-        powers = [lag.power(nu, lg) for lag in lags]
+        p_sg = self.lag_src_grid.power(nu, lg)
+        miss_g, miss_s = self.miss_grid.power(nu, lg), self.miss_src.power(nu, lg)
         if derivative:
             # d/dbeta of lag^nu / Gamma(nu + 1) = -(log lag - psi(nu + 1)) * value
             psi = digamma(nu + 1.0)
             kern = np.vstack([kern, -kern * (self.log_m_h[None, :] - psi[:, None])])
-            powers = [np.concatenate([pw, lag.dbeta(pw, psi)]) for lag, pw in zip(lags, powers)]
-        out = self._assemble(kern, *powers)
+            p_sg = np.concatenate([p_sg, self.lag_src_grid.dbeta(p_sg, psi)])
+            miss_g = np.concatenate([miss_g, self.miss_grid.dbeta(nu, lg, psi)])
+            miss_s = np.concatenate([miss_s, self.miss_src.dbeta(nu, lg, psi)])
+        out = self._assemble(kern, p_sg, miss_g, miss_s)
         return (out[:, :m], out[:, m:]) if derivative else (out, None)
 
-    def _assemble(self, kern, p_sg, p_dg, p_ds) -> np.ndarray:
+    def _assemble(self, kern, p_sg, miss_g, miss_s) -> np.ndarray:
         K = kern.shape[0]
         y = np.zeros((K, self.n))
         spec = self.d_hat[None, :] * sfft.rfft(kern, self.nfft, axis=1)
@@ -218,11 +218,27 @@ class _Fractional:
             y[:, self.used] += np.einsum("ksu,s->ku", p_sg, self.src_ds)
         out = np.empty((len(self.rows), K))
         out[self.at_grid] = y[:, self.at_grid_idx].T
-        if len(self.direct):
-            out[self.direct] = (p_dg @ self.d_grid + p_ds @ self.src_ds).T
-        if len(self.interp_rows):
-            out[self.interp_rows] = self.interp(y.T)
+        if len(self.between):
+            d_near = self.d_grid[self.near_grid] * self.near_valid
+            missed = np.einsum("krw,rw->rk", miss_g, d_near) + np.einsum("krs,s->rk", miss_s, self.src_ds)
+            out[self.between] = self.interp(y.T) + missed
         return out
+
+
+class _Missed:
+    """For samples at t between grid nodes a and b (t = a + w h) and sources at tau: what the line
+    between the nodes misses of each source's term, K(t - tau) - (1 - w) K(a - tau) - w K(b - tau),
+    K(u) = u_+^nu / Gamma(nu + 1) (and its derivative in beta)."""
+
+    def __init__(self, t: np.ndarray, a: np.ndarray, b: np.ndarray, w: np.ndarray, tau: np.ndarray):
+        self.lags = [_Lags(u[:, None] - tau) for u in (t, a, b)]
+        self.weights = [np.ones((len(t), 1)), -(1.0 - w)[:, None], -w[:, None]]
+
+    def power(self, nu: np.ndarray, log_gamma: np.ndarray) -> np.ndarray:
+        return sum(wt[None] * lag.power(nu, log_gamma) for wt, lag in zip(self.weights, self.lags))
+
+    def dbeta(self, nu: np.ndarray, log_gamma: np.ndarray, psi: np.ndarray) -> np.ndarray:
+        return sum(wt[None] * lag.dbeta(lag.power(nu, log_gamma), psi) for wt, lag in zip(self.weights, self.lags))
 
 
 class _Static:
