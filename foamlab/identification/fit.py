@@ -237,6 +237,8 @@ def _orders(orders) -> Orders | None:
     return Orders(*orders)
 
 
+#: A rate or order within this fraction of its search range from a bound sits at it.
+AT_BOUND = 1e-6
 #: Samples this many steps from a corner of the path are not in the evaluation check.
 CORNER_STEPS = 2.0
 
@@ -256,7 +258,10 @@ def _from_core(fd: PreparedRun, jf: JointFit, base: Fit, reproduced: bool = True
     L = lay.n_linear
     fixed = np.zeros(lay.n_nonlinear, bool)
     im = np.arange(1, 2 * lay.N, 2)
-    fixed[im] = jf.fixed_nonlinear[im] & (phi[im] <= REAL_MODE_RATIO * phi[im - 1])
+    # a mode the search made real and the polish kept at Im alpha = 0, or one the polish took to
+    # that bound itself (a structure fitted from a larger one's values): real
+    at_bound = phi[im] <= AT_BOUND * nonlinear_bounds(lay.orders, lay.C, fd.loading_time_s)[1][im]
+    fixed[im] = (jf.fixed_nonlinear[im] & (phi[im] <= REAL_MODE_RATIO * phi[im - 1])) | at_bound
     phi[fixed] = 0.0
     design = sol.designs[0][0][rows]                              # k, a, r columns, then the zero
     deriv = base.model.prediction_derivatives(base.nu, sol)[rows]
@@ -401,8 +406,8 @@ def _bound_warnings(names, values, lay, lower, upper) -> list[str]:
         span = upper[j] - lower[j]
         if names[i].endswith("_im") and v <= lower[j] + 1e-9 * span:
             continue                      # a real mode: im = 0 is the model, not a limit
-        if v <= lower[j] + 1e-6 * span or v >= upper[j] - 1e-6 * span:
-            which = "lower" if v <= lower[j] + 1e-6 * span else "upper"
+        if v <= lower[j] + AT_BOUND * span or v >= upper[j] - AT_BOUND * span:
+            which = "lower" if v <= lower[j] + AT_BOUND * span else "upper"
             hint = (" (fractional orders are limited to beta < 1, Eq. 10)"
                     if names[i].startswith("beta") and which == "upper" and upper[j] == BETA_HI else
                     " (search range of beta)" if names[i].startswith("beta") and lower[j] == BETA_LO else

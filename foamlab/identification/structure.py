@@ -208,10 +208,14 @@ def select(fd: PreparedRun, largest: Orders, start: ModelParameters | None, core
         return _Fitted(joint, core, Candidate(orders, how, "fitted", _n_params(core), core.rmse, heldout, bic,
                                               tuple(defects)), weak, optima)
 
-    def optima(orders: Orders, *first: tuple, warm: np.ndarray | None = None) -> Iterator[tuple]:
-        starts = [("the larger fit's values", warm)] if warm is not None else []
+    def optima(orders: Orders, *first: tuple, warm: Move | None = None) -> Iterator[tuple]:
+        """A structure's starts: the given optima, a warm start (a larger fit's values, as they are:
+        the core's polish moves them), then, asked for more, its global search's optima."""
         problem = DecimatedProblem(fd, orders, big) if orders != largest else big
-        return itertools.chain(first, ranked_searches(problem, _start_of(fd, orders, largest, start), None, starts))
+        if warm is not None:
+            first += ((problem.at(warm.start), warm.fixed, ["the larger fit's values"], problem.lower,
+                       problem.upper, 0),)
+        return itertools.chain(first, ranked_searches(problem, _start_of(fd, orders, largest, start), None))
 
     done = [fitted(largest, ranked_searches(big, start, progress), "the largest (global search)", True)]
     screened, choice = screen(fd, done[0], big, progress)
@@ -227,7 +231,7 @@ def select(fd: PreparedRun, largest: Orders, start: ModelParameters | None, core
             trials.append(fitted(current.orders, current.optima, "the same, from another start", False))
         for move in _repairs(current):
             if len(done) + len(trials) < MAX_FITTED and move.orders not in {f.orders for f in done + trials if f}:
-                trials.append(fitted(move.orders, optima(move.orders, warm=move.start), move.how, False))
+                trials.append(fitted(move.orders, optima(move.orders, warm=move), move.how, False))
         trials = [t for t in trials if t is not None]
         if not trials:
             break
@@ -243,9 +247,9 @@ def select(fd: PreparedRun, largest: Orders, start: ModelParameters | None, core
 
 
 def _degenerate(c: Candidate) -> bool:
-    """Only defects of a local optimum the same structure can leave: terms that cancel or that the
-    data cannot tell apart (two terms of nearly one order), no parameter the data do not determine."""
-    return bool(c.defects) and all(" cancel" in d or "not told apart" in d for d in c.defects)
+    """Defects of a local optimum the same structure can leave: terms that cancel or that the data
+    cannot tell apart (two terms of nearly one order)."""
+    return any(" cancel" in d or "not told apart" in d for d in c.defects)
 
 
 def _start_of(fd: PreparedRun, orders: Orders, largest: Orders, start: ModelParameters | None):
@@ -270,9 +274,8 @@ def _conclude(judged: list[Candidate]) -> tuple[int, str]:
 def screen(fd: PreparedRun, largest: _Fitted, big: DecimatedProblem,
            progress: Callable[[str, float], None] | None = None) -> tuple[list[Candidate], _Trial]:
     """Phase 1 (module docstring), from the largest structure's fit on every sample: each move
-    scored at the larger fit's alpha and beta (the linear parameters solved); returns the
-    candidates screened and the screening's choice. Not refitted: on a 20-cycle run the search's
-    block means moved a fit at the noise to 10 x the noise; the fit of the choice refits it."""
+    refitted on the search's block means from the larger fit's values (a warm start) and scored
+    by the core on the decimated run; returns the candidates screened and the screening's choice."""
     scorer = _Scorer(fd)
     theta = largest.core.model.split(largest.core.nu)[0]
     fixed = _real(big.lay, theta)
@@ -289,7 +292,8 @@ def screen(fd: PreparedRun, largest: _Fitted, big: DecimatedProblem,
         trials = []
         for move in moves:
             problem = DecimatedProblem(fd, move.orders, kin=big)
-            trials.append(scorer.trial(problem, problem.at(move.start), move.fixed, move.how, current.starts))
+            trials.append(scorer.trial(problem, problem.local(move.start, move.fixed), move.fixed, move.how,
+                                       current.starts))
         tried.update((t.candidate.orders, t) for t in trials)
         best = min(trials, key=lambda t: t.candidate.bic)
         if best.candidate.bic > current.candidate.bic + BIC_TIE:
@@ -334,7 +338,8 @@ def core_defects(core: Fit) -> tuple[list[str], list[int]]:
     ranges = np.concatenate([np.full(L, np.inf), hi[:len(phi)] - lo[:len(phi)], [np.inf]])
     unc = parameter_uncertainty(core.jacobian()[:, keep], core.solution.residual, values[keep],
                                 list(names[keep]), ranges=ranges[keep])
-    undetermined = names[keep][~unc.determined]
+    # an oscillation the data do not determine is a detail of its mode (a real one fits alike)
+    undetermined = [n for n in names[keep][~unc.determined] if not n.endswith("_im")]
     defects = [f"{n} not determined" for n in undetermined]
     bad = {_column_of_name(lay, str(n)) for n in undetermined} - {-1}
     rows = np.flatnonzero(core.solution.used[0])
@@ -342,9 +347,12 @@ def core_defects(core: Fit) -> tuple[list[str], list[int]]:
     for i, j in _cancelling(lay, parts):
         defects.append(f"{names[i]} = {theta[i]:.4g} and {names[j]} = {theta[j]:.4g} cancel")
         bad.update((i, j))
-    # two amplitudes of one component the data cannot tell apart (two terms of nearly one order)
+    # two amplitudes the data cannot tell apart: two damping modes, or two terms of one cycle, of
+    # nearly one rate or order (one term's amplitudes in two cycles may well be correlated so)
     corr = unc.correlation[:L, :L]            # the linear parameters lead the kept columns
-    for group in (range(lay.P + 1, lay.P + 1 + lay.N), range(lay.P + 1 + lay.N, L)):
+    p1 = lay.P + 1 + lay.N
+    cycles = [range(p1 + c * lay.M, p1 + (c + 1) * lay.M) for c in range(lay.C)]
+    for group in [range(lay.P + 1, p1)] + cycles:
         for i, j in itertools.combinations(group, 2):
             if abs(corr[i, j]) > TWIN_CORRELATION and {i, j} - bad:
                 defects.append(f"{names[i]} and {names[j]} are not told apart (correlation {corr[i, j]:+.4f})")
