@@ -183,8 +183,11 @@ class _Fractional:
         self.near_grid = np.clip(window, 0, n - 1)
         self.near_valid = window >= 0
         a, b = grid_t[i0], grid_t[np.minimum(i0 + 1, n - 1)]
-        self.miss_grid = _Missed(bt, a, b, self.interp.w, grid_t[self.near_grid])
-        self.miss_src = _Missed(bt, a, b, self.interp.w, np.broadcast_to(self.src_t, (len(bt), len(self.src_t))))
+        tau = np.hstack([grid_t[self.near_grid], np.broadcast_to(self.src_t, (len(bt), len(self.src_t)))])
+        self.missed = _Missed(bt, a, b, self.interp.w, tau)
+        # each near source's slope change (the grid's in the window, every turning point's)
+        self.near_ds = np.hstack([self.d_grid[self.near_grid] * self.near_valid,
+                                  np.broadcast_to(self.src_ds, (len(bt), len(self.src_t)))])
         # grid nodes whose value is used, and the turning points' terms there
         used = np.union1d(self.at_grid_idx, np.concatenate([i0, i0 + 1]))
         self.used = np.clip(used, 0, n - 1).astype(int)
@@ -198,18 +201,18 @@ class _Fractional:
         lg = gammaln(nu + 1.0)
         kern = np.exp(nu[:, None] * self.log_m_h[None, :] - lg[:, None])   # (m h)^nu / Gamma(nu+1)
         p_sg = self.lag_src_grid.power(nu, lg)
-        miss_g, miss_s = self.miss_grid.power(nu, lg), self.miss_src.power(nu, lg)
         if derivative:
             # d/dbeta of lag^nu / Gamma(nu + 1) = -(log lag - psi(nu + 1)) * value
             psi = digamma(nu + 1.0)
             kern = np.vstack([kern, -kern * (self.log_m_h[None, :] - psi[:, None])])
             p_sg = np.concatenate([p_sg, self.lag_src_grid.dbeta(p_sg, psi)])
-            miss_g = np.concatenate([miss_g, self.miss_grid.dbeta(nu, lg, psi)])
-            miss_s = np.concatenate([miss_s, self.miss_src.dbeta(nu, lg, psi)])
-        out = self._assemble(kern, p_sg, miss_g, miss_s)
+            missed = self.missed.values(nu, lg, psi)
+        else:
+            missed = self.missed.values(nu, lg)
+        out = self._assemble(kern, p_sg, missed)
         return (out[:, :m], out[:, m:]) if derivative else (out, None)
 
-    def _assemble(self, kern, p_sg, miss_g, miss_s) -> np.ndarray:
+    def _assemble(self, kern, p_sg, missed) -> np.ndarray:
         K = kern.shape[0]
         y = np.zeros((K, self.n))
         spec = self.d_hat[None, :] * sfft.rfft(kern, self.nfft, axis=1)
@@ -219,26 +222,27 @@ class _Fractional:
         out = np.empty((len(self.rows), K))
         out[self.at_grid] = y[:, self.at_grid_idx].T
         if len(self.between):
-            d_near = self.d_grid[self.near_grid] * self.near_valid
-            missed = np.einsum("krw,rw->rk", miss_g, d_near) + np.einsum("krs,s->rk", miss_s, self.src_ds)
-            out[self.between] = self.interp(y.T) + missed
+            out[self.between] = self.interp(y.T) + np.einsum("krs,rs->rk", missed, self.near_ds)
         return out
 
 
 class _Missed:
     """For samples at t between grid nodes a and b (t = a + w h) and sources at tau: what the line
     between the nodes misses of each source's term, K(t - tau) - (1 - w) K(a - tau) - w K(b - tau),
-    K(u) = u_+^nu / Gamma(nu + 1) (and its derivative in beta)."""
+    K(u) = u_+^nu / Gamma(nu + 1), and its derivative in beta (the three lags in one array)."""
 
     def __init__(self, t: np.ndarray, a: np.ndarray, b: np.ndarray, w: np.ndarray, tau: np.ndarray):
-        self.lags = [_Lags(u[:, None] - tau) for u in (t, a, b)]
-        self.weights = [np.ones((len(t), 1)), -(1.0 - w)[:, None], -w[:, None]]
+        self.lags = _Lags(np.stack([u[:, None] - tau for u in (t, a, b)]))       # (3, rows, sources)
+        self.weights = np.stack([np.ones_like(w), -(1.0 - w), -w])[:, :, None]    # (3, rows, 1)
 
-    def power(self, nu: np.ndarray, log_gamma: np.ndarray) -> np.ndarray:
-        return sum(wt[None] * lag.power(nu, log_gamma) for wt, lag in zip(self.weights, self.lags))
-
-    def dbeta(self, nu: np.ndarray, log_gamma: np.ndarray, psi: np.ndarray) -> np.ndarray:
-        return sum(wt[None] * lag.dbeta(lag.power(nu, log_gamma), psi) for wt, lag in zip(self.weights, self.lags))
+    def values(self, nu: np.ndarray, log_gamma: np.ndarray, psi: np.ndarray | None = None) -> np.ndarray:
+        """(len(nu), rows, sources), then as many again for d/dbeta when psi is given."""
+        power = np.exp(nu[:, None, None, None] * self.lags.log[None] - log_gamma[:, None, None, None]) * self.lags.mask
+        out = np.einsum("kirs,irs->krs", power, np.broadcast_to(self.weights, power.shape[1:]))
+        if psi is None:
+            return out
+        dpower = -power * (self.lags.log[None] - psi[:, None, None, None])
+        return np.concatenate([out, np.einsum("kirs,irs->krs", dpower, np.broadcast_to(self.weights, power.shape[1:]))])
 
 
 class _Static:
