@@ -354,9 +354,13 @@ class ModelBasis:
             loading = np.flatnonzero((self.obs >= s) & (self.obs <= p))
             if not len(loading):
                 continue
-            window = grid_t[grid_t <= self.t[p] + (grid_t[1] - grid_t[0])]
-            parts.append((last, -1.0, _Fractional(self.t, self.x, s, p, self.obs, window,
-                                                  grid_x[:len(window)], turning, rows=loading)))
+            # its memory on the grid from its own start to its peak (a grid from the run's start
+            # would make the later cycles cost cycles^2)
+            h = grid_t[1] - grid_t[0]
+            first = max(int(np.searchsorted(grid_t, self.t[s], side="right")) - 1, 0)
+            end = max(int(np.searchsorted(grid_t, self.t[p] + h, side="right")), first + 2)
+            parts.append((last, -1.0, _Fractional(self.t, self.x, s, p, self.obs, grid_t[first:end],
+                                                  grid_x[first:end], turning, rows=loading)))
         return parts
 
     # -- columns -----------------------------------------------------------------
