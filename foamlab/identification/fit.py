@@ -78,13 +78,15 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
     for i, f in enumerate(forms):
         def scaled(stage: str, fraction: float, i=i, f=f) -> None:
             report(f"{f} form: {stage}" if len(forms) > 1 else stage, (i + fraction) / len(forms))
-        results.append(_fit_placed(fd, replace(orders, form=f), given is None, scaled, paper))
+        rival = min((r.rmse for r in results), default=np.inf)
+        results.append(_fit_placed(fd, replace(orders, form=f), given is None, scaled, paper, rival))
     chosen = forms_choose(results, forced=form != "auto")
     chosen.elapsed_s = time.perf_counter() - started
     return chosen
 
 
-def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progress, paper) -> FitResult:
+def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progress, paper,
+                rival: float = np.inf) -> FitResult:
     """One form's fit (select: of the structure the data determine, from orders down), with its
     turning points placed where the samples say.
 
@@ -93,7 +95,7 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
     model switches at the turn, so the samples next to it show which. When they are off by
     more than TURN_MISFIT_MULTIPLE times the noise and their neighbours, the other is fitted too
     and the better kept."""
-    result = _fit_prepared(fd, orders, select, progress, paper)
+    result = _fit_prepared(fd, orders, select, progress, paper, rival)
     at_turns, around = _misfit_at_turns(result, fd)
     if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around):
         # the structure the data chose, with the turns placed the other way
@@ -125,7 +127,10 @@ def _misfit_at_turns(result: FitResult, fd: PreparedRun) -> tuple[float, float]:
 
 
 def _fit_prepared(fd: PreparedRun, orders: Orders, select: bool, progress: Progress | None,
-                  paper=None) -> FitResult:
+                  paper=None, rival: float = np.inf) -> FitResult:
+    """One form's fit (select: of the structure the data determine). rival: the RMSE another
+    form already reached; a first optimum further than RIVAL_RATIO from it gets no extra starts
+    (they refine a local optimum's last percent, not a model twice off the data)."""
     report = progress or (lambda stage, fraction: None)
     started = time.perf_counter()
     # The matrices here are small: BLAS threads would only contend (and on a busy
@@ -135,23 +140,24 @@ def _fit_prepared(fd: PreparedRun, orders: Orders, select: bool, progress: Progr
         paper = paper if paper is not None else paper_steps(fd, orders)
         report("joint refinement", 0.3)
         if not select:
-            result = _fit_structure(fd, orders, paper, JointSearch(fd, orders, paper.start, report), report)
+            search = JointSearch(fd, orders, paper.start, report)
+            result = _fit_structure(fd, orders, paper, search, report, rival)
             result.structure = forced(orders)
         else:
-            result = _fit_selected(fd, orders, paper, report)
+            result = _fit_selected(fd, orders, paper, report, rival)
         result.elapsed_s = time.perf_counter() - started
     report("done", 1.0)
     return result
 
 
-def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress) -> FitResult:
+def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, rival: float = np.inf) -> FitResult:
     """The structure the data determine (identification.structure), carried to every sample."""
 
     def core_fit(orders: Orders, optima, given: bool):
         if given:                 # as a given structure: the same steps as _fit_structure
             search = JointSearch(fd, orders, None, report, found=optima)
             jf = search.fit()
-            base = _polished(fd, orders, jf, search, paper if orders == largest else None)
+            base = _polished(fd, jf, search, paper if orders == largest else None, rival)
             # the core's polish can end above identification's own fit (as _from_core checks):
             # then the core's solution at identification's alpha and beta is the fit judged
             own = solved_at([fd.series], jf.params)
@@ -183,27 +189,30 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress) -> 
     return result
 
 
-def _polished(fd: PreparedRun, orders: Orders, jf: JointFit, search: JointSearch, paper) -> Fit:
+def _polished(fd: PreparedRun, jf: JointFit, search: JointSearch, paper, rival: float = np.inf) -> Fit:
     """The core's polish of identification's fit on every sample, with identification's other
-    starts: the search's next optimum when the first leaves structure above the noise, and the
-    paper's start (exact in the paper form; the decimated search can look white while a few
-    samples misfit), the better kept."""
+    starts, the better kept: the data call for another start when the first leaves structure
+    above the noise (the search's next best optimum), and the decimated search can look white
+    while the full run is off the noise (the paper's three-step start, exact in the paper form).
+    Not for a first optimum further than RIVAL_RATIO from another form's RMSE (rival)."""
     base = polish([fd.series], jf.params,
-                  lambda first: () if _at_the_noise(first, fd) else search.more(EXTRA_STARTS))
-    if paper is not None and paper.start is not None and (orders.form == "paper"
-                                                          or base.rmse > AT_NOISE_RATIO * fd.noise_N):
+                  lambda first: () if _at_the_noise(first, fd) or first.rmse > RIVAL_RATIO * rival
+                  else search.more(EXTRA_STARTS))
+    if paper is not None and paper.start is not None and \
+            AT_NOISE_RATIO * fd.noise_N < base.rmse <= RIVAL_RATIO * rival:
         other = polish([fd.series], paper.start)
         if other.rss < base.rss:
             base = other
     return base
 
 
-def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, report: Progress) -> FitResult:
+def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, report: Progress,
+                   rival: float = np.inf) -> FitResult:
     """One structure: the search's best optimum polished, then carried to every sample by the
     analysis core."""
     jf = search.fit()
     report("polish on every sample", 0.8)
-    base = _polished(fd, orders, jf, search, paper)
+    base = _polished(fd, jf, search, paper, rival)
     polished = _from_core(fd, jf, base)
     if polished is not None:
         jf = polished
@@ -217,6 +226,7 @@ def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, 
 #: residuals, is polished again from the search's next best start(s).
 AT_NOISE_RATIO = 1.05
 EXTRA_STARTS = 1
+RIVAL_RATIO = 2.0
 
 
 def _at_the_noise(base: Fit, fd: PreparedRun) -> bool:

@@ -16,7 +16,7 @@ import numpy as np
 
 from foamlab.analysis.design import ExtendedModel
 from foamlab.analysis.heldout import heldout_rmse
-from foamlab.analysis.solve import Fit
+from foamlab.analysis.solve import Fit, at_full_resolution, decimation
 
 if TYPE_CHECKING:
     from foamlab.identification.result import FitResult
@@ -60,9 +60,9 @@ class FormChoice:
 
 
 def core_fit_of(result: "FitResult") -> Fit:
-    """The analysis core's fit behind a result; where identification kept its own, the core's
-    solution at the result's alpha and beta (refitting them would score another model: one the
-    model's evaluation did not reproduce can predict far better than the result)."""
+    """The analysis core's fit behind a result; when identification kept its own optimum, the
+    core's model at those parameters (the linear ones and the contact set solved: what the
+    held-out check refits anyway, so no search is needed)."""
     if result.core_fit is not None:
         return result.core_fit
     model = ExtendedModel([result.prepared.series], result.params)
@@ -70,8 +70,16 @@ def core_fit_of(result: "FitResult") -> Fit:
 
 
 def score(result: "FitResult") -> FormScore:
-    return FormScore(result.params.residual_form, float(result.rmse),
-                     heldout_rmse(core_fit_of(result)), float(result.bic))
+    return FormScore(result.params.residual_form, float(result.rmse), heldout_of(core_fit_of(result)),
+                     float(result.bic))
+
+
+def heldout_of(core: Fit) -> float:
+    """Held out on the search's samples (every k-th), as diagnosis does: the same prediction
+    error at a fraction of the cost (kept with the fit: asked again, it is not recomputed)."""
+    series = core.model.series
+    coarse = at_full_resolution(core, [s.decimated(decimation(series)) for s in series])
+    return heldout_rmse(core, coarse)
 
 
 def choose(results: list["FitResult"], forced: bool) -> "FitResult":

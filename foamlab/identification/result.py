@@ -250,6 +250,7 @@ class FitResult:
             else:
                 lines.append(f"    {step:<10}{st.sse:>12.5g}{st.r2:>10.5f}{st.adj_r2:>10.5f}"
                              f"{st.rmse:>10.4g}{st.n:>7d}{st.p:>5d}")
+        lines += self._forms_lines()
         lines.append("[[Parameters]] (value, standard error, relative; 'ac' = corrected for "
                      f"residual autocorrelation, tau = {self.autocorrelation_time:.1f})")
         lines.append(f"    {'name':<11}{'value':>14}{'stderr':>12}{'rel':>9}{'stderr ac':>12}")
@@ -278,6 +279,19 @@ class FitResult:
             lines.append("[[Warnings]]")
             lines += [f"    - {w}" for w in self.warnings]
         return "\n".join(lines)
+
+    def _forms_lines(self) -> list[str]:
+        """Each residual form's RMSE, held-out RMSE and BIC against the chosen one's."""
+        choice = self.form_choice
+        if choice is None or len(choice.scores) < 2:
+            return []
+        mine = choice.score(choice.chosen)
+        lines = ["[[Residual form]] (both fitted; the one predicting held-out blocks better kept)",
+                 f"    {'form':<10}{'RMSE':>10}{'held-out':>10}{'dBIC':>10}"]
+        for sc in choice.scores:
+            mark = "  (kept)" if sc.form == choice.chosen else ""
+            lines.append(f"    {sc.form:<10}{sc.rmse:>10.4g}{sc.heldout_rmse:>10.4g}{sc.bic - mine.bic:>10.1f}{mark}")
+        return lines
 
     def _fixed_names(self) -> set[str]:
         return {note.split(" ", 1)[0] for note in self.notes if "(fixed)" in note}

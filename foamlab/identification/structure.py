@@ -40,6 +40,7 @@ from foamlab.analysis.design import Series
 from foamlab.analysis.heldout import heldout_rmse
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import Fit, decimation, solved_at
+from foamlab.identification.forms import heldout_of
 from foamlab.identification.joint import REAL_MODE_RATIO, DecimatedProblem, JointFit, params_of, ranked_searches
 from foamlab.identification.paper import paper_steps
 from foamlab.identification.statistics import information_criteria, parameter_uncertainty
@@ -203,7 +204,7 @@ def select(fd: PreparedRun, largest: Orders, start: ModelParameters | None, core
             return None
         joint, core = out
         defects, weak = core_defects(core)
-        heldout = heldout_rmse(core)
+        heldout = heldout_of(core)
         _, bic = information_criteria(core.rss, core.n, _n_params(core))
         return _Fitted(joint, core, Candidate(orders, how, "fitted", _n_params(core), core.rmse, heldout, bic,
                                               tuple(defects)), weak, optima)
