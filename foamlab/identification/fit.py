@@ -20,6 +20,7 @@ from foamlab.analysis.noise import WHITE_P, whiteness
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
 from foamlab.analysis.solve import Fit, model_like, polish, solved_at
 from foamlab.identification.joint import (
+    AT_BOUND,
     MIN_CENSORED,
     REAL_MODE_RATIO,
     JointFit,
@@ -171,7 +172,7 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, riv
     selection = select(fd, largest, paper.start, core_fit, report)
     chosen = selection.chosen
     steps = paper if chosen.orders == largest else paper_steps(fd, chosen.orders)   # its Table 5
-    jf, base = chosen.joint, chosen.core
+    jf, base = chosen.joint, _real_modes(chosen.core)
     polished = _from_core(fd, jf, base)
     unreproduced = polished is None and not np.isfinite(jf.residual).all()
     if unreproduced:
@@ -187,6 +188,26 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, riv
                                "within a tenth of its residual")
     result.structure = selection.choice()
     return result
+
+
+def _real_modes(base: Fit) -> Fit:
+    """The core's fit with every damping mode whose oscillation the data do not support made real,
+    as the search decides it (joint._real_modes: Im alpha = 0 costs less than ln(n) noise
+    variances), the least oscillating first; the linear parameters re-solved. A structure fitted
+    from a larger one's values has not had the search's test."""
+    phi = base.model.split(base.nu)[0].copy()
+    N = base.params.layout.N
+    penalty = base.rss / base.n * np.log(base.n)
+    for i in np.argsort(phi[1:2 * N:2] / np.maximum(phi[0:2 * N:2], 1e-300)):
+        if phi[2 * i + 1] == 0.0:
+            continue
+        trial = phi.copy()
+        trial[2 * i + 1] = 0.0
+        sol = base.model.solve(trial)
+        if sol.rss() > base.rss + penalty:
+            break
+        base, phi = Fit([], base.model, trial, base.stderr, sol, status=base.status, message=base.message), trial
+    return base
 
 
 def _polished(fd: PreparedRun, jf: JointFit, search: JointSearch, paper, rival: float = np.inf) -> Fit:
@@ -247,8 +268,6 @@ def _orders(orders) -> Orders | None:
     return Orders(*orders)
 
 
-#: A rate or order within this fraction of its search range from a bound sits at it.
-AT_BOUND = 1e-6
 #: Samples this many steps from a corner of the path are not in the evaluation check.
 CORNER_STEPS = 2.0
 

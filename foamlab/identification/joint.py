@@ -46,6 +46,8 @@ MAX_JUMPS = 2
 MIN_CENSORED = 20
 #: A damping mode whose Im alpha ends below this fraction of its Re alpha stays real (fixed).
 REAL_MODE_RATIO = 1e-6
+#: A rate or order within this fraction of its search range from a bound sits at it.
+AT_BOUND = 1e-6
 
 
 @dataclass

@@ -41,7 +41,7 @@ from foamlab.analysis.heldout import heldout_rmse
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import Fit, decimation, solved_at
 from foamlab.identification.forms import heldout_of
-from foamlab.identification.joint import REAL_MODE_RATIO, DecimatedProblem, JointFit, params_of, ranked_searches
+from foamlab.identification.joint import AT_BOUND, REAL_MODE_RATIO, DecimatedProblem, JointFit, params_of, ranked_searches
 from foamlab.identification.paper import paper_steps
 from foamlab.identification.statistics import information_criteria, parameter_uncertainty
 from foamlab.identification.varpro import SeparableFit
@@ -56,7 +56,7 @@ CANCEL_RATIO = 0.2
 #: this ("very strong" evidence, as diagnosis' DELTA_BIC_MIN).
 BIC_TIE = 10.0
 #: At most this many structures are screened (the largest included), and fitted on every sample.
-MAX_SCREENED, MAX_FITTED = 10, 6
+MAX_SCREENED, MAX_FITTED = 10, 5
 #: Two amplitudes of one component correlated beyond this are one term the data see twice (the
 #: main job's fits: 0.997 between one term's amplitudes in consecutive cycles; 1.0000 where two
 #: terms of nearly one order share what one of them would do).
@@ -238,13 +238,47 @@ def select(fd: PreparedRun, largest: Orders, start: ModelParameters | None, core
             break
         done += trials
         current = min(trials, key=lambda f: (not f.candidate.admissible, len(f.candidate.defects), f.candidate.bic))
-    if not any(f.candidate.admissible for f in done):
-        # none: the smallest structure (one damping mode, one residual term, orders shared), whose
-        # terms real data determine where larger ones cancel
-        smallest = replace(largest, N=min(largest.N, 1), M=min(largest.M, 1), shared=True)
-        if smallest not in {f.orders for f in done}:
-            done.append(fitted(smallest, optima(smallest), "the smallest (global search)", True))
+    # none admissible: the best fit's structure without any of its defective damping modes and
+    # with a residual term less (the moves one at a time ran out), then the smallest (one damping
+    # mode, one residual term, orders shared), whose terms real data determine where larger cancel
+    best = min(done, key=lambda f: f.candidate.bic)
+    for move in ([_pruned(best)] if best.candidate.defects else []) + [None]:
+        if any(f.candidate.admissible for f in done):
+            break
+        orders = move.orders if move else replace(largest, N=min(largest.N, 1), M=min(largest.M, 1), shared=True)
+        if orders not in {f.orders for f in done}:
+            done.append(fitted(orders, optima(orders, warm=move), move.how if move else "the smallest (global search)",
+                               move is None))
     return Selection(screened, done, big)
+
+
+def _pruned(fitted: _Fitted) -> Move:
+    """The structure of a fit without any of its defective damping modes (one kept) and, if one
+    of its residual terms is defective, with a term less; from its values."""
+    core = fitted.core
+    lay = core.params.layout
+    nonlinear = core.model.split(core.nu)[0]
+    named = [d.split(" ", 1)[0] for d in fitted.candidate.defects]
+    bad_modes = {_column_of_name(lay, n) - lay.P - 1 for n in named if n.startswith(("a", "alpha"))}
+    for d in fitted.candidate.defects:              # the modes of cancelling or twin amplitudes
+        for n in d.replace(",", " ").split():
+            if n[:1] == "a" and n[1:].isdigit():
+                bad_modes.add(int(n[1:]) - 1)
+    keep = np.array([i not in bad_modes for i in range(lay.N)])
+    if lay.N and not keep.any():
+        keep[max(range(lay.N), key=lambda i: fitted.weak.index(lay.P + 1 + i))] = True   # the strongest
+    residual = any(n.startswith(("r", "beta")) for n in named) or any(" r" in d for d in fitted.candidate.defects)
+    alphas, betas = nonlinear[:2 * lay.N].reshape(lay.N, 2), nonlinear[2 * lay.N:]
+    M = lay.M - 1 if residual and lay.M > 1 else lay.M
+    if M < lay.M:        # the weakest term (of every cycle, unless orders are shared)
+        drop = _moves(lay, nonlinear, _real(lay, nonlinear), fitted.weak)
+        betas = next(m.start[2 * lay.N:] for m in drop if m.orders.M < lay.M)
+    orders = replace(lay.orders, N=int(keep.sum()), M=M)
+    real = _real(lay, nonlinear)[:2 * lay.N].reshape(lay.N, 2)
+    return Move(orders, np.concatenate([alphas[keep].ravel(), betas]),
+                np.concatenate([real[keep].ravel(), np.zeros(len(betas), bool)]),
+                "without its defective damping modes and a residual term")
+
 
 
 def _degenerate(c: Candidate) -> bool:
@@ -342,6 +376,14 @@ def core_defects(core: Fit) -> tuple[list[str], list[int]]:
     # an oscillation the data do not determine is a detail of its mode (a real one fits alike)
     undetermined = [n for n in names[keep][~unc.determined] if not n.endswith("_im")]
     defects = [f"{n} not determined" for n in undetermined]
+    # a rate or order at its search bound: the optimum is outside the model's range
+    span = hi[:len(phi)] - lo[:len(phi)]
+    pinned = ((phi <= lo[:len(phi)] + AT_BOUND * span) | (phi >= hi[:len(phi)] - AT_BOUND * span)) & ~_real(lay, phi)
+    pinned[1:2 * lay.N:2] = False            # Im alpha = 0 is a real mode, not a limit
+    for n in names[L:L + len(phi)][pinned]:
+        if n not in undetermined:
+            defects.append(f"{n} at its search bound")
+            undetermined.append(n)
     bad = {_column_of_name(lay, str(n)) for n in undetermined} - {-1}
     rows = np.flatnonzero(core.solution.used[0])
     parts = core.solution.designs[0][0][rows, :L] * theta[None, :L]
