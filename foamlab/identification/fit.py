@@ -18,7 +18,7 @@ from threadpoolctl import threadpool_limits
 
 from foamlab.analysis.noise import WHITE_P, whiteness
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
-from foamlab.analysis.solve import Fit, model_like, polish, solved_at
+from foamlab.analysis.solve import Fit, model_like, polish
 from foamlab.identification.joint import (
     AT_BOUND,
     MIN_CENSORED,
@@ -155,18 +155,13 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, riv
     """The structure the data determine (identification.structure), carried to every sample."""
 
     def core_fit(orders: Orders, optima, given: bool):
-        if given:                 # as a given structure: the same steps as _fit_structure
-            search = JointSearch(fd, orders, None, report, found=optima)
-            jf = search.fit()
-            base = _polished(fd, jf, search, paper if orders == largest else None, rival)
-            # the core's polish can end above identification's own fit (as _from_core checks):
-            # then the core's solution at identification's alpha and beta is the fit judged
-            own = solved_at([fd.series], jf.params)
-            return jf, (own if own.rss < base.rss else base)
         found = next(optima, None)
         if found is None:
             return None
         jf = unpolished(fd, orders.layout(fd.n_residual_cycles), found)
+        if given:        # with identification's other starts (the search's next, the paper's)
+            search = JointSearch(fd, orders, None, report, found=optima)
+            return jf, _polished(fd, jf, search, paper if orders == largest else None, rival)
         return jf, polish([fd.series], jf.params)
 
     selection = select(fd, largest, paper.start, core_fit, report)
