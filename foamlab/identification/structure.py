@@ -230,7 +230,13 @@ def select(fd: PreparedRun, largest: Orders, start: ModelParameters | None, core
         trials = []
         if _degenerate(current.candidate):           # a local optimum: the same structure, another start
             trials.append(fitted(current.orders, current.optima, "the same, from another start", False))
+        # smaller structures, unless the restart is admissible and the screening found them worse
+        # by more than BIC_TIE (they would not be chosen)
+        restarted = trials[0] if trials and trials[0] is not None and trials[0].candidate.admissible else None
+        bic = {c.orders: c.bic for c in screened}
         for move in _repairs(current):
+            if restarted and bic.get(move.orders, -np.inf) > bic.get(current.orders, np.inf) + BIC_TIE:
+                continue
             if len(done) + len(trials) < MAX_FITTED and move.orders not in {f.orders for f in done + trials if f}:
                 trials.append(fitted(move.orders, optima(move.orders, warm=move), move.how, False))
         trials = [t for t in trials if t is not None]
