@@ -78,7 +78,13 @@ class Candidate:
 
     @property
     def admissible(self) -> bool:
-        return self.stage == "fitted" and not self.defects
+        """A fit on every sample with no terms that cancel or that are one term seen twice."""
+        return self.stage == "fitted" and not any(_degenerating(d) for d in self.defects)
+
+    @property
+    def undetermined(self) -> int:
+        """Its other defects: parameters the data do not determine, rates or orders at a bound."""
+        return sum(not _degenerating(d) for d in self.defects)
 
     def to_dict(self) -> dict:
         return {"orders": str(self.orders), "how": self.how, "stage": self.stage, "n_params": self.n_params,
@@ -270,7 +276,7 @@ def _pruned(fitted: _Fitted) -> Move:
         for n in d.replace(",", " ").split():
             if n[:1] == "a" and n[1:].isdigit():
                 bad_modes.add(int(n[1:]) - 1)
-    keep = np.array([i not in bad_modes for i in range(lay.N)])
+    keep = np.array([i not in bad_modes for i in range(lay.N)], dtype=bool)
     if lay.N and not keep.any():
         keep[max(range(lay.N), key=lambda i: fitted.weak.index(lay.P + 1 + i))] = True   # the strongest
     residual = any(n.startswith(("r", "beta")) for n in named) or any(" r" in d for d in fitted.candidate.defects)
@@ -290,7 +296,11 @@ def _pruned(fitted: _Fitted) -> Move:
 def _degenerate(c: Candidate) -> bool:
     """Defects of a local optimum the same structure can leave: terms that cancel or that the data
     cannot tell apart (two terms of nearly one order)."""
-    return any(" cancel" in d or "not told apart" in d for d in c.defects)
+    return any(_degenerating(d) for d in c.defects)
+
+
+def _degenerating(defect: str) -> bool:
+    return " cancel" in defect or "not told apart" in defect
 
 
 def _start_of(fd: PreparedRun, orders: Orders, largest: Orders, start: ModelParameters | None):
@@ -303,13 +313,15 @@ def _conclude(judged: list[Candidate]) -> tuple[int, str]:
     admissible = [i for i, c in enumerate(judged) if c.admissible]
     if not admissible:
         best = min(range(len(judged)), key=lambda i: (len(judged[i].defects), judged[i].bic))
-        return best, f"no structure fitted is free of defects: the one with the fewest ({len(judged[best].defects)})"
+        return best, f"no structure fitted is free of cancelling terms: the fewest defects ({len(judged[best].defects)})"
     low = min(judged[i].bic for i in admissible)
-    best = min((i for i in admissible if judged[i].bic <= low + BIC_TIE), key=lambda i: (judged[i].n_params, judged[i].bic))
-    if best == 0:
-        return best, "the screening's choice (lowest BIC, fewest parameters within a tie): every parameter determined, no terms cancel"
-    return best, (f"every parameter determined, no terms cancel, the lowest BIC of such (the fewest parameters "
-                  f"within {BIC_TIE:g}); the screening's choice: {'; '.join(judged[0].defects)}")
+    tied = [i for i in admissible if judged[i].bic <= low + BIC_TIE]
+    best = min(tied, key=lambda i: (judged[i].undetermined, judged[i].n_params, judged[i].bic))
+    why = (f"no terms cancel; of those, within {BIC_TIE:g} of the lowest BIC, the fewest parameters "
+           "the data do not determine, then the fewest parameters")
+    if judged[best].undetermined:
+        why += f" ({'; '.join(judged[best].defects)})"
+    return best, why
 
 
 def screen(fd: PreparedRun, largest: _Fitted, big: DecimatedProblem,
