@@ -16,7 +16,7 @@ from typing import Callable
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from foamlab.analysis.noise import WHITE_P, whiteness
+from foamlab.analysis.noise import AT_NOISE_RATIO, at_the_noise
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
 from foamlab.analysis.solve import Fit, model_like, polish
 from foamlab.identification.joint import (
@@ -240,14 +240,12 @@ def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, 
 
 #: A polished fit further than this from the noise level, with structure left in its
 #: residuals, is polished again from the search's next best start(s).
-AT_NOISE_RATIO = 1.05
 EXTRA_STARTS = 1
 RIVAL_RATIO = 2.0
 
 
 def _at_the_noise(base: Fit, fd: PreparedRun) -> bool:
-    rmse = base.rmse
-    return rmse <= AT_NOISE_RATIO * fd.noise_N or whiteness(base.solution.residual).min_p >= WHITE_P
+    return at_the_noise(base.solution.residual, fd.noise_N)
 
 
 #: The structure the selection starts from (issue 19): the paper's orders, three cycles with terms

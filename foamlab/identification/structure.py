@@ -38,6 +38,7 @@ import numpy as np
 
 from foamlab.analysis.design import Series
 from foamlab.analysis.heldout import heldout_rmse
+from foamlab.analysis.noise import at_the_noise
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import Fit, decimation, solved_at
 from foamlab.identification.forms import heldout_of
@@ -75,16 +76,18 @@ class Candidate:
     heldout_rmse: float               # N, blocks predicted by the model fitted without them
     bic: float
     defects: tuple[str, ...] = ()     # why a fit is not admissible (undetermined, cancelling)
+    at_noise: bool = False            # what it leaves is the noise (analysis.noise.at_the_noise)
 
     @property
     def admissible(self) -> bool:
-        """A fit on every sample with no terms that cancel or that are one term seen twice."""
-        return self.stage == "fitted" and not any(_degenerating(d) for d in self.defects)
+        """A fit on every sample with no large amplitudes that cancel."""
+        return self.stage == "fitted" and not any(d.endswith(" cancel") for d in self.defects)
 
     @property
     def undetermined(self) -> int:
-        """Its other defects: parameters the data do not determine, rates or orders at a bound."""
-        return sum(not _degenerating(d) for d in self.defects)
+        """Its other defects: parameters the data do not determine, rates or orders at a bound, weak
+        terms offsetting each other, one term seen twice."""
+        return sum(not d.endswith(" cancel") for d in self.defects)
 
     def to_dict(self) -> dict:
         return {"orders": str(self.orders), "how": self.how, "stage": self.stage, "n_params": self.n_params,
@@ -213,7 +216,8 @@ def select(fd: PreparedRun, largest: Orders, start: ModelParameters | None, core
         heldout = heldout_of(core)
         _, bic = information_criteria(core.rss, core.n, _n_params(core))
         return _Fitted(joint, core, Candidate(orders, how, "fitted", _n_params(core), core.rmse, heldout, bic,
-                                              tuple(defects)), weak, optima)
+                                              tuple(defects), at_the_noise(core.solution.residual, fd.noise_N)),
+                       weak, optima)
 
     def optima(orders: Orders, *first: tuple, warm: Move | None = None) -> Iterator[tuple]:
         """A structure's starts: the given optima, a warm start (a larger fit's values, as they are:
@@ -311,6 +315,15 @@ def _start_of(fd: PreparedRun, orders: Orders, largest: Orders, start: ModelPara
 def _conclude(judged: list[Candidate]) -> tuple[int, str]:
     """The fit chosen (module docstring) and why."""
     admissible = [i for i, c in enumerate(judged) if c.admissible]
+    at_noise = [i for i, c in enumerate(judged) if c.at_noise]
+    if at_noise:
+        best = min(at_noise, key=lambda i: judged[i].bic)
+        if not any(judged[i].bic <= judged[best].bic + BIC_TIE for i in admissible):
+            # the data are fitted to the noise, but not without cancelling terms: the search did
+            # not find such a structure's clean optimum (the independent generator's runs have
+            # one); the fit at the noise is kept, its defects said
+            return best, ("only fits whose terms cancel reach the noise (no start found one without): "
+                          f"the lowest BIC of those ({'; '.join(judged[best].defects)})")
     if not admissible:
         best = min(range(len(judged)), key=lambda i: (len(judged[i].defects), judged[i].bic))
         return best, f"no structure fitted is free of cancelling terms: the fewest defects ({len(judged[best].defects)})"
@@ -405,8 +418,9 @@ def core_defects(core: Fit) -> tuple[list[str], list[int]]:
     bad = {_column_of_name(lay, str(n)) for n in undetermined} - {-1}
     rows = np.flatnonzero(core.solution.used[0])
     parts = core.solution.designs[0][0][rows, :L] * theta[None, :L]
-    for i, j in _cancelling(lay, parts):
-        defects.append(f"{names[i]} = {theta[i]:.4g} and {names[j]} = {theta[j]:.4g} cancel")
+    for i, j, large in _cancelling(lay, parts):
+        defects.append(f"{names[i]} = {theta[i]:.4g} and {names[j]} = {theta[j]:.4g} "
+                       + ("cancel" if large else "offset each other (each weaker than their component)"))
         bad.update((i, j))
     # two amplitudes the data cannot tell apart: two damping modes, or two terms of one cycle, of
     # nearly one rate or order (one term's amplitudes in two cycles may well be correlated so)
@@ -471,16 +485,20 @@ def _moves(lay: Layout, nonlinear: np.ndarray, fixed: np.ndarray, weak: list[int
     return out
 
 
-def _cancelling(lay: Layout, parts: np.ndarray) -> list[tuple[int, int]]:
-    """Amplitude columns (damping with damping, residual with residual) whose contributions cancel."""
+def _cancelling(lay: Layout, parts: np.ndarray) -> list[tuple[int, int, bool]]:
+    """Amplitude columns (damping with damping, residual with residual) whose contributions cancel,
+    and whether they are large: each larger than what their whole component does (two weak terms
+    offsetting each other are terms the data barely see, not a derivative held up by two large
+    amplitudes; on the independent generator's runs at 0.15 N fits at the noise had many such)."""
     p1 = lay.P + 1
     size = np.linalg.norm(parts, axis=0)
     out = []
     for group in (range(p1, p1 + lay.N), range(p1 + lay.N, lay.n_linear)):
+        total = float(np.linalg.norm(parts[:, list(group)].sum(axis=1))) if len(group) else 0.0
         for i, j in itertools.combinations(group, 2):
             if min(size[i], size[j]) > 0 and \
                     np.linalg.norm(parts[:, i] + parts[:, j]) < CANCEL_RATIO * max(size[i], size[j]):
-                out.append((i, j))
+                out.append((i, j, max(size[i], size[j]) > total))
     return out
 
 
