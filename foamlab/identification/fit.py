@@ -164,7 +164,14 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, riv
             return jf, _polished(fd, jf, search, paper if orders == largest else None, rival)
         return jf, polish([fd.series], jf.params)
 
-    selection = select(fd, largest, paper.start, core_fit, report)
+    checked: dict[int, bool] = {}         # by id of the core's fit: its evaluation costs
+
+    def reproduced(jf: JointFit, core: Fit) -> bool:
+        if id(core) not in checked:
+            checked[id(core)] = _from_core(fd, jf, core) is not None
+        return checked[id(core)]
+
+    selection = select(fd, largest, paper.start, core_fit, reproduced, report)
     chosen = selection.chosen
     steps = paper if chosen.orders == largest else paper_steps(fd, chosen.orders)   # its Table 5
     jf, base = chosen.joint, _real_modes(chosen.core)

@@ -56,6 +56,10 @@ CANCEL_RATIO = 0.2
 #: A structure with fewer parameters is preferred unless a larger one's BIC is lower by more than
 #: this ("very strong" evidence, as diagnosis' DELTA_BIC_MIN).
 BIC_TIE = 10.0
+#: The defect of a fit the model's own evaluation does not reproduce (joint.evaluable: terms at
+#: extreme orders, beta near -3, are beyond the evaluation's operators; the simulator would run
+#: another model).
+NOT_REPRODUCED = "the model's own evaluation does not reproduce it"
 #: At most this many structures are screened (the largest included), and fitted on every sample.
 MAX_SCREENED, MAX_FITTED = 10, 5
 #: Two amplitudes of one component correlated beyond this are one term the data see twice (the
@@ -80,14 +84,14 @@ class Candidate:
 
     @property
     def admissible(self) -> bool:
-        """A fit on every sample with no large amplitudes that cancel."""
-        return self.stage == "fitted" and not any(d.endswith(" cancel") for d in self.defects)
+        """A fit on every sample with no large amplitudes that cancel, no term seen twice."""
+        return self.stage == "fitted" and not any(_degenerating(d) for d in self.defects)
 
     @property
     def undetermined(self) -> int:
         """Its other defects: parameters the data do not determine, rates or orders at a bound, weak
-        terms offsetting each other, one term seen twice."""
-        return sum(not d.endswith(" cancel") for d in self.defects)
+        terms offsetting each other."""
+        return sum(not _degenerating(d) for d in self.defects)
 
     def to_dict(self) -> dict:
         return {"orders": str(self.orders), "how": self.how, "stage": self.stage, "n_params": self.n_params,
@@ -200,9 +204,11 @@ CoreFit = Callable[[Orders, Iterator[tuple], bool], "tuple[JointFit, Fit] | None
 
 
 def select(fd: PreparedRun, largest: Orders, start: ModelParameters | None, core_fit: CoreFit,
-           progress: Callable[[str, float], None] | None = None) -> Selection:
+           reproduced: Callable[[JointFit, Fit], bool], progress: Callable[[str, float], None] | None = None
+           ) -> Selection:
     """The largest fitted, the screening from its fit, the screening's choice fitted and repaired
-    (module docstring)."""
+    (module docstring). reproduced: does the model's own evaluation (what the simulator runs)
+    reproduce a fit? Asked of fits without other degenerating defects (it costs an evaluation)."""
     big = DecimatedProblem(fd, largest)
 
     def fitted(orders: Orders, optima: Iterator[tuple], how: str, extra: bool) -> _Fitted | None:
@@ -213,6 +219,8 @@ def select(fd: PreparedRun, largest: Orders, start: ModelParameters | None, core
             return None
         joint, core = out
         defects, weak = core_defects(core)
+        if not any(_degenerating(d) for d in defects) and not reproduced(joint, core):
+            defects.append(NOT_REPRODUCED)
         heldout = heldout_of(core)
         _, bic = information_criteria(core.rss, core.n, _n_params(core))
         return _Fitted(joint, core, Candidate(orders, how, "fitted", _n_params(core), core.rmse, heldout, bic,
@@ -304,7 +312,7 @@ def _degenerate(c: Candidate) -> bool:
 
 
 def _degenerating(defect: str) -> bool:
-    return " cancel" in defect or "not told apart" in defect
+    return defect.endswith(" cancel") or "not told apart" in defect or defect == NOT_REPRODUCED
 
 
 def _start_of(fd: PreparedRun, orders: Orders, largest: Orders, start: ModelParameters | None):
@@ -382,9 +390,10 @@ def _repairs(fitted: _Fitted) -> list[Move]:
     out = []
     if any(_cycle_of(n) > 1 for n in named):
         out += [m for m in moves if m.orders.shared and not lay.shared]
-    if any(n.startswith("alpha") or (n[:1] == "a" and n[1:2].isdigit()) for n in named):
+    odd = NOT_REPRODUCED in fitted.candidate.defects      # either kind of term dropped
+    if odd or any(n.startswith("alpha") or (n[:1] == "a" and n[1:2].isdigit()) for n in named):
         out += [m for m in moves if m.orders.N < lay.N]
-    if any(n.startswith(("beta", "r")) for n in named):
+    if odd or any(n.startswith(("beta", "r")) for n in named):
         out += [m for m in moves if m.orders.M < lay.M]
     return out
 
