@@ -189,6 +189,10 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, riv
         result.warnings.append("the model's own evaluation (what the simulator runs) does not reproduce this fit "
                                "within a tenth of its residual")
     result.structure = selection.choice()
+    first = selection.fitted[0]
+    if first is not chosen:     # the largest structure's fit: what diagnosis extends
+        own = _from_core(fd, first.joint, first.core) or _from_core(fd, first.joint, first.core, reproduced=False)
+        result.largest = _result(fd, first.orders, paper, own, time.perf_counter(), first.core)
     return result
 
 

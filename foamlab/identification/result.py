@@ -106,6 +106,7 @@ class FitResult:
     alternatives: list["FitResult"] = field(default_factory=list)   # the other forms' fits
     structure: StructureChoice | None = None   # the structures tried and the one chosen (or forced)
     tied: dict[str, str] = field(default_factory=dict)   # shared orders: later cycle's beta -> first's
+    largest: "FitResult | None" = None   # the largest structure's fit when another was chosen (diagnosis' base)
 
     # -- views -----------------------------------------------------------------------
     @property
