@@ -227,7 +227,9 @@ def _polished(fd: PreparedRun, jf: JointFit, search: JointSearch, paper, rival: 
                   else search.more(EXTRA_STARTS))
     if paper is not None and paper.start is not None and \
             AT_NOISE_RATIO * fd.noise_N < base.rmse <= RIVAL_RATIO * rival:
-        other = polish([fd.series], paper.start)
+        # the three steps are the same in either form: their start in the form fitted (polished
+        # as it came, a causal start made a paper-form fit a causal one)
+        other = polish([fd.series], replace(paper.start, residual_form=jf.params.residual_form))
         if other.rss < base.rss:
             base = other
     return base
