@@ -70,12 +70,16 @@ def core_fit_of(result: "FitResult") -> Fit:
 
 
 def score(result: "FitResult") -> FormScore:
+    return FormScore(result.params.residual_form, float(result.rmse), heldout_of(core_fit_of(result)),
+                     float(result.bic))
+
+
+def heldout_of(core: Fit) -> float:
     """Held out on the search's samples (every k-th), as diagnosis does: the same prediction
-    error at a fraction of the cost."""
-    core = core_fit_of(result)
+    error at a fraction of the cost (kept with the fit: asked again, it is not recomputed)."""
     series = core.model.series
     coarse = at_full_resolution(core, [s.decimated(decimation(series)) for s in series])
-    return FormScore(result.params.residual_form, float(result.rmse), heldout_rmse(core, coarse), float(result.bic))
+    return heldout_rmse(core, coarse)
 
 
 def choose(results: list["FitResult"], forced: bool) -> "FitResult":

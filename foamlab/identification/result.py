@@ -15,6 +15,7 @@ from foamlab.analysis.solve import Fit
 from foamlab.identification.forms import FormChoice
 from foamlab.identification.paper import PaperResult
 from foamlab.identification.statistics import GoodnessOfFit
+from foamlab.identification.structure import StructureChoice
 from foamlab.model import ModelParameters, ModelResponse
 from foamlab.model.layout import Orders
 
@@ -43,11 +44,20 @@ class Parameter:
     upper: float
     varied: bool                      # False: held fixed (e.g. Im alpha of a real damping mode)
     unit: str
+    same_as: str | None = None        # a shared order in a later cycle: the parameter it is
 
     @property
     def determined(self) -> bool:
         """Varied, with a standard error, and its 95 % interval excludes zero."""
         return self.varied and self.stderr is not None and abs(self.value) > 1.96 * self.stderr
+
+    def to_dict(self) -> dict:
+        out = {"value": self.value, "stderr": self.stderr, "lower": _num(self.lower),
+               "upper": _num(self.upper), "varied": self.varied, "unit": self.unit,
+               "determined": self.determined}
+        if self.same_as:
+            out["same_as"] = self.same_as
+        return out
 
 
 def _num(v) -> float | None:
@@ -94,6 +104,9 @@ class FitResult:
     core_fit: Fit | None = None           # the analysis core's fit: what diagnosis extends
     form_choice: FormChoice | None = None  # which residual form, and why (identification.forms)
     alternatives: list["FitResult"] = field(default_factory=list)   # the other forms' fits
+    structure: StructureChoice | None = None   # the structures tried and the one chosen (or forced)
+    tied: dict[str, str] = field(default_factory=dict)   # shared orders: later cycle's beta -> first's
+    largest: "FitResult | None" = None   # the largest structure's fit when another was chosen (diagnosis' base)
 
     # -- views -----------------------------------------------------------------------
     @property
@@ -116,7 +129,8 @@ class FitResult:
         lower = self.lower if self.lower is not None else np.full(n, -np.inf)
         upper = self.upper if self.upper is not None else np.full(n, np.inf)
         varied = self.varied if self.varied is not None else np.ones(n, bool)
-        return {name: Parameter(name, float(v), _num(s), float(lo), float(hi), bool(var), unit_of(name))
+        return {name: Parameter(name, float(v), _num(s), float(lo), float(hi), bool(var), unit_of(name),
+                                self.tied.get(name))
                 for name, v, s, lo, hi, var in zip(self.names, self.values, self.stderr, lower, upper, varied)}
 
     def value(self, name: str) -> float:
@@ -129,11 +143,9 @@ class FitResult:
     def to_dict(self) -> dict:
         """The object of ``foamlab fit --json`` (DESIGN.md): parameters, statistics, rmse,
         constraints. Standard errors of parameters the data do not determine are null."""
-        parameters = {p.name: {"value": p.value, "stderr": p.stderr, "lower": _num(p.lower),
-                               "upper": _num(p.upper), "varied": p.varied, "unit": p.unit}
-                      for p in self.parameters.values()}
+        parameters = {p.name: p.to_dict() for p in self.parameters.values()}
         parameters["x_scale_mm"] = {"value": float(self.params.x_scale_mm), "stderr": None, "lower": None,
-                                    "upper": None, "varied": False, "unit": "mm"}
+                                    "upper": None, "varied": False, "unit": "mm", "determined": False}
         statistics = {}
         for step in STEPS:
             st = self.statistics.get(step)
@@ -143,7 +155,8 @@ class FitResult:
                 "constraints": {k: bool(v) for k, v in self.constraints.items()},
                 "noise": _num(self.noise_N),
                 "optimizer": {"success": self.success, "status": self.status, "message": self.message},
-                "form": self.params.residual_form, "forms": self._forms_dict()}
+                "form": self.params.residual_form, "forms": self._forms_dict(),
+                "structure": self.structure.to_dict() if self.structure is not None else None}
 
     def _forms_dict(self) -> dict:
         """Each form's RMSE, held-out RMSE, BIC and its BIC minus the chosen one's, and why."""
@@ -167,7 +180,7 @@ class FitResult:
         out.update({
             "model": self.params.to_dict(),
             "orders": {"N": self.orders.N, "M": self.orders.M, "P": self.orders.P, "C": self.orders.C,
-                       "form": self.orders.form},
+                       "form": self.orders.form, "shared": self.orders.shared},
             "stderr_autocorrelation_corrected": {n: _num(s) for n, s in zip(self.names, self.stderr_autocorr)},
             "autocorrelation_time": _num(self.autocorrelation_time),
             "correlation": {"names": self.names, "matrix": corr},
@@ -200,10 +213,16 @@ class FitResult:
                  f"  RMSE {self.rmse:.4g} N = {ratio:.2f} x the load cell's noise ({self.noise_N:.3g} N)"
                  + (f", R^2 {joint.r2:.6f}" if joint is not None else ""),
                  f"  optimizer: {'converged' if self.success else 'stopped'} ({self.message})"]
-        params = [p for p in self.parameters.values() if p.determined]
-        hidden = len(self.names) - len(params)
-        lines.append(f"  parameters the data determine ({len(params)} of {len(self.names)}; "
-                     f"{hidden} fixed, not determined or within 2 standard errors of zero: see --full or --json):")
+        if self.structure is not None:
+            lines.append(f"  structure: {self.structure.why}"
+                         + (f" ({len(self.structure.candidates)} tried, see --full)" if self.structure.candidates else ""))
+        own = [p for p in self.parameters.values() if not p.same_as]
+        params = [p for p in own if p.determined]
+        hidden = len(own) - len(params)
+        shared = " (each order beta1_m is every cycle's: shared orders)" if self.tied else ""
+        lines.append(f"  parameters the data determine ({len(params)} of {len(own)}; "
+                     f"{hidden} fixed, not determined or within 2 standard errors of zero: see --full or --json)"
+                     f"{shared}:")
         for p in params:
             lines.append(f"    {p.name:<11}{p.value:>13.5g} +/- {p.stderr:<10.2g} {p.unit}")
         failed = [k for k, ok in self.constraints.items() if not ok]
@@ -237,7 +256,9 @@ class FitResult:
                      f"residual autocorrelation, tau = {self.autocorrelation_time:.1f})")
         lines.append(f"    {'name':<11}{'value':>14}{'stderr':>12}{'rel':>9}{'stderr ac':>12}")
         for n, v, s, sa in zip(self.names, self.values, self.stderr, self.stderr_autocorr):
-            if n in self._fixed_names():
+            if n in self.tied:
+                lines.append(f"    {n:<11}{v:>14.6g}{'= ' + self.tied[n] + ' (shared orders)':>33}")
+            elif n in self._fixed_names():
                 lines.append(f"    {n:<11}{v:>14.6g}{'(fixed: real mode)':>33}")
             elif math.isfinite(s):
                 rel = f"{abs(s / v) * 100:8.1f}%" if v != 0 else f"{'-':>9}"
@@ -248,6 +269,10 @@ class FitResult:
         lines.append("[[Constraints]] (thermodynamic checks, Eqs. 23-25)")
         for k, ok in self.constraints.items():
             lines.append(f"    {k:<28}{'pass' if ok else 'FAIL'}")
+        if self.structure is not None:
+            lines.append(f"[[Structure]] {self.structure.why}")
+            if self.structure.candidates:
+                lines += self.structure.lines()
         if self.notes:
             lines.append("[[Notes]]")
             lines += [f"    - {w}" for w in self.notes]

@@ -38,6 +38,7 @@ class ModelParameters:
     description: str = ""
     metadata: dict = field(default_factory=dict)
     residual_form: str = "causal"              # 'causal' or 'paper' (RESIDUAL_FORMS)
+    shared_orders: bool = False                # every cycle's terms have the same orders, fitted so
 
     def __post_init__(self) -> None:
         check_form(self.residual_form)
@@ -54,6 +55,8 @@ class ModelParameters:
             raise FoamlabError("model parameters: x_scale_mm must be positive")
         if np.any(self.residual_beta >= 1.0):
             raise FoamlabError("model parameters: fractional orders beta must be < 1 (Eq. 10)")
+        if self.shared_orders and not np.all(self.residual_beta == self.residual_beta[:1]):
+            raise FoamlabError("model parameters: shared orders differ between cycles")
 
     # -- orders -----------------------------------------------------------------
     @property
@@ -76,7 +79,7 @@ class ModelParameters:
     def layout(self) -> Layout:
         """Where each entry of to_vector() goes when the model is fitted (linear / nonlinear)."""
         return Layout(P=self.order_P, N=self.order_N, M=self.order_M, C=self.n_residual_cycles,
-                      form=self.residual_form)
+                      form=self.residual_form, shared=self.shared_orders)
 
     def residual_terms(self, cycle: int) -> tuple[np.ndarray, np.ndarray]:
         """(r, beta) of a 1-based cycle; cycles beyond those identified reuse the last."""
@@ -119,6 +122,7 @@ class ModelParameters:
             description=self.description,
             metadata=dict(self.metadata),
             residual_form=self.residual_form,
+            shared_orders=self.shared_orders,
         )
 
     # -- files --------------------------------------------------------------------
@@ -134,6 +138,7 @@ class ModelParameters:
             },
             "residual": {
                 "form": self.residual_form,
+                "shared_orders": self.shared_orders,
                 "r": [[float(x) for x in row] for row in self.residual_r],
                 "beta": [[float(x) for x in row] for row in self.residual_beta],
             },
@@ -156,6 +161,7 @@ class ModelParameters:
                 residual_beta=res["beta"],
                 description=d.get("description", ""),
                 residual_form=str(res.get("form", "causal")),
+                shared_orders=bool(res.get("shared_orders", False)),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise FoamlabError(f"model parameters: missing or malformed entry ({exc})") from None
@@ -180,6 +186,7 @@ class ModelParameters:
                 residual_beta=np.array([[v[f"beta{c}_{i}"] for i in range(1, M + 1)]
                                         for c in range(1, C + 1)]).reshape(C, M),
                 residual_form=str(form),
+                shared_orders=any(isinstance(e, dict) and e.get("same_as") for e in parameters.values()),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise FoamlabError(f"model parameters: fit result incomplete or malformed ({exc})") from None
