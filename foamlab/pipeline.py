@@ -1,6 +1,8 @@
 """The analysis of a recorded run: one pipeline for `foamlab run`, the window and batches.
 
     method results -> fit -> diagnosis with that same fit -> files beside the run -> catalog
+    (forecast: each cycle predicted from the earlier ones - the live prediction's scores when
+    the run had one, else forecast_stage)
 
     from foamlab import pipeline
     a = pipeline.analyse(run, path, method=method, folder=out_dir)   # every stage
@@ -26,6 +28,7 @@ from foamlab.diagnosis.store import store_diagnosis
 from foamlab.identification import FitResult, fit_run
 from foamlab.identification.store import store_fit
 from foamlab.methods import Method, MethodResults, load_method
+from foamlab.prediction.forecast import ForecastScores, forecast_scores
 from foamlab.rundata import RunData
 from foamlab.storage.catalog import CATALOG_NAME, Catalog
 from foamlab.storage.runfile import is_run_file
@@ -58,6 +61,8 @@ class Analysis:
     files_error: str = ""
     catalog: Path | None = None                # the catalog the run is indexed in
     catalog_error: str = ""
+    forecast: ForecastScores | None = None     # each cycle predicted from the earlier ones
+    forecast_error: str = ""
 
     @property
     def verdict(self) -> str:
@@ -122,6 +127,24 @@ def diagnose_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
     return a
 
 
+def forecast_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
+    """Each cycle predicted from the earlier ones (foamlab.prediction.forecast_scores: one fit
+    per scored cycle); kept when the live prediction already scored the run."""
+    if a.forecast is not None:
+        return a
+    progress("forecast", 0.0)
+    try:
+        a.forecast = forecast_scores(a.run)
+        a.forecast_error = ""
+    except FoamlabError as exc:
+        a.forecast_error = str(exc)
+    except Exception as exc:   # a forecast bug must not cost the report
+        log.debug("forecast scores failed", exc_info=True)
+        a.forecast_error = f"forecast failed: {type(exc).__name__}: {exc}"
+    progress("forecast", 1.0)
+    return a
+
+
 def _diagnose(run: RunData, fit: FitResult, progress: Progress = _quiet) -> Diagnosis:
     # The one call into the diagnosis: it extends this fit instead of fitting the run again.
     return diagnose([run], fit=fit, progress=progress)
@@ -130,7 +153,7 @@ def _diagnose(run: RunData, fit: FitResult, progress: Progress = _quiet) -> Diag
 def files_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
     """Write the fit and the diagnosis beside the run file (foamlab run files only: a vendor
     export opened for a look is not ours to add to); what is written already is left alone."""
-    if a.path is None or not _ours(a.path):
+    if a.path is None or not is_ours(a.path):
         return a
     progress("files", 0.0)
     try:
@@ -148,7 +171,7 @@ def files_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
 def catalog_stage(a: Analysis, folder: str | Path | None = None, progress: Progress = _quiet) -> Analysis:
     """Index the run, its fit and its diagnosis in `folder`'s catalog (default: the run's folder).
     Idempotent: run it after each stage whose result should be listed."""
-    if a.path is None or not _ours(a.path):
+    if a.path is None or not is_ours(a.path):
         return a
     progress("catalog", 0.0)
     folder = Path(folder) if folder is not None else a.path.parent
@@ -189,7 +212,8 @@ def analyse(run: RunData, path: str | Path | None = None, *, method: Method | No
     return catalog_stage(a, folder, progress)
 
 
-def _ours(path: Path) -> bool:
+def is_ours(path: Path) -> bool:
+    """A foamlab run file (its analyses may be written beside it; a vendor export is not ours)."""
     try:
         with open(path, encoding="utf-8-sig", errors="replace") as fh:
             return is_run_file(fh.readline())

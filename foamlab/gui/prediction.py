@@ -1,0 +1,312 @@
+"""The live prediction in the window: the predicted curve of the cycle in progress beside the
+measurement, the residual as a strip under the force–displacement plot with the band the
+noise allows, and a line that says when the specimen leaves the prediction.
+
+foamlab.prediction.LivePredictor does the work off the acquisition thread (its fits in a worker
+process); PredictionBridge carries what it says into the GUI thread (rare events as queued
+signals, the compared samples in a deque drained by the window's frame timer, like
+foamlab.gui.bridge's samples); PredictionView draws; LivePrediction ties them to a run.
+"""
+
+from __future__ import annotations
+
+import collections
+import html
+import logging
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6 import QtCore, QtGui, QtWidgets
+
+from foamlab.gui.background import BackgroundQueue
+from foamlab.gui.plots import CYCLE_COLOURS, LivePlots
+from foamlab.gui.status import WARNING_STYLE
+from foamlab.gui.units import FORCE_DISPLACEMENT, PlotUnits
+from foamlab.prediction import MIN_CYCLES, Forecast
+from foamlab.prediction.departure import Compared, Departure, departure_limit, window_samples
+
+log = logging.getLogger(__name__)
+
+BAND_COLOUR = (120, 120, 120, 45)
+DEPARTURE_COLOUR = "#B00020"
+#: Seconds the window waits after a run for the last forecast scores (they come from the worker).
+SCORES_TIMEOUT_S = 60.0
+
+
+class PredictionBridge(QtCore.QObject):
+    """LivePredictor listener (its thread) -> Qt (the GUI thread)."""
+
+    forecast = QtCore.Signal(object)       # foamlab.prediction.Forecast
+    departure = QtCore.Signal(object)      # foamlab.prediction.Departure
+    score = QtCore.Signal(object)          # foamlab.prediction.CycleScore
+    note = QtCore.Signal(str)
+
+    def __init__(self, parent: QtCore.QObject | None = None) -> None:
+        super().__init__(parent)
+        self._compared: collections.deque = collections.deque()
+
+    def on_forecast(self, forecast) -> None:
+        self.forecast.emit(forecast)
+
+    def on_departure(self, departure) -> None:
+        self.departure.emit(departure)
+
+    def on_score(self, score) -> None:
+        self.score.emit(score)
+
+    def on_note(self, text: str) -> None:
+        self.note.emit(text)
+
+    def on_compared(self, compared) -> None:
+        self._compared.append(compared)
+
+    def drain(self) -> list[Compared]:
+        out = []
+        try:
+            while True:
+                out.append(self._compared.popleft())
+        except IndexError:
+            return out
+
+
+def _pen(cycle: int, dashed: bool, width: int = 2, alpha: int = 150) -> QtGui.QPen:
+    colour = QtGui.QColor(CYCLE_COLOURS[(max(cycle, 1) - 1) % len(CYCLE_COLOURS)])
+    colour.setAlpha(alpha)
+    return pg.mkPen(colour, width=width, style=QtCore.Qt.PenStyle.DashLine if dashed else QtCore.Qt.PenStyle.DotLine)
+
+
+class PredictionView:
+    """Draws the forecast of the cycle in progress on LivePlots and the residual strip under
+    its force–displacement plot."""
+
+    def __init__(self, plots: LivePlots) -> None:
+        self.plots = plots
+        self.strip: pg.PlotItem = plots.view.addPlot(row=1, col=0)
+        self.strip.setXLink(plots.fd_plot)
+        self.strip.setMaximumHeight(150)
+        self.strip.addLine(y=0, pen=pg.mkPen("#888888", width=1))
+        self.units: PlotUnits = FORCE_DISPLACEMENT
+        self.forecast: Forecast | None = None
+        self.cycle = 0                               # the cycle whose prediction is drawn
+        self._items: list[tuple[pg.PlotItem, pg.GraphicsObject]] = []
+        self._residuals: dict[int, list[Compared]] = {}      # by step, this cycle's compared samples
+        self._residual_curves: dict[int, pg.PlotDataItem] = {}
+        self._departures: list[Departure] = []
+        self._dirty = False
+        self._label()
+
+    def _label(self) -> None:
+        u = self.units
+        self.strip.getAxis("left").enableAutoSIPrefix(u.si_prefix)
+        self.strip.setLabel("left", "meas. − pred.", units=u.y_unit)
+        self.strip.setLabel("bottom", u.x, units=u.x_unit)
+        self.strip.setTitle(f"Residual to the live prediction (from cycle {MIN_CYCLES + 1} on); "
+                            "grey: what the noise allows", size="9pt")
+
+    def clear(self) -> None:
+        for plot, item in self._items:
+            plot.removeItem(item)
+        self._items.clear()
+        self._residuals.clear()
+        self._residual_curves.clear()
+        self._departures.clear()
+        self.forecast, self.cycle = None, 0
+
+    def set_units(self, units: PlotUnits) -> None:
+        self.units = units
+        self._label()
+        self._redraw()
+
+    # -- what arrives --------------------------------------------------------------------
+    def show_forecast(self, forecast: Forecast) -> None:
+        self.forecast = forecast
+        self._switch(forecast.from_cycles + 1)
+
+    def add(self, batches: list[Compared]) -> None:
+        for c in batches:
+            cycle = int(c.cycle[0])
+            if cycle != self.cycle:
+                self._switch(cycle)
+            self._residuals.setdefault(int(c.step[0]), []).append(c)
+            self._dirty = True
+
+    def mark(self, departure: Departure) -> None:
+        self._departures.append(departure)
+        self._draw_departure(departure)
+
+    def refresh(self) -> None:
+        """The residual curves that got samples since the last frame."""
+        if not self._dirty:
+            return
+        self._dirty = False
+        u = self.units
+        for step, batches in self._residuals.items():
+            x = np.concatenate([b.displacement_mm for b in batches]) * u.x_per_mm
+            r = np.concatenate([b.residual_N for b in batches]) * u.y_per_N
+            curve = self._residual_curves.get(step)
+            if curve is None:
+                phase = self.forecast.step(step).phase if self.forecast and self.forecast.step(step) else ""
+                curve = self._add(self.strip, pg.PlotDataItem(pen=_pen(self.cycle, phase == "unloading", 1, 255)))
+                self._residual_curves[step] = curve
+            curve.setData(x, r)
+
+    # -- drawing -------------------------------------------------------------------------
+    def _add(self, plot: pg.PlotItem, item):
+        plot.addItem(item)
+        self._items.append((plot, item))
+        return item
+
+    def _switch(self, cycle: int) -> None:
+        """Draw the prediction of `cycle` (the one in progress), its band, no residual yet."""
+        for plot, item in self._items:
+            plot.removeItem(item)
+            if plot is self.plots.fd_plot:
+                self.plots.legend.removeItem(item)
+        self._items.clear()
+        self._residual_curves.clear()
+        self._residuals = {k: v for k, v in self._residuals.items() if v and int(v[0].cycle[0]) == cycle}
+        self.cycle = cycle
+        self._draw_prediction()
+        for d in self._departures:
+            if d.cycle == cycle:
+                self._draw_departure(d)
+        self._dirty = True
+
+    def _redraw(self) -> None:
+        departures, residuals = list(self._departures), dict(self._residuals)
+        if self.forecast is not None:
+            self._switch(self.cycle)
+        self._departures, self._residuals = departures, residuals
+        self._dirty = True
+        self.refresh()
+
+    def _draw_prediction(self) -> None:
+        f = self.forecast
+        if f is None:
+            return
+        u = self.units
+        window = window_samples(f.sampling_hz)
+        for i, step in enumerate(f.cycle(self.cycle)):
+            x, y = step.displacement_mm * u.x_per_mm, step.force_N * u.y_per_N
+            name = f"prediction from cycles 1–{f.from_cycles}" if i == 0 else None
+            dashed = step.phase == "unloading"
+            self._add(self.plots.fd_plot, pg.PlotDataItem(x, y, pen=_pen(self.cycle, dashed)))
+            if name:
+                self.plots.legend.addItem(self._items[-1][1], name)
+            self._add(self.plots.ft_plot, pg.PlotDataItem(step.time_s, y, pen=_pen(self.cycle, dashed)))
+            if f.noise_N > 0:
+                limit = departure_limit(step.sigma_N, f.noise_N, window) * u.y_per_N
+                upper = self._add(self.strip, pg.PlotDataItem(x, limit, pen=None))
+                lower = self._add(self.strip, pg.PlotDataItem(x, -limit, pen=None))
+                self._add(self.strip, pg.FillBetweenItem(upper, lower, brush=pg.mkBrush(*BAND_COLOUR)))
+
+    def _draw_departure(self, d: Departure) -> None:
+        if d.cycle != self.cycle:
+            return
+        line = pg.InfiniteLine(pos=d.since_mm * self.units.x_per_mm, angle=90,
+                               pen=pg.mkPen(DEPARTURE_COLOUR, width=1, style=QtCore.Qt.PenStyle.DashLine),
+                               label=f"{d.phase} departs", labelOpts={"color": DEPARTURE_COLOUR, "position": 0.85})
+        self._add(self.strip, line)
+
+
+class LivePrediction(QtCore.QObject):
+    """One run's live prediction in the window: start it with the run, draw what it says,
+    collect its forecast scores when the run ends (`scores_ready`)."""
+
+    message = QtCore.Signal(str, bool)       # a line for the status bar; True: a warning
+    scores_ready = QtCore.Signal(object, int)   # ForecastScores, the run's generation
+
+    def __init__(self, plots: LivePlots, parent: QtCore.QObject | None = None) -> None:
+        super().__init__(parent)
+        self.view = PredictionView(plots)
+        self.status = QtWidgets.QLabel("")
+        self.status.setObjectName("prediction_status")
+        self.status.setWordWrap(True)
+        self.predictor = None
+        self.bridge: PredictionBridge | None = None
+        self.departures: list[Departure] = []
+        self.queue = BackgroundQueue("foamlab-prediction-end", self)
+
+    def begin(self, engine, method, generation: int) -> None:
+        """Predict `engine`'s run (call before engine.start())."""
+        from foamlab.prediction.live import LivePredictor  # noqa: PLC0415
+
+        self.stop()
+        self.view.clear()
+        self.departures = []
+        self.generation = generation
+        self.predictor = LivePredictor(engine.plan, method.sampling_hz, method.n_cycles)
+        self.bridge = bridge = PredictionBridge(self)
+        bridge.forecast.connect(self._on_forecast)
+        bridge.departure.connect(self._on_departure)
+        bridge.note.connect(lambda text: self._say(f"Live prediction: {text}", True, note=True))
+        self.predictor.add_listener(bridge)
+        engine.add_listener(self.predictor)
+        self.predictor.start()
+        wait = "the first cycle" if MIN_CYCLES == 1 else f"cycles 1–{MIN_CYCLES}"
+        self._say(f"Live prediction: from cycle {MIN_CYCLES + 1} on, once {wait} are measured "
+                  f"({method.n_cycles} cycles in this method)", False, status_bar=False)
+
+    def reset(self) -> None:
+        """Nothing predicted on display (a file is shown)."""
+        self.stop()
+        self.view.clear()
+        self.departures = []
+        self.status.setText("")
+        self.status.setStyleSheet("")
+
+    def off(self) -> None:
+        self.stop()
+        self.view.clear()
+        self.status.setText("Live prediction: off (Analysis > Live prediction)")
+        self.status.setStyleSheet("")
+
+    def refresh(self) -> None:
+        if self.bridge is not None:
+            self.view.add(self.bridge.drain())
+        self.view.refresh()
+
+    def end(self) -> None:
+        """The run ended: the last scores come from the worker (GUI: `scores_ready`)."""
+        predictor, generation = self.predictor, getattr(self, "generation", 0)
+        if predictor is None:
+            return
+        self.refresh()
+        self.queue.submit(lambda: predictor.finish(SCORES_TIMEOUT_S),
+                          lambda scores: self.scores_ready.emit(scores, generation))
+
+    def stop(self) -> None:
+        if self.predictor is not None:
+            self.predictor.close()
+        self.predictor = None
+        self.bridge = None
+
+    def shutdown(self) -> None:
+        self.stop()
+        self.queue.shutdown(wait=False)
+
+    def _on_forecast(self, forecast: Forecast) -> None:
+        if self.bridge is None or self.sender() is not self.bridge:
+            return
+        self.view.show_forecast(forecast)
+        if not self.departures:
+            self._say(f"Live prediction: cycle {forecast.from_cycles + 1} on {forecast.describe()}", False,
+                      status_bar=False)
+
+    def _on_departure(self, d: Departure) -> None:
+        if self.bridge is None or self.sender() is not self.bridge:
+            return
+        self.departures.append(d)
+        self.view.mark(d)
+        self._say(d.message, True)
+
+    def _say(self, text: str, warning: bool, status_bar: bool = True, note: bool = False) -> None:
+        if note or not warning:
+            lines = [html.escape(text)] + [f"⚠ {html.escape(d.message)}" for d in self.departures]
+        else:
+            lines = [f"⚠ {html.escape(d.message)}" for d in self.departures]
+        self.status.setText("<br>".join(lines))
+        self.status.setStyleSheet(WARNING_STYLE if warning else "")
+        if status_bar:
+            self.message.emit(text, warning)
+
