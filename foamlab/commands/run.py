@@ -253,7 +253,7 @@ class PredictionLines:
         self.out = out
 
     def on_forecast(self, forecast) -> None:
-        self.out.say(f"prediction: cycle {forecast.from_cycles + 1} on {forecast.describe()}")
+        self.out.say(f"prediction: {forecast.describe()}")
 
     def on_departure(self, departure) -> None:
         self.out.say(f"prediction: {departure.message}")

@@ -195,7 +195,7 @@ class PredictionView:
                 self.plots.legend.addItem(self._items[-1][1], name)
             self._add(self.plots.ft_plot, pg.PlotDataItem(step.time_s, y, pen=_pen(self.cycle, dashed)))
             if f.noise_N > 0:
-                limit = departure_limit(step.sigma_N, f.noise_N, window) * u.y_per_N
+                limit = departure_limit(step.force_N, step.sigma_N, step.spread_N, f.noise_N, window) * u.y_per_N
                 upper = self._add(self.strip, pg.PlotDataItem(x, limit, pen=None))
                 lower = self._add(self.strip, pg.PlotDataItem(x, -limit, pen=None))
                 self._add(self.strip, pg.FillBetweenItem(upper, lower, brush=pg.mkBrush(*BAND_COLOUR)))
@@ -226,6 +226,7 @@ class LivePrediction(QtCore.QObject):
         self.bridge: PredictionBridge | None = None
         self.departures: list[Departure] = []
         self.queue = BackgroundQueue("foamlab-prediction-end", self)
+        self._line, self._line_warns = "", False
 
     def begin(self, engine, method, generation: int) -> None:
         """Predict `engine`'s run (call before engine.start())."""
@@ -252,14 +253,13 @@ class LivePrediction(QtCore.QObject):
         self.stop()
         self.view.clear()
         self.departures = []
-        self.status.setText("")
-        self.status.setStyleSheet("")
+        self._say("", False, status_bar=False)
 
     def off(self) -> None:
         self.stop()
         self.view.clear()
-        self.status.setText("Live prediction: off (Analysis > Live prediction)")
-        self.status.setStyleSheet("")
+        self.departures = []
+        self._say("Live prediction: off (Analysis > Live prediction)", False, status_bar=False)
 
     def refresh(self) -> None:
         if self.bridge is not None:
@@ -289,9 +289,8 @@ class LivePrediction(QtCore.QObject):
         if self.bridge is None or self.sender() is not self.bridge:
             return
         self.view.show_forecast(forecast)
-        if not self.departures:
-            self._say(f"Live prediction: cycle {forecast.from_cycles + 1} on {forecast.describe()}", False,
-                      status_bar=False)
+        self._say(f"Live prediction: {forecast.describe()}", False,
+                  status_bar=False)
 
     def _on_departure(self, d: Departure) -> None:
         if self.bridge is None or self.sender() is not self.bridge:
@@ -301,12 +300,11 @@ class LivePrediction(QtCore.QObject):
         self._say(d.message, True)
 
     def _say(self, text: str, warning: bool, status_bar: bool = True, note: bool = False) -> None:
-        if note or not warning:
-            lines = [html.escape(text)] + [f"⚠ {html.escape(d.message)}" for d in self.departures]
-        else:
-            lines = [f"⚠ {html.escape(d.message)}" for d in self.departures]
-        self.status.setText("<br>".join(lines))
-        self.status.setStyleSheet(WARNING_STYLE if warning else "")
+        """The status line: what the prediction is (or why there is none), then each departure."""
+        if not warning or note:
+            self._line, self._line_warns = text, note
+        lines = [html.escape(self._line)] + [f"⚠ {html.escape(d.message)}" for d in self.departures]
+        self.status.setText("<br>".join(line for line in lines if line))
+        self.status.setStyleSheet(WARNING_STYLE if self.departures or self._line_warns else "")
         if status_bar:
             self.message.emit(text, warning)
-

@@ -3,23 +3,23 @@
 The rule (DepartureWatch): r = measured - predicted at each sample; m = its mean over the
 last WINDOW_S of machine time (w samples); the limit for m is
 
-    K_SIGMA * sqrt(noise^2 / w + (FORECAST_CALIBRATION * sigma_pred)^2)
+    K_SIGMA * sqrt(noise^2 / w + sigma_pred^2) + spread + RELATIVE_FLOOR * |predicted|
 
-(noise: the load cell's white noise; sigma_pred: the forecast's own uncertainty at that sample
-by the delta method, foamlab.prediction.forecast). A departure is m beyond the limit, on one
-side, for w samples in a row: reported once per half-cycle, with where it began.
+noise: the load cell's white noise (the fit's estimate); sigma_pred: the forecast's own 1-sigma
+uncertainty (the fit's parameters by the delta method, and the residual terms of a cycle not yet
+seen); spread: how far the model's neighbours forecast from it (foamlab.prediction.forecast).
+A departure is m beyond the limit, on one side, for w samples in a row: reported once per
+half-cycle, with where it began.
 
 Why K_SIGMA = 5 and w samples in a row: with a correct forecast m is Gaussian around a bias
-within the calibrated sigma_pred, so its noise part must pass >= 4 of its own sigmas (p = 6e-5
-per window) and stay there for a second, independent window (p ~ 4e-9). A run has ~10^3
-windows: < 1e-5 false alarms per run from the noise.
-Why FORECAST_CALIBRATION: the delta method is first order, and the memory terms carried across
-the unloaded gap between cycles are not (a pair of nearly cancelling fractional terms fits the
-first cycles as well as the true ones and extrapolates apart). On 40 clean simulated runs of
-the paper's protocol at the simulator's noise the forecast's error in the next loading reached
-22 x its delta-method sigma (median 2.2, 90 % 4.9; docs/prediction.md): with 6, the limit is
-30 of them, above every run measured. A 10 % softening of the elastic force is still flagged
-early in the loading (it grows with x: tens of N at the peak).
+within the forecast's uncertainty, so its noise part must pass >= 4 of its own sigmas
+(p = 6e-5 per window) and stay there for a second, independent window (p ~ 4e-9). A run has
+~10^3 windows: < 1e-5 false alarms per run from the noise.
+Why the spread on top, at face value: the delta method linearises one model form; the memory
+carried across the unloaded gap between cycles is where the forecast errs, and there the
+neighbours (equally good fits of the first cycles) disagree by about as much as the forecast
+errs: on clean simulated runs the error reached 31 x the delta-method sigma but stayed within
+the limit above (measured in docs/prediction.md).
 """
 
 from __future__ import annotations
@@ -33,7 +33,9 @@ import numpy as np
 from foamlab.prediction.forecast import StepForecast
 
 K_SIGMA = 5.0
-FORECAST_CALIBRATION = 6.0
+#: A forecast is not held to better than the force is measured: 1 % of the reading, a class 1
+#: testing machine's load cell (ISO 7500-1); a softening of the specimen is ten times that.
+RELATIVE_FLOOR = 0.01
 #: Machine seconds the residual is averaged over (and must stay beyond the limit).
 WINDOW_S = 1.0
 #: Fewest samples in the window, whatever the sampling rate.
@@ -44,9 +46,11 @@ def window_samples(sampling_hz: float) -> int:
     return max(MIN_WINDOW, int(round(WINDOW_S * sampling_hz)))
 
 
-def departure_limit(sigma_N, noise_N: float, window: int):
+def departure_limit(predicted_N, sigma_N, spread_N, noise_N: float, window: int):
     """What the noise and the forecast's uncertainty allow the window's mean residual (N)."""
-    return K_SIGMA * np.sqrt(noise_N ** 2 / window + (FORECAST_CALIBRATION * np.asarray(sigma_N, float)) ** 2)
+    sigma = np.asarray(sigma_N, float)
+    return (K_SIGMA * np.sqrt(noise_N ** 2 / window + sigma ** 2) + np.asarray(spread_N, float)
+            + RELATIVE_FLOOR * np.abs(np.asarray(predicted_N, float)))
 
 
 def _size(value: float) -> str:
@@ -105,6 +109,7 @@ class DepartureWatch:
         self.window = window_samples(sampling_hz)
         self._step: int | None = None
         self._recent: collections.deque = collections.deque(maxlen=self.window)
+        self._limits: collections.deque = collections.deque(maxlen=self.window)
         self._xs: collections.deque = collections.deque(maxlen=self.window)
         self._beyond = 0             # samples in a row beyond the limit, on one side
         self._side = 0
@@ -114,22 +119,24 @@ class DepartureWatch:
     def compare(self, forecast: StepForecast, from_cycles: int, x: np.ndarray, t_in_step: np.ndarray,
                 force: np.ndarray, time_s: np.ndarray) -> tuple[Compared, list[Departure]]:
         """Samples of one step (in order) against its forecast; the departures they establish."""
-        predicted, sigma = forecast.at(x, t_in_step)
+        predicted, sigma, spread = forecast.at(x, t_in_step)
         if self._step != forecast.index:
             self._restart(forecast.index)
         n = len(x)
         residual = np.asarray(force, float) - predicted
-        limit = departure_limit(sigma, self.noise_N, self.window)
+        limit = departure_limit(predicted, sigma, spread, self.noise_N, self.window)
         mean = np.full(n, np.nan)
         found = []
         for i in range(n):
             self._recent.append(residual[i])
+            self._limits.append(limit[i])
             self._xs.append(x[i])
             if len(self._recent) < self.window:
                 continue
             m = sum(self._recent) / self.window
+            allowed = sum(self._limits) / self.window   # what the window's samples may err by, on average
             mean[i] = m
-            side = int(m > limit[i]) - int(m < -limit[i])
+            side = int(m > allowed) - int(m < -allowed)
             if side and side == self._side:
                 self._beyond += 1
             elif side:
@@ -138,7 +145,7 @@ class DepartureWatch:
                 self._side, self._beyond = 0, 0
             if self._beyond >= self.window and forecast.index not in self._reported:
                 self._reported.add(forecast.index)
-                found.append(Departure(forecast.cycle, forecast.phase, float(m), float(limit[i]),
+                found.append(Departure(forecast.cycle, forecast.phase, float(m), float(allowed),
                                        float(self._since), float(x[i]), float(time_s[i]), from_cycles))
         full = lambda v: np.full(n, v)  # noqa: E731
         return Compared(full(forecast.cycle), full(forecast.index), np.asarray(x, float), predicted, residual,
@@ -147,5 +154,6 @@ class DepartureWatch:
     def _restart(self, step: int) -> None:
         self._step = step
         self._recent.clear()
+        self._limits.clear()
         self._xs.clear()
         self._beyond, self._side, self._since = 0, 0, math.nan
