@@ -24,7 +24,6 @@ the limit above (measured in docs/prediction.md).
 
 from __future__ import annotations
 
-import collections
 import math
 from dataclasses import dataclass
 
@@ -100,60 +99,70 @@ class Compared:
 
 
 class DepartureWatch:
-    """Compares samples with a forecast, step by step (see the module docstring)."""
+    """Compares samples with a forecast, step by step (see the module docstring). Vectorised:
+    the predictor's thread shares the interpreter lock with the acquisition, and after a
+    forecast arrives it compares hundreds of samples at once."""
 
     def __init__(self, noise_N: float, sampling_hz: float) -> None:
         if not (noise_N > 0 and math.isfinite(noise_N)):
             raise ValueError(f"the noise level must be a positive number, got {noise_N!r}")
         self.noise_N = float(noise_N)
         self.window = window_samples(sampling_hz)
-        self._step: int | None = None
-        self._recent: collections.deque = collections.deque(maxlen=self.window)
-        self._limits: collections.deque = collections.deque(maxlen=self.window)
-        self._xs: collections.deque = collections.deque(maxlen=self.window)
-        self._beyond = 0             # samples in a row beyond the limit, on one side
-        self._side = 0
-        self._since = math.nan
+        self._restart(None)
         self._reported: set[int] = set()   # steps whose departure was said
 
     def compare(self, forecast: StepForecast, from_cycles: int, x: np.ndarray, t_in_step: np.ndarray,
                 force: np.ndarray, time_s: np.ndarray) -> tuple[Compared, list[Departure]]:
         """Samples of one step (in order) against its forecast; the departures they establish."""
+        x = np.asarray(x, float)
         predicted, sigma, spread = forecast.at(x, t_in_step)
         if self._step != forecast.index:
             self._restart(forecast.index)
-        n = len(x)
+        n, w = len(x), self.window
         residual = np.asarray(force, float) - predicted
-        limit = departure_limit(predicted, sigma, spread, self.noise_N, self.window)
+        limit = departure_limit(predicted, sigma, spread, self.noise_N, w)
+        # the last w-1 samples of this step carried over, so windows span the calls
+        r, lim, xs = (np.concatenate([old, new]) for old, new in
+                      ((self._r, residual), (self._lim, limit), (self._x, x)))
+        carried = len(self._r)
+        self._r, self._lim, self._x = r[-(w - 1):], lim[-(w - 1):], xs[-(w - 1):]
         mean = np.full(n, np.nan)
-        found = []
-        for i in range(n):
-            self._recent.append(residual[i])
-            self._limits.append(limit[i])
-            self._xs.append(x[i])
-            if len(self._recent) < self.window:
-                continue
-            m = sum(self._recent) / self.window
-            allowed = sum(self._limits) / self.window   # what the window's samples may err by, on average
-            mean[i] = m
-            side = int(m > allowed) - int(m < -allowed)
-            if side and side == self._side:
-                self._beyond += 1
-            elif side:
-                self._side, self._beyond, self._since = side, 1, self._xs[0]
-            else:
-                self._side, self._beyond = 0, 0
-            if self._beyond >= self.window and forecast.index not in self._reported:
-                self._reported.add(forecast.index)
-                found.append(Departure(forecast.cycle, forecast.phase, float(m), float(allowed),
-                                       float(self._since), float(x[i]), float(time_s[i]), from_cycles))
-        full = lambda v: np.full(n, v)  # noqa: E731
-        return Compared(full(forecast.cycle), full(forecast.index), np.asarray(x, float), predicted, residual,
-                        mean, limit), found
+        if len(r) < w:
+            return self._compared(forecast, x, predicted, residual, mean, limit), []
+        kernel = np.ones(w) / w
+        m = np.convolve(r, kernel, "valid")               # window ending at combined index w-1+j
+        allowed = np.convolve(lim, kernel, "valid")      # what its samples may err by, on average
+        side = (m > allowed).astype(int) - (m < -allowed).astype(int)
+        ends = np.arange(w - 1, len(r))
+        mean[ends - carried] = m
+        found = self._runs(side, m, allowed, ends, xs, forecast, from_cycles, x, time_s, carried)
+        return self._compared(forecast, x, predicted, residual, mean, limit), found
 
-    def _restart(self, step: int) -> None:
+    def _runs(self, side, m, allowed, ends, xs, forecast, from_cycles, x, time_s, carried) -> list[Departure]:
+        """Runs of windows beyond the limit on one side; a departure when one reaches w windows."""
+        w = self.window
+        same = np.r_[side[0] == self._side, side[1:] == side[:-1]] & (side != 0)
+        starts = np.maximum.accumulate(np.where(same, 0, np.arange(len(side))))
+        run = np.arange(len(side)) - starts + 1 + np.where(starts == 0, self._beyond if same[0] else 0, 0)
+        run[side == 0] = 0
+        # where each run began: its first window's first sample (x kept from an earlier call)
+        since = np.where(starts == 0, self._since if same[0] else xs[ends[0] - w + 1], xs[ends[starts] - w + 1])
+        self._side, self._beyond, self._since = int(side[-1]), int(run[-1]), float(since[-1])
+        hit = np.flatnonzero(run >= w)
+        if not len(hit) or forecast.index in self._reported:
+            return []
+        i = hit[0]
+        self._reported.add(forecast.index)
+        k = ends[i] - carried
+        return [Departure(forecast.cycle, forecast.phase, float(m[i]), float(allowed[i]), float(since[i]),
+                          float(x[k]), float(time_s[k]), from_cycles)]
+
+    @staticmethod
+    def _compared(forecast, x, predicted, residual, mean, limit) -> Compared:
+        n = len(x)
+        return Compared(np.full(n, forecast.cycle), np.full(n, forecast.index), x, predicted, residual, mean, limit)
+
+    def _restart(self, step: int | None) -> None:
         self._step = step
-        self._recent.clear()
-        self._limits.clear()
-        self._xs.clear()
+        self._r = self._lim = self._x = np.zeros(0)
         self._beyond, self._side, self._since = 0, 0, math.nan

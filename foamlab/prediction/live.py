@@ -15,8 +15,11 @@ at every deadline (measured in docs/prediction.md). The thread compares every sa
 latest forecast (foamlab.prediction.departure) and tells its listeners, from its own thread
 (a window queues what it hears into its GUI thread).
 
-A cycle k >= MIN_CYCLES that is complete starts a forecast identified on cycles 1..k; when both
-the forecast from cycles 1..k-1 and cycle k's samples are at hand, cycle k is scored with it.
+A cycle k >= MIN_CYCLES that is complete starts a forecast identified on cycles 1..k (while one
+is being made, only the latest complete cycle waits: a long run's fits may take longer than a
+cycle); when both the forecast from cycles 1..k-1 and cycle k's samples are at hand, cycle k is
+scored with it. When the run ends, a forecast still being made is abandoned (nothing is left
+to predict) and only the scores already under way are waited for.
 """
 
 from __future__ import annotations
@@ -132,6 +135,7 @@ class LivePredictor:
         self._scored: set[int] = set()
         self._said: set[tuple[int, str]] = set()
         self._completed = 0                            # highest cycle known complete
+        self._waiting: int | None = None               # a complete cycle whose forecast waits for the worker
         self._finished_run = False
 
     def add_listener(self, listener: Any) -> None:
@@ -186,7 +190,8 @@ class LivePredictor:
                     except queue.Empty:
                         break
                 ending = self._take(batch) or ending
-                if ending and not self._pending:
+                if ending and not self._scoring():
+                    self._abandon()
                     return
         except Exception:   # a prediction bug must never touch the run; say it once
             log.error("live prediction failed", exc_info=True)
@@ -218,10 +223,31 @@ class LivePredictor:
             return
         self._completed = k
         if self.min_cycles <= k < self.n_cycles:
-            prefix = self.samples.upto_cycle(k)
-            job = ForecastJob(k, time.monotonic(), float(prefix.time_s[-1]))
-            self._submit(job, make_forecast, prefix, self.plan, k, self.sampling_hz, self.n_cycles)
+            self._waiting = k
+            self._forecast_next()
         self._maybe_score(k)
+
+    def _forecast_next(self) -> None:
+        """Start the forecast from the latest complete cycle, unless one is being made."""
+        k = self._waiting
+        if k is None or any(isinstance(w, ForecastJob) for w in self._pending.values()):
+            return
+        self._waiting = None
+        prefix = self.samples.upto_cycle(k)
+        job = ForecastJob(k, time.monotonic(), float(prefix.time_s[-1]))
+        self._submit(job, make_forecast, prefix, self.plan, k, self.sampling_hz, self.n_cycles)
+
+    def _scoring(self) -> bool:
+        return any(not isinstance(w, ForecastJob) for w in self._pending.values())
+
+    def _abandon(self) -> None:
+        for future, what in list(self._pending.items()):
+            if isinstance(what, ForecastJob):
+                future.cancel()
+                self._pending.pop(future, None)
+                if what.after_cycle + 1 <= self._completed and what.after_cycle + 1 not in self._scored:
+                    self.notes.append(f"cycle {what.after_cycle + 1} not scored: its forecast was still being "
+                                      "made when the run ended")
 
     def _maybe_score(self, k: int) -> None:
         """Score cycle k once it is complete and the forecast from cycles 1..k-1 is here."""
@@ -243,6 +269,8 @@ class LivePredictor:
         what = self._pending.pop(future, None)
         if what is None or future.cancelled():
             return
+        if isinstance(what, ForecastJob):
+            self._forecast_next()       # the latest complete cycle, if one came meanwhile
         try:
             value = future.result()
         except FoamlabError as exc:
