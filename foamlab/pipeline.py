@@ -74,20 +74,29 @@ class Analysis:
         return [p for p in (self.path, self.fit_path, self.diagnosis_path) if p is not None]
 
 
+def _attempt(what: str, make: Callable[[], object]) -> tuple[object, str]:
+    """(make(), "") - or (None, why in one line). A stage that fails must not cost the others:
+    the run is saved already, and a bug in one stage must not hide what the others found."""
+    try:
+        return make(), ""
+    except FoamlabError as exc:
+        return None, str(exc)
+    except Exception as exc:
+        log.debug("%s failed", what, exc_info=True)
+        return None, f"{what} failed: {type(exc).__name__}: {exc}"
+
+
 def method_stage(a: Analysis, method: Method | None = None, progress: Progress = _quiet) -> Analysis:
     """The method's results (the run's own method, by name, when none is given)."""
     progress("method results", 0.0)
-    try:
-        method = method or (load_method(a.run.method) if a.run.method else None)
-        if method is None:
-            a.method_error = "no test method recorded with the run"
-        elif len(a.run):
-            a.method_results = method.compute_results(a.run)
-    except FoamlabError as exc:
-        a.method_error = str(exc)
-    except Exception as exc:   # a results bug must not cost the fit
-        log.debug("method results failed", exc_info=True)
-        a.method_error = f"method results failed: {type(exc).__name__}: {exc}"
+
+    def results() -> MethodResults | None:
+        chosen = method or (load_method(a.run.method) if a.run.method else None)
+        if chosen is None:
+            raise FoamlabError("no test method recorded with the run")
+        return chosen.compute_results(a.run) if len(a.run) else None
+
+    a.method_results, a.method_error = _attempt("method results", results)
     progress("method results", 1.0)
     return a
 
@@ -96,14 +105,8 @@ def fit_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
     """Identify the model on the run - once: a fit the Analysis already has is kept."""
     if a.fit is not None:
         return a
-    try:
-        a.fit = fit_run(a.run, progress=lambda stage, fraction: progress(f"fit: {stage}", fraction))
-        a.fit_error = ""
-    except FoamlabError as exc:
-        a.fit_error = str(exc)
-    except Exception as exc:   # a fitting bug must not cost the run: it is saved already
-        log.debug("fit failed", exc_info=True)
-        a.fit_error = f"fit failed: {type(exc).__name__}: {exc}"
+    a.fit, a.fit_error = _attempt("fit", lambda: fit_run(
+        a.run, progress=lambda stage, fraction: progress(f"fit: {stage}", fraction)))
     return a
 
 
@@ -115,14 +118,8 @@ def diagnose_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
         a.diagnosis_error = f"not diagnosed: no fit ({a.fit_error or 'the fit stage has not run'})"
         return a
     progress("diagnosis", 0.0)
-    try:
-        a.diagnosis = _diagnose(a.run, a.fit, lambda stage, f: progress(f"diagnosis: {stage}", f))
-        a.diagnosis_error = ""
-    except FoamlabError as exc:
-        a.diagnosis_error = str(exc)
-    except Exception as exc:   # the run is done and saved; a diagnosis bug must not hide that
-        log.debug("diagnosis failed", exc_info=True)
-        a.diagnosis_error = f"diagnosis failed: {type(exc).__name__}: {exc}"
+    a.diagnosis, a.diagnosis_error = _attempt("diagnosis", lambda: _diagnose(
+        a.run, a.fit, lambda stage, f: progress(f"diagnosis: {stage}", f)))
     progress("diagnosis", 1.0)
     return a
 
@@ -133,14 +130,7 @@ def forecast_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
     if a.forecast is not None:
         return a
     progress("forecast", 0.0)
-    try:
-        a.forecast = forecast_scores(a.run)
-        a.forecast_error = ""
-    except FoamlabError as exc:
-        a.forecast_error = str(exc)
-    except Exception as exc:   # a forecast bug must not cost the report
-        log.debug("forecast scores failed", exc_info=True)
-        a.forecast_error = f"forecast failed: {type(exc).__name__}: {exc}"
+    a.forecast, a.forecast_error = _attempt("forecast", lambda: forecast_scores(a.run))
     progress("forecast", 1.0)
     return a
 

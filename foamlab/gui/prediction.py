@@ -19,6 +19,7 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from foamlab.gui.background import BackgroundQueue
+from foamlab.gui.bridge import drained
 from foamlab.gui.plots import CYCLE_COLOURS, LivePlots
 from foamlab.gui.status import WARNING_STYLE
 from foamlab.gui.units import FORCE_DISPLACEMENT, PlotUnits
@@ -61,12 +62,7 @@ class PredictionBridge(QtCore.QObject):
         self._compared.append(compared)
 
     def drain(self) -> list[Compared]:
-        out = []
-        try:
-            while True:
-                out.append(self._compared.popleft())
-        except IndexError:
-            return out
+        return drained(self._compared)
 
 
 def _pen(cycle: int, dashed: bool, width: int = 2, alpha: int = 150) -> QtGui.QPen:
@@ -173,11 +169,9 @@ class PredictionView:
         self._dirty = True
 
     def _redraw(self) -> None:
-        departures, residuals = list(self._departures), dict(self._residuals)
+        """Everything again, in the units now chosen."""
         if self.forecast is not None:
             self._switch(self.cycle)
-        self._departures, self._residuals = departures, residuals
-        self._dirty = True
         self.refresh()
 
     def _draw_prediction(self) -> None:

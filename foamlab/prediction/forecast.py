@@ -7,11 +7,13 @@
 
 make_forecast identifies the model (foamlab.identification.fit_run) on the cycles measured so
 far and evaluates it (foamlab.model.evaluate, causal) on the measured history followed by the
-method's planned displacement for the rest of the run. With the force comes its uncertainty
-(1 sigma, without the load cell's noise): the fit's parameter uncertainty carried to the future
-(delta method on the fit's own Jacobian), and the residual terms of a cycle the data have not
-yet shown (its own terms, which the model starts at that cycle's first unloading). Everything
-here is pure computation: foamlab.prediction.live runs it off the acquisition thread.
+method's planned displacement for the rest of the run. With the force comes its uncertainty:
+sigma (1 sigma, without the load cell's noise) - the fit's parameter uncertainty carried to the
+future (delta method on the fit's own Jacobian) and the residual terms of a cycle the data have
+not yet shown (its own terms, which the model starts at that cycle's first unloading) - and the
+spread: how far the model's neighbours (other orders, equally good fits of the same cycles)
+forecast from it, plus one sample's change of the force. Everything here is pure computation:
+foamlab.prediction.live runs it off the acquisition thread (docs/prediction.md).
 """
 
 from __future__ import annotations
