@@ -65,10 +65,13 @@ class PredictionBridge(QtCore.QObject):
         return drained(self._compared)
 
 
-def _pen(cycle: int, dashed: bool, width: int = 2, alpha: int = 150) -> QtGui.QPen:
+def _pen(cycle: int, dashed: bool, width: int = 2, alpha: int = 150, solid: bool = False) -> QtGui.QPen:
+    """The cycle's colour: the prediction dotted (loading) or dashed (unloading), a residual solid or dashed."""
     colour = QtGui.QColor(CYCLE_COLOURS[(max(cycle, 1) - 1) % len(CYCLE_COLOURS)])
     colour.setAlpha(alpha)
-    return pg.mkPen(colour, width=width, style=QtCore.Qt.PenStyle.DashLine if dashed else QtCore.Qt.PenStyle.DotLine)
+    style = (QtCore.Qt.PenStyle.DashLine if dashed else
+             QtCore.Qt.PenStyle.SolidLine if solid else QtCore.Qt.PenStyle.DotLine)
+    return pg.mkPen(colour, width=width, style=style)
 
 
 class PredictionView:
@@ -79,7 +82,7 @@ class PredictionView:
         self.plots = plots
         self.strip: pg.PlotItem = plots.view.addPlot(row=1, col=0)
         self.strip.setXLink(plots.fd_plot)
-        self.strip.setMaximumHeight(150)
+        self.strip.setMaximumHeight(130)
         self.strip.addLine(y=0, pen=pg.mkPen("#888888", width=1))
         self.units: PlotUnits = FORCE_DISPLACEMENT
         self.forecast: Forecast | None = None
@@ -142,7 +145,8 @@ class PredictionView:
             curve = self._residual_curves.get(step)
             if curve is None:
                 phase = self.forecast.step(step).phase if self.forecast and self.forecast.step(step) else ""
-                curve = self._add(self.strip, pg.PlotDataItem(pen=_pen(self.cycle, phase == "unloading", 1, 255)))
+                curve = self._add(self.strip, pg.PlotDataItem(pen=_pen(self.cycle, phase == "unloading", 1, 255,
+                                                                        solid=True)))
                 self._residual_curves[step] = curve
             curve.setData(x, r)
 
@@ -190,8 +194,9 @@ class PredictionView:
             self._add(self.plots.ft_plot, pg.PlotDataItem(step.time_s, y, pen=_pen(self.cycle, dashed)))
             if f.noise_N > 0:
                 limit = departure_limit(step.force_N, step.sigma_N, step.spread_N, f.noise_N, window) * u.y_per_N
-                upper = self._add(self.strip, pg.PlotDataItem(x, limit, pen=None))
-                lower = self._add(self.strip, pg.PlotDataItem(x, -limit, pen=None))
+                edge = pg.mkPen(BAND_COLOUR, width=1)
+                upper = self._add(self.strip, pg.PlotCurveItem(x, limit, pen=edge))
+                lower = self._add(self.strip, pg.PlotCurveItem(x, -limit, pen=edge))
                 self._add(self.strip, pg.FillBetweenItem(upper, lower, brush=pg.mkBrush(*BAND_COLOUR)))
 
     def _draw_departure(self, d: Departure) -> None:
@@ -220,6 +225,7 @@ class LivePrediction(QtCore.QObject):
         self.bridge: PredictionBridge | None = None
         self.departures: list[Departure] = []
         self.queue = BackgroundQueue("foamlab-prediction-end", self)
+        self.generation = 0                     # the display's, for the run being predicted
         self._line, self._line_warns = "", False
 
     def begin(self, engine, method, generation: int) -> None:
@@ -234,13 +240,16 @@ class LivePrediction(QtCore.QObject):
         self.bridge = bridge = PredictionBridge(self)
         bridge.forecast.connect(self._on_forecast)
         bridge.departure.connect(self._on_departure)
-        bridge.note.connect(lambda text: self._say(f"Live prediction: {text}", True, note=True))
+        bridge.note.connect(self._on_note)
         self.predictor.add_listener(bridge)
         engine.add_listener(self.predictor)
         self.predictor.start()
         wait = "the first cycle" if MIN_CYCLES == 1 else f"cycles 1–{MIN_CYCLES}"
-        self._say(f"Live prediction: from cycle {MIN_CYCLES + 1} on, once {wait} are measured "
-                  f"({method.n_cycles} cycles in this method)", False, status_bar=False)
+        if method.n_cycles > MIN_CYCLES:
+            text = f"Live prediction: from cycle {MIN_CYCLES + 1} on, once {wait} are measured"
+        else:
+            text = f"Live prediction: none in a {method.n_cycles}-cycle method (it predicts from cycle {MIN_CYCLES + 1} on)"
+        self._say(text, False, status_bar=False)
 
     def reset(self) -> None:
         """Nothing predicted on display (a file is shown)."""
@@ -262,7 +271,7 @@ class LivePrediction(QtCore.QObject):
 
     def end(self) -> None:
         """The run ended: the last scores come from the worker (GUI: `scores_ready`)."""
-        predictor, generation = self.predictor, getattr(self, "generation", 0)
+        predictor, generation = self.predictor, self.generation
         if predictor is None:
             return
         self.refresh()
@@ -285,6 +294,10 @@ class LivePrediction(QtCore.QObject):
         self.view.show_forecast(forecast)
         self._say(f"Live prediction: {forecast.describe()}", False,
                   status_bar=False)
+
+    def _on_note(self, text: str) -> None:
+        if self.bridge is not None and self.sender() is self.bridge:
+            self._say(f"Live prediction: {text}", True, note=True)
 
     def _on_departure(self, d: Departure) -> None:
         if self.bridge is None or self.sender() is not self.bridge:
