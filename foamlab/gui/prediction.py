@@ -74,6 +74,47 @@ def _pen(cycle: int, dashed: bool, width: int = 2, alpha: int = 150, solid: bool
     return pg.mkPen(colour, width=width, style=style)
 
 
+class _Pool:
+    """Graphics items made once per plot and reused (hidden when not needed), never removed: an
+    item taken off a plot is left to Python's cycle collector, which may free it on another
+    thread (the run engine collects as a run starts), where its Qt destructor deadlocks with the
+    GUI thread (seen in tests/test_gui.py before the pools)."""
+
+    def __init__(self, plot: pg.PlotItem, make) -> None:
+        self.plot, self.make = plot, make
+        self.items: list = []
+        self.used = 0
+
+    def take(self):
+        if self.used == len(self.items):
+            item = self.make()
+            for part in (item if isinstance(item, tuple) else (item,)):
+                self.plot.addItem(part)
+            self.items.append(item)
+        item = self.items[self.used]
+        self.used += 1
+        for part in (item if isinstance(item, tuple) else (item,)):
+            part.show()
+        return item
+
+    def release(self) -> None:
+        for item in self.items:
+            for part in (item if isinstance(item, tuple) else (item,)):
+                part.hide()
+        self.used = 0
+
+
+def _band(strip: pg.PlotItem):
+    edge = pg.mkPen(BAND_COLOUR, width=1)
+    upper, lower = pg.PlotCurveItem(pen=edge), pg.PlotCurveItem(pen=edge)
+    return upper, lower, pg.FillBetweenItem(upper, lower, brush=pg.mkBrush(*BAND_COLOUR))
+
+
+def _departure_line():
+    return pg.InfiniteLine(angle=90, pen=pg.mkPen(DEPARTURE_COLOUR, width=1, style=QtCore.Qt.PenStyle.DashLine),
+                           label="departs", labelOpts={"color": DEPARTURE_COLOUR, "position": 0.85})
+
+
 class PredictionView:
     """Draws the forecast of the cycle in progress on LivePlots and the residual strip under
     its force–displacement plot."""
@@ -87,10 +128,15 @@ class PredictionView:
         self.units: PlotUnits = FORCE_DISPLACEMENT
         self.forecast: Forecast | None = None
         self.cycle = 0                               # the cycle whose prediction is drawn
-        self._items: list[tuple[pg.PlotItem, pg.GraphicsObject]] = []
+        self._fd = _Pool(plots.fd_plot, pg.PlotDataItem)
+        self._ft = _Pool(plots.ft_plot, pg.PlotDataItem)
+        self._bands = _Pool(self.strip, lambda: _band(self.strip))
+        self._lines = _Pool(self.strip, _departure_line)
+        self._curves = _Pool(self.strip, pg.PlotDataItem)
         self._residuals: dict[int, list[Compared]] = {}      # by step, this cycle's compared samples
         self._residual_curves: dict[int, pg.PlotDataItem] = {}
         self._departures: list[Departure] = []
+        self._legend = False                         # the prediction's legend entry is there
         self._dirty = False
         self._label()
 
@@ -103,13 +149,17 @@ class PredictionView:
                             "grey: what the noise allows", size="9pt")
 
     def clear(self) -> None:
-        for plot, item in self._items:
-            plot.removeItem(item)
-        self._items.clear()
+        """Nothing drawn (a new run: LivePlots.clear has emptied the legend too)."""
+        self._release()
         self._residuals.clear()
-        self._residual_curves.clear()
         self._departures.clear()
+        self._legend = False
         self.forecast, self.cycle = None, 0
+
+    def _release(self) -> None:
+        for pool in (self._fd, self._ft, self._bands, self._lines, self._curves):
+            pool.release()
+        self._residual_curves.clear()
 
     def set_units(self, units: PlotUnits) -> None:
         self.units = units
@@ -144,32 +194,21 @@ class PredictionView:
             r = np.concatenate([b.residual_N for b in batches]) * u.y_per_N
             curve = self._residual_curves.get(step)
             if curve is None:
-                phase = self.forecast.step(step).phase if self.forecast and self.forecast.step(step) else ""
-                curve = self._add(self.strip, pg.PlotDataItem(pen=_pen(self.cycle, phase == "unloading", 1, 255,
-                                                                        solid=True)))
-                self._residual_curves[step] = curve
+                predicted = self.forecast.step(step) if self.forecast else None
+                curve = self._residual_curves[step] = self._curves.take()
+                curve.setPen(_pen(self.cycle, predicted is not None and predicted.phase == "unloading", 1, 255,
+                                  solid=True))
             curve.setData(x, r)
 
     # -- drawing -------------------------------------------------------------------------
-    def _add(self, plot: pg.PlotItem, item):
-        plot.addItem(item)
-        self._items.append((plot, item))
-        return item
-
     def _switch(self, cycle: int) -> None:
         """Draw the prediction of `cycle` (the one in progress), its band, no residual yet."""
-        for plot, item in self._items:
-            plot.removeItem(item)
-            if plot is self.plots.fd_plot:
-                self.plots.legend.removeItem(item)
-        self._items.clear()
-        self._residual_curves.clear()
+        self._release()
         self._residuals = {k: v for k, v in self._residuals.items() if v and int(v[0].cycle[0]) == cycle}
         self.cycle = cycle
         self._draw_prediction()
         for d in self._departures:
-            if d.cycle == cycle:
-                self._draw_departure(d)
+            self._draw_departure(d)
         self._dirty = True
 
     def _redraw(self) -> None:
@@ -184,28 +223,27 @@ class PredictionView:
             return
         u = self.units
         window = window_samples(f.sampling_hz)
-        for i, step in enumerate(f.cycle(self.cycle)):
+        for step in f.cycle(self.cycle):
             x, y = step.displacement_mm * u.x_per_mm, step.force_N * u.y_per_N
-            name = f"prediction from cycles 1–{f.from_cycles}" if i == 0 else None
-            dashed = step.phase == "unloading"
-            self._add(self.plots.fd_plot, pg.PlotDataItem(x, y, pen=_pen(self.cycle, dashed)))
-            if name:
-                self.plots.legend.addItem(self._items[-1][1], name)
-            self._add(self.plots.ft_plot, pg.PlotDataItem(step.time_s, y, pen=_pen(self.cycle, dashed)))
+            pen = _pen(self.cycle, step.phase == "unloading")
+            curve = self._fd.take()
+            curve.setData(x, y, pen=pen)
+            if not self._legend:
+                self.plots.legend.addItem(curve, "live prediction")
+                self._legend = True
+            self._ft.take().setData(step.time_s, y, pen=pen)
             if f.noise_N > 0:
                 limit = departure_limit(step.force_N, step.sigma_N, step.spread_N, f.noise_N, window) * u.y_per_N
-                edge = pg.mkPen(BAND_COLOUR, width=1)
-                upper = self._add(self.strip, pg.PlotCurveItem(x, limit, pen=edge))
-                lower = self._add(self.strip, pg.PlotCurveItem(x, -limit, pen=edge))
-                self._add(self.strip, pg.FillBetweenItem(upper, lower, brush=pg.mkBrush(*BAND_COLOUR)))
+                upper, lower, _ = self._bands.take()
+                upper.setData(x, limit)
+                lower.setData(x, -limit)
 
     def _draw_departure(self, d: Departure) -> None:
         if d.cycle != self.cycle:
             return
-        line = pg.InfiniteLine(pos=d.since_mm * self.units.x_per_mm, angle=90,
-                               pen=pg.mkPen(DEPARTURE_COLOUR, width=1, style=QtCore.Qt.PenStyle.DashLine),
-                               label=f"{d.phase} departs", labelOpts={"color": DEPARTURE_COLOUR, "position": 0.85})
-        self._add(self.strip, line)
+        line = self._lines.take()
+        line.setPos(d.since_mm * self.units.x_per_mm)
+        line.label.setFormat(f"{d.phase} departs")
 
 
 class LivePrediction(QtCore.QObject):
