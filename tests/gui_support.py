@@ -14,4 +14,7 @@ def shut_window(w) -> None:
         w.engine = None
     w.link.shutdown()
     w.analysis.shutdown(wait=True)
+    live = getattr(getattr(w, "display", None), "live", None)   # a window built before live prediction
+    if live is not None:
+        live.shutdown()
     w.estop_queue.shutdown(wait=True)

@@ -18,6 +18,7 @@ from PySide6 import QtCore, QtWidgets
 from foamlab import pipeline
 from foamlab.gui.background import BackgroundQueue
 from foamlab.gui.plots import LOADING, LivePlots
+from foamlab.gui.prediction import LivePrediction
 from foamlab.gui.report import Report
 from foamlab.gui.results import ResultsPanel
 from foamlab.gui.status import end_message, missed_flag
@@ -64,6 +65,11 @@ class RunDisplay(QtWidgets.QWidget):
         self.plots = LivePlots()
         self.units_choice = UnitsChoice()
         self.units_choice.changed.connect(self.plots.set_units)
+        self.live = LivePrediction(self.plots, self)
+        self.units_choice.changed.connect(self.live.view.set_units)
+        self.live.message.connect(self._say)
+        self.live.scores_ready.connect(self._show_forecast)
+        self._ended: tuple[int, pipeline.Analysis, Report] | None = None   # the last run's, for its scores
         self._run_on_display = False           # live, ended or opened: its specimen sets the axes
         self.progress = QtWidgets.QProgressBar()
         self.progress.setObjectName("run_progress")
@@ -85,6 +91,7 @@ class RunDisplay(QtWidgets.QWidget):
         top_layout.addWidget(self.plots, 1)
         top_layout.addWidget(self.progress)
         top_layout.addWidget(self.run_status)
+        top_layout.addWidget(self.live.status)
         splitter = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
         splitter.addWidget(top)
         splitter.addWidget(self.results)
@@ -119,6 +126,13 @@ class RunDisplay(QtWidgets.QWidget):
         self.progress.setFormat(f"Cycle 0/{n_cycles} — %p% — starting")
         self.run_status.setText(f"{title}: starting…")
         self.run_status.setStyleSheet("")
+
+    def predict(self, engine, method, on: bool) -> None:
+        """The live prediction of the run about to start (before engine.start())."""
+        if on:
+            self.live.begin(engine, method, self.generation)
+        else:
+            self.live.off()
 
     def add_samples(self, samples: list, phase_of_step: dict[int, str]) -> None:
         n = len(samples)
@@ -155,12 +169,26 @@ class RunDisplay(QtWidgets.QWidget):
             report.flags.append(gaps)
             report.diagnosis_note = NOT_DIAGNOSED_GAPS
         report.fit_note = "fitting…" if ok else "not fitted (the run did not finish)"
+        for departure in self.live.departures:
+            report.add_departure(departure)
         self.shown_run, self.shown_analysis = result.run, None
         self.results.show_report(report)
+        self.live.end()
         if result.run is not None:
-            self._analyse(pipeline.Analysis(result.run, result.path), report, self.generation, headline,
-                          fit=ok and len(result.run) > 0, diagnose=gaps is None)
+            analysis = pipeline.Analysis(result.run, result.path)
+            self._ended = (self.generation, analysis, report)
+            self._analyse(analysis, report, self.generation, headline, fit=ok and len(result.run) > 0,
+                          diagnose=gaps is None)
         return text.split(" Data:")[0], style
+
+    def _show_forecast(self, scores, generation: int) -> None:
+        """The live prediction's forecast scores, once the worker has made the last one."""
+        if self._ended is None or self._ended[0] != generation or generation != self.generation:
+            return
+        _, analysis, report = self._ended
+        analysis.forecast = scores
+        report.set_forecast(scores)
+        self.results.show_report(report)
 
     # -- a run from a file --------------------------------------------------------------
     def open(self, path: Path, on_shown: Callable[[Any], None]) -> None:
@@ -181,6 +209,7 @@ class RunDisplay(QtWidgets.QWidget):
     def _show_loaded(self, loaded, generation: int) -> None:
         run = loaded.run
         self.shown_run, self.shown_analysis = run, None
+        self.live.reset()
         self._show_specimen(run.specimen)
         self.plots.show_run(run.time_s, run.displacement_mm, run.force_N, loaded.cycles, loaded.phases)
         self.progress.setValue(0)
@@ -295,6 +324,31 @@ class RunDisplay(QtWidgets.QWidget):
         self.analysis.submit(work, done, failed)
 
     # -- export ---------------------------------------------------------------------------
+    def report_path(self) -> Path:
+        """Where the shown run's PDF report goes by default (foamlab.reporting's rule)."""
+        from foamlab.reporting import default_report_path  # noqa: PLC0415
+
+        a = self.shown_analysis
+        path = a.path if a is not None else None
+        if path is None:
+            return self.out_dir / "report.pdf"
+        return default_report_path(path, pipeline.is_ours(path))
+
+    def write_report(self, out: Path) -> None:
+        """The shown run's test report (foamlab.reporting) on the analysis thread, with what the
+        window found (its fit, its diagnosis when done, the live prediction's scores)."""
+        a = self.shown_analysis
+        if a is None or a.path is None:
+            self._say("the fit is still being made (or the run has no file): write the report when it shows", True)
+            return
+        from foamlab.reporting import write_report  # noqa: PLC0415
+
+        self._say(f"writing the report {out.name}…")
+        self.analysis.submit(lambda: write_report(a.path, out, analysis=a, diagnose=a.diagnosis is not None),
+                             lambda written: self._say(f"report written to {written}"),
+                             lambda msg: self._say(f"report failed: {msg}", True))
+
+
     def export_png(self, path: Path) -> Path | None:
         try:
             self.plots.export_png(str(path))

@@ -98,6 +98,23 @@ class FindingRow:
     delta_bic: float | None
 
 
+@dataclass(frozen=True)
+class ForecastRow:
+    """One cycle's forecast score (foamlab.prediction.CycleScore): predicted from the earlier cycles."""
+
+    cycle: int
+    from_cycles: int
+    rmse: float
+    ratio: float                # RMSE over the load cell's noise
+    bias: float
+
+
+#: What a departure during the run means for the results (shown with its one-line message).
+DEPARTURE_MEANING = ("the specimen left what its first cycles predicted, by more than the noise allows: "
+                     "it changed during the test (damage, slip, a machine change); the fit and the diagnosis "
+                     "say more")
+
+
 @dataclass
 class Report:
     run: list[tuple[str, str]] = field(default_factory=list)
@@ -114,6 +131,8 @@ class Report:
     findings: list[FindingRow] = field(default_factory=list)
     diagnosis_note: str = ""
     flags: list[Flag] = field(default_factory=list)
+    forecast: list[ForecastRow] = field(default_factory=list)
+    forecast_note: str = ""
 
     # -- filling ----------------------------------------------------------------------
     def set_method_results(self, results: "MethodResults", headline: list[str] | None = None) -> None:
@@ -142,6 +161,15 @@ class Report:
                 str(f.get("effect", "?")), str(f.get("description", "")), str(f.get("meaning", "")),
                 gain.get("rmse_before"), gain.get("rmse_after"), gain.get("heldout_rmse_before"),
                 gain.get("heldout_rmse_after"), gain.get("delta_bic")))
+
+    def set_forecast(self, scores: Any) -> None:
+        """foamlab.prediction.ForecastScores: each cycle's forecast from the earlier ones."""
+        self.forecast = [ForecastRow(s.cycle, s.from_cycles, s.rmse_N, s.ratio, s.bias_N) for s in scores.scores]
+        self.forecast_note = scores.note
+
+    def add_departure(self, departure: Any) -> None:
+        """A foamlab.prediction.Departure seen during the run: a flag in words."""
+        self.flags.append(Flag(departure.message, DEPARTURE_MEANING))
 
     # -- views ------------------------------------------------------------------------
     def headline_rows(self) -> list[ResultRow]:
@@ -195,6 +223,8 @@ class Report:
             rows.append(["diagnosis", "verdict", self.verdict, "", ""])
         rows += [["finding", f.effect, _num(f.rmse_before), _num(f.rmse_after), _num(f.delta_bic)]
                  for f in self.findings]
+        rows += [["forecast", f"cycle {f.cycle} from cycles 1-{f.from_cycles}", _num(f.rmse), "N",
+                  f"{f.ratio:.3g} x noise"] for f in self.forecast]
         return rows
 
     def write_csv(self, path: str) -> None:

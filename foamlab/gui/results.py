@@ -111,9 +111,11 @@ class ResultsPanel(QtWidgets.QTabWidget):
         self.warnings.setReadOnly(True)
         self.findings = _table(["effect", "found", "RMSE before [N]", "RMSE after [N]", "held-out before",
                                 "held-out after", "ΔBIC"], "diagnosis_findings")
+        self.forecast = _table(["cycle", "predicted from", "RMSE [N]", "× noise", "mean [N]"], "forecast_scores")
         left = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
         left.addWidget(_boxed("Fitted parameters", self.parameters))
         left.addWidget(_boxed("Fit statistics (Table 5)", self.statistics))
+        left.addWidget(_boxed("Forecast: each cycle predicted from the earlier ones", self.forecast))
         right = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
         right.addWidget(_boxed("Thermodynamic checks (Eqs. 23-25)", self.constraints))
         right.addWidget(_boxed("Fit warnings and notes", self.warnings))
@@ -187,6 +189,8 @@ class ResultsPanel(QtWidgets.QTabWidget):
         self.constraints.resizeRowsToContents()
         lines = [f"• {w}" for w in report.fit_warnings] + [f"note: {n}" for n in report.fit_notes]
         self.warnings.setPlainText("\n".join(lines) or "none")
+        _fill(self.forecast, [(str(f.cycle), f"cycles 1–{f.from_cycles}", number(f.rmse, 3), number(f.ratio, 2),
+                               number(f.bias, 3)) for f in report.forecast], numeric={0, 2, 3, 4})
         _fill(self.findings, [(f.effect, f.description, _opt(f.rmse_before), _opt(f.rmse_after),
                                _opt(f.heldout_before), _opt(f.heldout_after), _opt(f.delta_bic))
                               for f in report.findings], numeric={2, 3, 4, 5, 6})

@@ -51,7 +51,9 @@ PHASE_OF_ACTION = {"compress": LOADING, "return": UNLOADING, "dwell": "dwell"}
 
 class MainWindow(QtWidgets.QMainWindow):
     def __init__(self, speedup: float = 1.0, out_dir: str | Path = "foamlab-data",
-                 profile: str | None = None, method: str | None = None, auto_diagnose: bool = True) -> None:
+                 profile: str | None = None, method: str | None = None, auto_diagnose: bool = True,
+                 simulator: dict | None = None) -> None:
+        """`simulator`: options of the built-in simulated machine (effects, seed: simulator.launch)."""
         super().__init__()
         self.setWindowTitle("foamlab — compression test")
         self.speedup = float(speedup)
@@ -68,7 +70,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._run_method = None                    # the Method of the run going or last run
         self.dialogs = DialogSlot()                # the open question or file chooser
 
-        self.link = MachineLink(self)
+        self.link = MachineLink(self, simulator)
         self.estop_queue = BackgroundQueue("foamlab-estop", self)
 
         self._build_ui(auto_diagnose)
@@ -98,6 +100,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.open_action = menu.addAction("&Open measured file…", QtGui.QKeySequence.StandardKey.Open)
         self.export_png_action = menu.addAction("Export plot as &PNG…")
         self.export_csv_action = menu.addAction("Export results as &CSV…")
+        self.report_action = menu.addAction("Write test &report (PDF)…")
         menu.addSeparator()
         self.quit_action = menu.addAction("&Quit", QtGui.QKeySequence.StandardKey.Quit)
         analysis_menu = self.menuBar().addMenu("&Analysis")
@@ -107,6 +110,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.auto_diagnose_action.setCheckable(True)
         self.auto_diagnose_action.setChecked(auto_diagnose)
         self.diagnose_action = analysis_menu.addAction("&Diagnose the shown run")
+        # The rest of a run predicted from its first cycles, while it runs (foamlab.prediction).
+        self.predict_action = analysis_menu.addAction("&Live prediction")
+        self.predict_action.setCheckable(True)
+        self.predict_action.setChecked(True)
 
         # Right: the live test (plots, progress, results) and the run browser.
         d = self.display = RunDisplay(self.auto_diagnose_action.isChecked, self.out_dir)
@@ -160,6 +167,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.open_action.triggered.connect(lambda: self.open_file())
         self.export_png_action.triggered.connect(lambda: self.export_png())
         self.export_csv_action.triggered.connect(lambda: self.export_csv())
+        self.report_action.triggered.connect(lambda: self.write_report())
         self.quit_action.triggered.connect(self.close)
         self.diagnose_action.triggered.connect(self.diagnose_shown_run)
         self.browser.open_requested.connect(self.open_file)
@@ -194,6 +202,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def _update_controls(self) -> None:
         self.controls.set_state(self.connected, self.running, self._close_requested)
         self.open_action.setEnabled(not self.running)
+        self.report_action.setEnabled(not self.running)
         self.browser.setEnabled(not self.running)
 
     def _status(self, text: str, error: bool = False, timeout_ms: int = 0) -> None:
@@ -300,6 +309,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self._run_start_mm = position
         self.display.begin_run(self._run_title, method.n_cycles, method.expected_samples(specimen.height_mm),
                                specimen)
+        self.display.predict(engine, method, self.predict_action.isChecked())
         self._status(f"{self._run_title} started")      # replaces any earlier e-stop or refusal
         self.tabs.setCurrentIndex(0)
         # Queued behind any idle poll still on its way, so the engine gets the machine to itself.
@@ -336,6 +346,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def _on_frame(self) -> None:
         self._drain_samples()
         self.plots.refresh()
+        self.display.live.refresh()
 
     def _drain_samples(self) -> None:
         samples = self.bridge.drain() if self.bridge is not None else []
@@ -417,6 +428,17 @@ class MainWindow(QtWidgets.QMainWindow):
             return None
         return self.display.export_png(Path(path))
 
+    def write_report(self, path: str | Path | None = None) -> None:
+        """The shown run's test report as a PDF (foamlab.reporting), written in the background."""
+        if self.running or self.shown_run is None:
+            self._status("no run to report: finish a run or open a file first", error=True)
+            return
+        if path is None:
+            self._show_dialog(choose_file(self, "Write test report", self.display.report_path(),
+                                          "PDF (*.pdf)", self.write_report, save=True))
+            return
+        self.display.write_report(Path(path))
+
     def export_csv(self, path: str | Path | None = None) -> Path | None:
         if not self.results.report.run:
             self._status("nothing to export yet: run a test or open a file", error=True)
@@ -467,6 +489,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.frame_timer.stop()
         self.poll_timer.stop()
         self.analysis.shutdown(wait=False)
+        self.display.live.shutdown()
         self.estop_queue.shutdown(wait=False)
         self.browser.queue.shutdown(wait=False)
         self.link.shutdown()

@@ -7,7 +7,8 @@
 
 Sections: run file (with its SHA-256, also in every page's footer), specimen, method, machine
 profile, curves (F-x, F-t), the method's results, the fit (Table-5 statistics, the parameters
-the data determine, figure), the diagnosis (verdict, gain table, figure), schedule statistics.
+the data determine, figure), the forecast of each cycle from the earlier ones, the diagnosis
+(verdict, gain table, figure), schedule statistics.
 """
 
 from __future__ import annotations
@@ -93,6 +94,7 @@ def _story(doc: Document, c: ReportContent, folder: Path) -> None:
     sections.results(doc, c)
     f = c.analysis.fit
     sections.fit(doc, c, figures.fit(f, folder, c.notes) if f is not None else None)
+    sections.forecast(doc, c)
     d = c.diagnosis_dict
     png, caption = (figures.diagnosis(c.analysis.diagnosis, f, d.get("verdict", ""), folder, c.notes)
                     if d is not None else (None, ""))

@@ -218,6 +218,7 @@ def _fit_and_diagnose(c: ReportContent, diagnose: bool, store: bool, progress: p
                 a.diagnosis_path = c.stored_diagnosis.path
     if diagnose and c.stored_diagnosis is None:
         pipeline.diagnose_stage(a, progress)
+    pipeline.forecast_stage(a, progress)
     if store and ours:
         before = (a.fit_path, a.diagnosis_path)
         pipeline.files_stage(a)

@@ -177,6 +177,27 @@ def fit(doc: Document, c: ReportContent, png: Path | None) -> None:
     doc.figure(png, "Measured (grey) and fitted force per cycle; measured - fitted below.")
 
 
+def forecast(doc: Document, c: ReportContent) -> None:
+    """Each cycle as predicted from the cycles before it, against what was measured."""
+    doc.heading("Forecast of each cycle from the earlier ones")
+    a = c.analysis
+    scores = a.forecast
+    if scores is None:
+        doc.paragraph(text(f"not made: {a.forecast_error or a.fit_error or 'the run was not fitted'}"))
+        return
+    when = ("during the run (live prediction)" if scores.live else
+            "after the run, from the run file (the live prediction's rule)")
+    doc.paragraph(text(f"The model identified on cycles 1..k-1 alone, run on the displacement of cycle k and "
+                       f"compared with its measured force: how well the first cycles predict the next, made "
+                       f"{when}. 1 x noise is as good as the load cell allows."))
+    rows = [[str(s.cycle), f"1-{s.from_cycles}", num(s.rmse_N), num(s.ratio, ".3g"), num(s.bias_N, "+.3g"),
+             str(s.n_samples)] for s in scores.scores]
+    doc.table(["cycle", "predicted from cycles", "RMSE (N)", "x noise", "mean (N)", "samples"],
+              rows or [["(none)", "", "", "", "", ""]], [0.12, 0.22, 0.16, 0.14, 0.18, 0.18])
+    if scores.note:
+        doc.paragraph(text(scores.note), "small")
+
+
 def diagnosis(doc: Document, c: ReportContent, png: Path | None, caption: str) -> None:
     doc.heading("Diagnosis")
     d = c.diagnosis_dict
