@@ -75,13 +75,23 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
     started = time.perf_counter()
     with threadpool_limits(1, user_api="blas"):
         paper = paper_steps(fd, orders)          # the same in either form (identification.paper)
+    select = given is None
+    # with the form to choose, both are fitted in the largest structure and the structure the
+    # data determine is selected in the form kept only (a selection costs two to three fits)
+    steps = len(forms) + (select and len(forms) > 1)
     results = []
     for i, f in enumerate(forms):
         def scaled(stage: str, fraction: float, i=i, f=f) -> None:
-            report(f"{f} form: {stage}" if len(forms) > 1 else stage, (i + fraction) / len(forms))
+            report(f"{f} form: {stage}" if len(forms) > 1 else stage, (i + fraction) / steps)
         rival = min((r.rmse for r in results), default=np.inf)
-        results.append(_fit_placed(fd, replace(orders, form=f), given is None, scaled, paper, rival))
+        results.append(_fit_placed(fd, replace(orders, form=f), select and len(forms) == 1, scaled, paper, rival))
     chosen = forms_choose(results, forced=form != "auto")
+    if select and len(forms) > 1:
+        choice, alternatives = chosen.form_choice, chosen.alternatives
+        chosen = _fit_placed(fd, replace(orders, form=choice.chosen), True,
+                             lambda stage, fraction: report(f"structure: {stage}", (steps - 1 + fraction) / steps),
+                             paper)
+        chosen.form_choice, chosen.alternatives = choice, alternatives
     chosen.elapsed_s = time.perf_counter() - started
     return chosen
 
