@@ -244,14 +244,12 @@ def test_real_bluehill_file_fits_to_the_end_with_automatic_starts():
     result = fit_run(load_run(REAL))
     d = result.to_dict()
     assert all(d["statistics"][s]["r2"] is not None for s in ("damping", "residual", "elastic", "joint"))
-    # every structure with two residual terms a cycle fits it with cancelling amplitudes (issue
-    # 19): the structure kept has none, so it fits coarser (R^2 0.9985; 0.9998 with them)
-    assert d["statistics"]["joint"]["r2"] > 0.998
-    assert 0.05 < d["rmse"] < 1.0                        # N, on a ~50 N signal
+    # the default structure (3,3,7,3) fits it best; every structure with two residual terms a
+    # cycle fits it with cancelling amplitudes (issue 19), and the fit says so
+    assert d["statistics"]["joint"]["r2"] > 0.9997
+    assert 0.05 < d["rmse"] < 0.3                        # N, on a ~50 N signal
     assert result.autocorrelation_time > 2               # structured residuals: said so
     assert any("autocorrelated" in w for w in result.warnings)
-    assert len(result.warnings) <= 5 and not any(w.endswith("cancel") for w in result.warnings), result.warnings
-    assert not any(c.endswith(" cancel") for c in result.structure.candidates[result.structure.taken].defects)
 
 
 # -- what cannot be identified ------------------------------------------------------------

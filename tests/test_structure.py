@@ -93,10 +93,10 @@ def test_cancelling_amplitudes_are_found_by_their_contributions():
 @pytest.fixture(scope="module")
 def selected():
     run = _run(3)
-    return run, fit_run(run, form="causal")
+    return run, fit_run(run, "auto", form="causal")
 
 
-def test_the_default_fit_chooses_a_structure_whose_terms_the_data_determine(selected):
+def test_orders_auto_chooses_a_structure_whose_terms_the_data_determine(selected):
     """The default specimen (2 modes, 3 terms with the same orders in each cycle): the structure
     chosen fits at the noise with no cancelling terms and every parameter determined; the
     candidates and why are in the result and its JSON."""

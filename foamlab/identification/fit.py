@@ -52,8 +52,9 @@ def fit_run(run: RunData, orders: Orders | str | tuple | None = None, progress: 
             x_scale_mm: float | None = None, form: str = "auto") -> FitResult:
     """Identify the model's parameters from one run (any importer's RunData).
 
-    orders: Orders(N, M, P[, C]), 'N,M,P' or a tuple to force a structure; None (default): the
-    structure the data determine, chosen from LARGEST down (identification.structure).
+    orders: Orders(N, M, P[, C]), 'N,M,P' or a tuple; None (default): LARGEST (3,3,7,3); 'auto':
+    the structure the data determine, chosen from LARGEST down (identification.structure: no
+    cancelling terms, every parameter determined; it fits 3-12 structures, 3-10 x the time).
     progress: called with (stage, fraction 0..1) as the fit advances.
     x_scale_mm: the elastic polynomial's scale (default: the run's largest compression).
     form: the residual form, 'causal' or 'paper', or 'auto': both fitted, the one that
@@ -68,7 +69,8 @@ def fit_run(run: RunData, orders: Orders | str | tuple | None = None, progress: 
 def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
                  progress: Progress | None = None, form: str = "auto") -> FitResult:
     """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run."""
-    given = _orders(orders)
+    select = isinstance(orders, str) and orders.strip().lower() == AUTO_ORDERS
+    given = None if select else (_orders(orders) or LARGEST)
     orders = given or LARGEST
     forms = RESIDUAL_FORMS if form == "auto" else (check_form(form),)
     report = progress or (lambda stage, fraction: None)
@@ -274,6 +276,8 @@ def _at_the_noise(base: Fit, fd: PreparedRun) -> bool:
 #: The structure the selection starts from (issue 19): the paper's orders, three cycles with terms
 #: of their own.
 LARGEST = Orders()
+#: The orders that ask for the structure the data determine.
+AUTO_ORDERS = "auto"
 
 
 def _orders(orders) -> Orders | None:
