@@ -107,13 +107,13 @@ def test_clean_run_is_never_flagged_and_scored(qtbot, tmp_path):
         assert result.status == "finished", result.reason
         live = w.display.live
         assert not live.departures, [d.message for d in live.departures]
-        # the prediction costs the acquisition nothing it can see
-        assert_keeps_the_schedule(result)
         # cycle 3's forecast from cycles 1-2, scored against what was measured
         qtbot.waitUntil(lambda: w.results.forecast.rowCount() == 1, timeout=60_000)
         row = w.results.report.forecast[0]
         assert (row.cycle, row.from_cycles) == (3, 2)
         assert row.rmse > forecast.noise_N * 0.8
         print(f"forecast score: cycle 3 from cycles 1-2: RMSE {row.rmse:.3g} N = {row.ratio:.2g} x noise")
+        # the prediction costs the acquisition nothing it can see (skips on an overloaded computer)
+        assert_keeps_the_schedule(result)
     finally:
         shut_window(w)
