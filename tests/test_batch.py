@@ -98,6 +98,7 @@ def test_twenty_runs_and_three_broken_files_are_twenty_results_and_three_error_r
     assert all(r.error_kind == "read" and "\n" not in r.error and Path(r.file).name in r.error for r in bad)
     for r in good:
         assert r.format == "plain CSV" and r.cycles == 3 and r.samples == len(_run(0)) and r.orders == "3,3,7"
+        assert r.form in ("causal", "paper")
         assert r.rmse > 0 and r.noise > 0 and r.elapsed_s > 0 and r.parameters["k1"] != 0
         assert r.sha256 == engine.sha256_of(Path(r.file))
         assert r.effect == ("" if r.verdict == "none" else r.verdict)

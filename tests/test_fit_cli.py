@@ -81,7 +81,7 @@ def test_real_bluehill_file_from_the_command_line(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     obj = json.loads(proc.stdout)
-    assert obj["statistics"]["joint"]["r2"] > 0.999
+    assert obj["statistics"]["joint"]["r2"] > 0.998      # no cancelling terms (test_identification)
 
 
 @pytest.mark.parametrize("make, expected", [

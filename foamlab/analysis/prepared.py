@@ -32,6 +32,7 @@ from foamlab.model import (
     evaluate,
     labels_from_extrema,
 )
+from foamlab.model.response import paper_residual
 from foamlab.model.components import elastic_force
 from foamlab.model.effects import estimate_velocity, loading_rate
 from foamlab.rundata import RunData
@@ -70,7 +71,11 @@ def model_response(params: ModelParameters, fd: "PreparedRun") -> ModelResponse:
     labels = labels_from_extrema(len(grid), at(nodes.labels.starts), at(nodes.labels.peaks))
     fine = evaluate(params, grid, grid_x, labels)
     back = lambda values: np.interp(t, grid, values)
-    return ModelResponse(t, x, elastic_force(params, x), back(fine.damping), back(fine.residual), fd.labels)
+    # the paper form's residual has no memory: exact on the nodes themselves (on the grid its
+    # stroke would be cut at the turn, and near the peak Eq. 11 is steep in the stroke)
+    residual = (paper_residual(params, nodes.t, nodes.x, nodes.labels)[nodes.of_sample]
+                if params.residual_form == "paper" else back(fine.residual))
+    return ModelResponse(t, x, elastic_force(params, x), back(fine.damping), residual, fd.labels)
 
 
 @dataclass
@@ -104,8 +109,9 @@ class PreparedRun:
     def other_turns(self) -> "PreparedRun":
         """The same run with its turns without a stop at the other place: between samples where
         this one has them at a sample, or the other way round (path.path_nodes)."""
+        between = self.nodes.between_samples
         nodes = path_nodes(self.t, self.path_mm, self.extremes, self.corner_tol,
-                           between_samples=not self.nodes.between_samples)
+                           between_samples=not between, before_extreme=between)
         return replace(self, nodes=nodes, series=_series(self.run, self.series.name, self.labels, nodes,
                                                          self.seg.contact_lost))
 

@@ -20,7 +20,7 @@ from scipy.optimize import least_squares
 
 from foamlab.analysis.design import ExtendedModel, Series, Solution
 from foamlab.model import ModelParameters
-from foamlab.model.layout import Orders, nonlinear_bounds
+from foamlab.model.layout import nonlinear_bounds
 
 #: Samples per run in the parameter search (decimated; decisions are made at full resolution).
 SEARCH_SAMPLES = 3000
@@ -73,6 +73,17 @@ class Fit:
         """The base model's parameters in this fit (effects aside)."""
         return self.model.parameters(self.nu, self.solution.theta)
 
+    def jacobian(self, rows: np.ndarray | None = None) -> np.ndarray:
+        """Of the prediction in [the model's linear parameters (k, a, r), nu, the load cell's
+        zero] at the solution (contact set held), at the rows of the first series (default:
+        its used samples)."""
+        sol = self.solution
+        rows = np.flatnonzero(sol.used[0]) if rows is None else rows
+        design = sol.designs[0][0][rows]
+        deriv = self.model.prediction_derivatives(self.nu, sol)[rows]
+        L = self.model.n_model
+        return np.hstack([design[:, :L], deriv, design[:, L:L + 1]])
+
     def effect_values(self) -> list[dict]:
         """Fitted values of each effect in the chain, with standard errors."""
         out, i = [], 0
@@ -94,7 +105,7 @@ def loading_time_s(series: list[Series]) -> float:
 def base_bounds(series: list[Series], params: ModelParameters) -> tuple[np.ndarray, np.ndarray]:
     """Identification's bounds of alpha and beta (from the loading time), widened to hold params."""
     lay = params.layout
-    lo, hi = nonlinear_bounds(Orders(N=lay.N, M=lay.M, P=lay.P, C=lay.C), lay.C, loading_time_s(series))
+    lo, hi = nonlinear_bounds(lay.orders, lay.C, loading_time_s(series))
     phi = lay.from_flat(params.to_vector())[1]
     return np.minimum(lo, phi), np.maximum(hi, phi)
 
@@ -167,6 +178,14 @@ def at_full_resolution(fit: Fit, full: list[Series], polish_nfev: int = 0) -> Fi
     if polish_nfev:
         return Fit.of(list(fit.causes), model, varpro(model, nu, max_nfev=polish_nfev))
     return Fit(list(fit.causes), model, nu, fit.stderr, model.solve(nu), status=fit.status, message=fit.message)
+
+
+def solved_at(series: list[Series], params: ModelParameters) -> Fit:
+    """The base model at these alpha and beta (free in the model: its Jacobian has them), the
+    linear parameters and the contact set solved, nothing searched."""
+    model = ExtendedModel(series, params, [], free_base=True, base_bounds=base_bounds(series, params))
+    nu = model.start()
+    return Fit([], model, nu, np.zeros(0), model.solve(nu))
 
 
 def fit_base(series: list[Series], params: ModelParameters) -> Fit:

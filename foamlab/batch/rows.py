@@ -35,6 +35,7 @@ class BatchRow:
     cycles: int = 0
     samples: int = 0
     orders: str = ""                   # "N,M,P": damping modes, residual terms per cycle, elastic order
+    form: str = ""                     # the residual form the fit kept: causal or paper
     rmse: float = NAN                  # N, the fit's, whole run
     noise: float = NAN                 # N, the load cell's noise level estimated from the data
     verdict: str = ""                  # a catalogue cause, "unexplained" or "none"

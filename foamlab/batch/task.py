@@ -87,6 +87,7 @@ def _fill(row: BatchRow, a: pipeline.Analysis) -> None:
     if a.fit is not None:
         o = a.fit.orders
         row.orders, row.rmse, row.noise = f"{o.N},{o.M},{o.P}", float(a.fit.rmse), float(a.fit.noise_N)
+        row.form = a.fit.params.residual_form
         row.parameters = {n: float(v) for n, v in zip(a.fit.names, a.fit.values)}
     if a.diagnosis is not None:
         _fill_diagnosis(row, a)

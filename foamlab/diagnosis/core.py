@@ -30,6 +30,7 @@ from typing import Callable
 
 from threadpoolctl import threadpool_limits
 
+from foamlab.analysis.heldout import heldout_rmse
 from foamlab.analysis.noise import WHITE_P, series_noise_sigma, whiteness
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import POLISH_NFEV, Fit, at_full_resolution, decimation
@@ -40,7 +41,6 @@ from foamlab.diagnosis.evidence import (
     compare,
     explained_share,
     explains,
-    heldout_rmse,
     rule_effect_determined,
     rule_evidence,
     rule_explains,

@@ -153,6 +153,14 @@ def fit(doc: Document, c: ReportContent, png: Path | None) -> None:
                                f"{num(st.rmse)} N", str(st.n), str(st.p)]))
     doc.table(["step", "SSE (N²)", "R²", "adjusted R²", "RMSE", "n", "p"], rows,
               [0.16, 0.16, 0.14, 0.14, 0.16, 0.12, 0.12])
+    choice = f.form_choice
+    if choice is not None and len(choice.scores) > 1:
+        mine = choice.score(choice.chosen)
+        doc.paragraph(text(f"Residual force: {choice.reason()}. Both forms (docs/model.md):"))
+        doc.table(["residual form", "RMSE", "held-out RMSE", "dBIC", "kept"],
+                  [[sc.form, f"{num(sc.rmse)} N", f"{num(sc.heldout_rmse)} N", num(sc.bic - mine.bic, ".1f"),
+                    "yes" if sc.form == choice.chosen else ""] for sc in choice.scores],
+                  [0.28, 0.18, 0.18, 0.18, 0.18])
     params = [p for p in f.parameters.values() if p.determined]
     doc.paragraph(text(f"Parameters the data determine ({len(params)} of {len(f.names)}: varied, with a "
                        "standard error, 95 % interval excluding zero):"))
