@@ -109,13 +109,19 @@ def test_clean_run_is_never_flagged_and_scored(qtbot, tmp_path):
         assert result.status == "finished", result.reason
         live = w.display.live
         assert not live.departures, [d.message for d in live.departures]
-        # the prediction costs the acquisition nothing it can see
-        assert_keeps_the_schedule(result)
         # cycle 3's forecast from cycles 1-2, scored against what was measured
         qtbot.waitUntil(lambda: w.results.forecast.rowCount() == 1, timeout=60_000)
         row = w.results.report.forecast[0]
         assert (row.cycle, row.from_cycles) == (3, 2)
         assert row.rmse > forecast.noise_N * 0.8
         print(f"forecast score: cycle 3 from cycles 1-2: RMSE {row.rmse:.3g} N = {row.ratio:.2g} x noise")
+        # the window's PDF report carries the score (File > Write test report)
+        qtbot.waitUntil(lambda: w.shown_analysis is not None, timeout=60_000)   # the fit the report shows
+        pdf = tmp_path / "report.pdf"
+        w.write_report(pdf)
+        qtbot.waitUntil(lambda: "report written" in w.statusBar().currentMessage(), timeout=60_000)
+        assert pdf.read_bytes()[:5] == b"%PDF-"
+        # the prediction costs the acquisition nothing it can see (skips on an overloaded computer)
+        assert_keeps_the_schedule(result)
     finally:
         shut_window(w)

@@ -25,7 +25,7 @@ from tests.synthetic import triangle_run
 
 REAL = Path(__file__).parent / "data" / "real" / "Specimen_RawData_6.csv"
 SECTIONS = ("Run file", "Specimen", "Method", "Machine profile", "Curves", "Results of the method",
-            "Fit of the model", "Diagnosis", "Schedule statistics")
+            "Fit of the model", "Forecast of each cycle from the earlier ones", "Diagnosis", "Schedule statistics")
 
 needs_poppler = pytest.mark.skipif(shutil.which("pdftotext") is None or shutil.which("pdftoppm") is None,
                                    reason="poppler-utils (pdftotext, pdftoppm) not installed: scripts/setup.sh")
