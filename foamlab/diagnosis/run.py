@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from typing import Callable
 
-import numpy as np
-
 from foamlab import FoamlabError
 from foamlab.analysis.noise import WHITE_P
 from foamlab.analysis.prepared import prepare
@@ -14,6 +12,7 @@ from foamlab.diagnosis.core import NEAR_NOISE, diagnose_prepared
 from foamlab.diagnosis.form import NAME, base_form_reason, check_other_form
 from foamlab.diagnosis.result import Diagnosis
 from foamlab.identification import FitResult, fit_run
+from foamlab.identification.statistics import information_criteria
 from foamlab.rundata import RunData
 
 Progress = Callable[[str, float], None]
@@ -92,9 +91,7 @@ def _at_the_noise(d: Diagnosis) -> bool:
 
 def bic(fit: Fit) -> float:
     """Gaussian BIC of a fitted (extended) model on the samples it used."""
-    n = max(fit.n, 1)
-    k = len(fit.solution.theta) + len(fit.nu)
-    return float(n * np.log(max(fit.rss, 1e-300) / n) + k * np.log(n))
+    return information_criteria(fit.rss, fit.n, len(fit.solution.theta) + len(fit.nu))[1]
 
 
 def _names(runs: list[RunData]) -> list[str]:
