@@ -31,6 +31,7 @@ from foamlab.gui.idle import IdleCommands
 from foamlab.gui.machine_link import Connection, MachineLink, Readout
 from foamlab.gui.plots import LOADING, UNLOADING
 from foamlab.gui.report import headline_names
+from foamlab.gui.series import SeriesView
 from foamlab.rundata import Specimen
 
 log = logging.getLogger(__name__)
@@ -101,6 +102,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.export_png_action = menu.addAction("Export plot as &PNG…")
         self.export_csv_action = menu.addAction("Export results as &CSV…")
         self.report_action = menu.addAction("Write test &report (PDF)…")
+        self.series_csv_action = menu.addAction("Export &series CSV…")
+        self.series_report_action = menu.addAction("Series report (PD&F)…")
         menu.addSeparator()
         self.quit_action = menu.addAction("&Quit", QtGui.QKeySequence.StandardKey.Quit)
         analysis_menu = self.menuBar().addMenu("&Analysis")
@@ -115,16 +118,18 @@ class MainWindow(QtWidgets.QMainWindow):
         self.predict_action.setCheckable(True)
         self.predict_action.setChecked(True)
 
-        # Right: the live test (plots, progress, results) and the run browser.
+        # Right: the live test (plots, progress, results), the run browser, the shown run's series.
         d = self.display = RunDisplay(self.auto_diagnose_action.isChecked, self.out_dir)
         self.plots, self.progress, self.run_status, self.results, self.analysis = (
             d.plots, d.progress, d.run_status, d.results, d.analysis)
         from foamlab.gui.browser import RunBrowser
 
         self.browser = RunBrowser(self.out_dir)
+        self.series_view = SeriesView(self.out_dir)
         self.tabs = QtWidgets.QTabWidget()
         self.tabs.addTab(d, "Test")
         self.tabs.addTab(self.browser, "Runs")
+        self.tabs.addTab(self.series_view, "Series")
         main = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)
         main.addWidget(c)
         main.addWidget(self.tabs)
@@ -168,6 +173,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self.export_png_action.triggered.connect(lambda: self.export_png())
         self.export_csv_action.triggered.connect(lambda: self.export_csv())
         self.report_action.triggered.connect(lambda: self.write_report())
+        self.series_csv_action.triggered.connect(lambda: self.export_series_csv())
+        self.series_report_action.triggered.connect(lambda: self.write_series_report())
+        self.series_view.csv_button.clicked.connect(self.series_csv_action.trigger)
+        self.series_view.pdf_button.clicked.connect(self.series_report_action.trigger)
+        self.series_view.message.connect(lambda text, error: self._status(text, error=error))
         self.quit_action.triggered.connect(self.close)
         self.diagnose_action.triggered.connect(self.diagnose_shown_run)
         self.browser.open_requested.connect(self.open_file)
@@ -203,6 +213,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.controls.set_state(self.connected, self.running, self._close_requested)
         self.open_action.setEnabled(not self.running)
         self.report_action.setEnabled(not self.running)
+        self.series_report_action.setEnabled(not self.running)
         self.browser.setEnabled(not self.running)
 
     def _status(self, text: str, error: bool = False, timeout_ms: int = 0) -> None:
@@ -386,6 +397,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.statusBar().setStyleSheet(style)       # replaces the e-stop's or any earlier message
         self.statusBar().showMessage(text)
         self.browser.refresh()
+        if result.path is not None and result.run is not None:
+            self.series_view.show_series_of(result.path, result.run)
         if self._close_requested:
             self.close()
 
@@ -413,12 +426,13 @@ class MainWindow(QtWidgets.QMainWindow):
             self._show_dialog(choose_file(self, "Open measured data", self.out_dir,
                                           "Measured data (*.csv *.txt *.tsv);;All files (*)", self.open_file))
             return
-        self.display.open(Path(path), self._on_opened)
+        self.display.open(Path(path), lambda run, path=Path(path): self._on_opened(run, path))
 
-    def _on_opened(self, run) -> None:
+    def _on_opened(self, run, path: Path) -> None:
         self.last_result = None
         self.tabs.setCurrentIndex(0)
         self.controls.show_run_inputs(run)
+        self.series_view.show_series_of(path, run)
         self._status(f"opened {run.source}")
 
     def export_png(self, path: str | Path | None = None) -> Path | None:
@@ -448,6 +462,28 @@ class MainWindow(QtWidgets.QMainWindow):
                                           self.export_csv, save=True))
             return None
         return self.display.export_csv(Path(path))
+
+    def export_series_csv(self, path: str | Path | None = None) -> Path | None:
+        """The Series tab's series as one CSV (foamlab.reporting.series), where the operator chooses."""
+        if self.series_view.series is None:
+            self._status("no series to export: finish a run or open one first", error=True)
+            return None
+        if path is None:
+            self._show_dialog(choose_file(self, "Export series", self.series_view.default_path(".csv"),
+                                          "CSV (*.csv)", self.export_series_csv, save=True))
+            return None
+        return self.series_view.export_csv(Path(path))
+
+    def write_series_report(self, path: str | Path | None = None) -> None:
+        """The Series tab's series as a PDF (foamlab.reporting.write_series_report), in the background."""
+        if self.running or self.series_view.series is None:
+            self._status("no series to report: finish a run or open one first", error=True)
+            return
+        if path is None:
+            self._show_dialog(choose_file(self, "Write series report", self.series_view.default_path(".pdf"),
+                                          "PDF (*.pdf)", self.write_series_report, save=True))
+            return
+        self.series_view.write_report(Path(path))
 
     # ================================================================ dialogs, closing
     @property
@@ -492,6 +528,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.display.live.shutdown()
         self.estop_queue.shutdown(wait=False)
         self.browser.queue.shutdown(wait=False)
+        self.series_view.queue.shutdown(wait=False)
         self.link.shutdown()
         event.accept()
 
