@@ -18,7 +18,12 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from foamlab import FoamlabError
 from foamlab.gui.background import BackgroundQueue, describe_error
 from foamlab.gui.report import number
-from foamlab.reporting.series import SpecimenSeries, series_from_runs, series_name, unit_text
+from foamlab.reporting.series import (
+    SpecimenSeries,
+    series_from_runs,
+    series_name,
+    unit_text,
+)
 
 #: The statistics rows under the specimens: (title, Statistic attribute, what it is).
 STATISTICS = (("n", "n", "specimens with a value"),
@@ -62,7 +67,7 @@ def find_series(out_dir: Path, path: Path, label: str, method: str) -> Found:
     for p in series_files(out_dir, path, label, method):
         try:
             runs.append((p, load_run(p)))
-        except Exception as exc:     # one unreadable file costs its row, not the series
+        except Exception as exc:  # noqa: BLE001 (an importer bug costs this file, not the series)
             left_out.append(f"{p.name}: {describe_error(exc)}")
     return Found(series_name(label, path), series_from_runs(runs, method), left_out)
 

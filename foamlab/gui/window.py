@@ -23,12 +23,14 @@ from foamlab import FoamlabError
 from foamlab.acquisition.safety import check_run_fits, remember_contact
 from foamlab.gui.background import BackgroundQueue
 from foamlab.gui.bridge import EngineBridge
+from foamlab.gui.connection import ConnectionView
 from foamlab.gui.controls import ControlPanel
 from foamlab.gui.dialogs import DialogSlot, EscapeStops, ask, choose_file
 from foamlab.gui.display import RunDisplay
 from foamlab.gui.forms import ERROR_STYLE
 from foamlab.gui.idle import IdleCommands
-from foamlab.gui.machine_link import Connection, MachineLink, Readout
+from foamlab.gui.machine_link import MachineLink, Readout
+from foamlab.gui.menus import build_menus
 from foamlab.gui.plots import LOADING, UNLOADING
 from foamlab.gui.report import headline_names
 from foamlab.gui.series import SeriesView
@@ -37,7 +39,6 @@ from foamlab.rundata import Specimen
 log = logging.getLogger(__name__)
 
 FRAME_HZ = 30          # plot refresh while samples arrive
-POLL_HZ = 5            # idle readouts
 #: Closing mid-run: how long to wait for the engine to stop before e-stopping (s).
 CLOSE_STOP_TIMEOUT_S = 20.0
 
@@ -64,8 +65,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.last_result = None
         self._phase_of_step: dict[int, str] = {}
         self._close_requested = False
-        self._link_trouble = False
-        self.last_readout: Readout | None = None   # the machine's state as last polled
         self._run_start_mm = 0.0                   # where "Return to start" goes: the last run's start
         self._run_title = ""
         self._run_method = None                    # the Method of the run going or last run
@@ -75,6 +74,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.estop_queue = BackgroundQueue("foamlab-estop", self)
 
         self._build_ui(auto_diagnose)
+        self.connection = ConnectionView(self.link, self.controls, self._status, self._update_controls, self)
+        self.poll_timer = self.connection.poll_timer
         self.idle = IdleCommands(self.link, self.controls, self._status, lambda: self._run_start_mm)
         self._fill_choices(profile, method)
         self._wire()
@@ -97,26 +98,11 @@ class MainWindow(QtWidgets.QMainWindow):
             c.limits_form, c.method_combo, c.method_info, c.specimen_form)
         self.start_button, self.stop_button, self.estop_button = c.start_button, c.stop_button, c.estop_button
 
-        menu = self.menuBar().addMenu("&File")
-        self.open_action = menu.addAction("&Open measured file…", QtGui.QKeySequence.StandardKey.Open)
-        self.export_png_action = menu.addAction("Export plot as &PNG…")
-        self.export_csv_action = menu.addAction("Export results as &CSV…")
-        self.report_action = menu.addAction("Write test &report (PDF)…")
-        self.series_csv_action = menu.addAction("Export &series CSV…")
-        self.series_report_action = menu.addAction("Series report (PD&F)…")
-        menu.addSeparator()
-        self.quit_action = menu.addAction("&Quit", QtGui.QKeySequence.StandardKey.Quit)
-        analysis_menu = self.menuBar().addMenu("&Analysis")
-        # A diagnosis takes seconds to tens of seconds (it refits extended models); it runs in
-        # the background, and can be left for later.
-        self.auto_diagnose_action = analysis_menu.addAction("Diagnose &automatically")
-        self.auto_diagnose_action.setCheckable(True)
-        self.auto_diagnose_action.setChecked(auto_diagnose)
-        self.diagnose_action = analysis_menu.addAction("&Diagnose the shown run")
-        # The rest of a run predicted from its first cycles, while it runs (foamlab.prediction).
-        self.predict_action = analysis_menu.addAction("&Live prediction")
-        self.predict_action.setCheckable(True)
-        self.predict_action.setChecked(True)
+        m = self.menus = build_menus(self.menuBar(), auto_diagnose)
+        self.open_action, self.export_png_action, self.export_csv_action, self.report_action = (
+            m.open, m.export_png, m.export_csv, m.report)
+        self.series_csv_action, self.series_report_action, self.quit_action = m.series_csv, m.series_report, m.quit
+        self.auto_diagnose_action, self.diagnose_action, self.predict_action = m.auto_diagnose, m.diagnose, m.predict
 
         # Right: the live test (plots, progress, results), the run browser, the shown run's series.
         d = self.display = RunDisplay(self.auto_diagnose_action.isChecked, self.out_dir)
@@ -138,8 +124,6 @@ class MainWindow(QtWidgets.QMainWindow):
 
         self.frame_timer = QtCore.QTimer(self)
         self.frame_timer.setInterval(int(1000 / FRAME_HZ))
-        self.poll_timer = QtCore.QTimer(self)
-        self.poll_timer.setInterval(int(1000 / POLL_HZ))
         self.resize(1400, 900)
 
     def _fill_choices(self, profile: str | None, method: str | None) -> None:
@@ -148,13 +132,6 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _wire(self) -> None:
         self.connect_button.clicked.connect(self.toggle_connection)
-        self.link.connected.connect(self._on_connected)
-        self.link.connect_failed.connect(self._on_connect_failed)
-        self.link.disconnected.connect(self._on_disconnected)
-        self.link.readout.connect(self._on_readout)
-        self.link.poll_failed.connect(self._on_poll_failed)
-        self.link.error.connect(lambda msg: self._status(msg, error=True))
-        self.poll_timer.timeout.connect(self.link.poll)
         self.frame_timer.timeout.connect(self._on_frame)
         self.method_combo.currentIndexChanged.connect(self.controls.show_method)
         self.jog_up.pressed.connect(lambda: self.idle.jog(-1))
@@ -227,52 +204,12 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ================================================================ connection
     def toggle_connection(self) -> None:
-        if self.connected:
-            self.poll_timer.stop()
-            self.link.disconnect_machine()
-            self.connection_label.setText("Disconnecting…")
-        else:
-            self.controls.show_connecting()
-            self.link.connect_machine(self.profile_combo.currentText(), self.speedup)
-        self._update_controls()
+        self.connection.toggle(self.speedup)
 
-    def _on_connected(self, conn: Connection) -> None:
-        from foamlab.acquisition import Limits
-
-        self._link_trouble = False
-        self.controls.show_connected(conn.name, conn.speedup)
-        try:
-            limits = Limits.from_profile(conn.profile)
-            self.limits_form.set_profile_limits(limits)
-            self.jog_speed.setRange(1.0, limits.max_speed_mm_min)
-        except FoamlabError as exc:
-            self._status(str(exc), error=True)
-        self._status(f"connected to {conn.name}", timeout_ms=5000)
-        self.poll_timer.start()
-        self._update_controls()
-
-    def _on_connect_failed(self, message: str) -> None:
-        self.controls.show_connect_failed(message)
-        self._status(f"connection failed: {message}", error=True)
-        self._update_controls()
-
-    def _on_disconnected(self) -> None:
-        self.poll_timer.stop()
-        self.controls.show_disconnected()
-        self.last_readout = None
-        self._update_controls()
-
-    def _on_poll_failed(self, message: str) -> None:
-        self._link_trouble = True
-        self.controls.show_no_answer(message)
-
-    def _on_readout(self, readout: Readout) -> None:
-        conn = self.link.connection
-        if self._link_trouble and conn is not None:
-            self._link_trouble = False
-            self.controls.show_connected(conn.name, conn.speedup)
-        self.last_readout = readout
-        self.controls.show_readout(readout)
+    @property
+    def last_readout(self) -> Readout | None:
+        """The machine's state as last polled (None when not connected)."""
+        return self.connection.last_readout
 
     # ================================================================ run
     def start_run(self) -> bool:
