@@ -90,12 +90,12 @@ def test_series_tab_shows_the_series_of_the_opened_run_and_exports_it(qtbot, win
     assert table.item(6, energy).text() == "13.48"
 
     # File > Export series CSV…: Qt's own, non-modal chooser (the e-stop stays at hand).
-    before = set(tmp_path.rglob("*"))
+    before = set(tmp_path.rglob("*.csv"))
     w.series_csv_action.trigger()
     dialog = w.dialog
     assert isinstance(dialog, QtWidgets.QFileDialog) and dialog.isVisible()
     assert not dialog.isModal() and QtWidgets.QApplication.activeModalWidget() is None
-    assert set(tmp_path.rglob("*")) == before                 # nothing written before a file is chosen
+    assert set(tmp_path.rglob("*.csv")) == before             # nothing written before a file is chosen
     out = tmp_path / "chosen" / "PU45.csv"
     out.parent.mkdir()
     dialog.selectFile(str(out))
@@ -105,6 +105,13 @@ def test_series_tab_shows_the_series_of_the_opened_run_and_exports_it(qtbot, win
     assert lines[0].startswith(f"# foamlab specimen series: method {METHOD}")
     assert list(csv.reader(lines[1:])) == expected.rows()
     assert f"series written to {out}" in w.statusBar().currentMessage()
+    assert set(tmp_path.rglob("*.csv")) == before | {out}
+
+    # Another run opened (File > Open): its own series, of one specimen (no sd, no CV).
+    w.open_file(runs / "PU60-01.csv")
+    qtbot.waitUntil(lambda: view.found is not None and view.found.name == "PU60", timeout=SERIES_TIMEOUT_MS)
+    assert texts(view.table, 0) == ["PU60-01", "n", "mean", "sd", "CV %"]
+    assert view.table.item(1, energy).text() == "1" and view.table.item(3, energy).text() == "–"
 
 
 def test_a_specimen_without_results_shows_its_one_line_error(qtbot, tmp_path):
