@@ -414,7 +414,8 @@ class MainWindow(QtWidgets.QMainWindow):
     def write_series_report(self, path: str | Path | None = None) -> None:
         """The Series tab's series as a PDF (foamlab.reporting.write_series_report), in the background."""
         if self.running or self.series_view.series is None:
-            self._status("no series to report: finish a run or open one first", error=True)
+            self._status("a run is going: write the series report after it ends" if self.running else
+                         "no series to report: finish a run or open one first", error=True)
             return
         if path is None:
             self._show_dialog(choose_file(self, "Write series report", self.series_view.default_path(".pdf"),
