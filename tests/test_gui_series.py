@@ -12,6 +12,7 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 import pytest
 from PySide6 import QtCore, QtWidgets
 
+from foamlab import methods
 from foamlab.gui.report import number
 from foamlab.gui.series import Found, SeriesView, column_title
 from foamlab.gui.window import MainWindow
@@ -114,18 +115,28 @@ def test_series_tab_shows_the_series_of_the_opened_run_and_exports_it(qtbot, win
     assert view.table.item(1, energy).text() == "1" and view.table.item(3, energy).text() == "–"
 
 
-def test_a_specimen_without_results_shows_its_one_line_error(qtbot, tmp_path):
+def test_a_specimen_without_results_shows_its_one_line_error(qtbot, tmp_path, monkeypatch):
     good, _ = triangle_run(cycles=3, stroke_mm=8.0, speed_mm_min=120.0, rate_hz=16.0, seed=3)
     good.specimen, good.method = Specimen("F-01", 10.0, 50.0, 50.0), METHOD
-    flat = RunData([0.0, 0.1, 0.2], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0],    # never compressed
-                   specimen=Specimen("F-02", 10.0, 50.0, 50.0), method=METHOD)
-    series = series_from_runs([(tmp_path / "f1.csv", good), (tmp_path / "f2.csv", flat)], METHOD)
-    assert series.specimens[1].error and not series.specimens[0].error
+    bad = RunData([0.0, 0.1, 0.2], [0.0, 0.5, 1.0], [0.0, 1.0, 2.0],
+                  specimen=Specimen("F-02", 10.0, 50.0, 50.0), method=METHOD)
+    # The method's results never fail on data (a value that cannot be computed says why): a bug
+    # in them is what leaves a specimen without results, as the pipeline reports it.
+    real = methods.compute_results
+
+    def buggy(method, run):
+        if run is bad:
+            raise ValueError("index 7 is out of bounds\nfor axis 0 with size 3")
+        return real(method, run)
+
+    monkeypatch.setattr(methods, "compute_results", buggy)
+    series = series_from_runs([(tmp_path / "f1.csv", good), (tmp_path / "f2.csv", bad)], METHOD)
+    assert "\n" in series.specimens[1].error and not series.specimens[0].error
     view = SeriesView(tmp_path)
     qtbot.addWidget(view)
     view.show_found(Found("F", series, left_out=["f3.csv: no data rows after the header"]))
     note = view.table.item(1, view.table.columnCount() - 1).text()
-    assert note == f"no results: {series.specimens[1].error.splitlines()[0]}"
+    assert note == "no results: method results failed: ValueError: index 7 is out of bounds"
     assert "Traceback" not in note and "\n" not in note
     assert view.table.item(1, 2).text() == "–"
     assert texts(view.table, 0)[2:] == ["n", "mean", "sd", "CV %"]
