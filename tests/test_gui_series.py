@@ -13,9 +13,11 @@ import pytest
 from PySide6 import QtCore, QtWidgets
 
 from foamlab import methods
+from foamlab.acquisition import RunResult
 from foamlab.gui.report import number
 from foamlab.gui.series import Found, SeriesView, column_title
 from foamlab.gui.window import MainWindow
+from foamlab.importers import load_run
 from foamlab.reporting import series_from_runs, specimen_series
 from foamlab.rundata import RunData, Specimen
 from foamlab.storage.runfile import write_run_file
@@ -113,6 +115,14 @@ def test_series_tab_shows_the_series_of_the_opened_run_and_exports_it(qtbot, win
     qtbot.waitUntil(lambda: view.found is not None and view.found.name == "PU60", timeout=SERIES_TIMEOUT_MS)
     assert texts(view.table, 0) == ["PU60-01", "n", "mean", "sd", "CV %"]
     assert view.table.item(1, energy).text() == "1" and view.table.item(3, energy).text() == "–"
+
+    # A run of the series ends (what the run engine hands the window): the tab shows it with the others.
+    done = write_specimen(runs, "PU45-05", 1.2, minute=6)
+    w.show_finished(RunResult(done, "finished", "", 433, 0, run=load_run(done)))
+    qtbot.waitUntil(lambda: view.found is not None and view.found.name == "PU45", timeout=SERIES_TIMEOUT_MS)
+    assert texts(view.table, 0)[:5] == ["PU45-01", "PU45-02", "PU45-03", "PU45-05", "n"]
+    assert view.table.item(3, 0).font().bold()
+    assert view.table.item(4, energy).text() == "4"
 
 
 def test_a_specimen_without_results_shows_its_one_line_error(qtbot, tmp_path, monkeypatch):

@@ -46,7 +46,7 @@ class ConnectionView:
         self._changed()
 
     def _on_connected(self, conn: Connection) -> None:
-        from foamlab.acquisition import Limits  # noqa: PLC0415
+        from foamlab.acquisition import Limits
 
         self._trouble = False
         self.controls.show_connected(conn.name, conn.speedup)

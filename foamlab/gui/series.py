@@ -44,7 +44,7 @@ class Found:
 def series_files(out_dir: Path, path: Path, label: str, method: str) -> list[Path]:
     """The run files of the series of the run in `path` (specimen `label`, tested with `method`),
     oldest first: the runs in `out_dir`'s catalog with that method and series name, and `path`."""
-    from foamlab.gui.browser import catalog_rows  # noqa: PLC0415
+    from foamlab.gui.browser import catalog_rows
 
     name = series_name(label, path)
     members: dict[Path, Path] = {}
@@ -59,7 +59,7 @@ def series_files(out_dir: Path, path: Path, label: str, method: str) -> list[Pat
 def find_series(out_dir: Path, path: Path, label: str, method: str) -> Found:
     """The series of the run in `path` with every specimen's results and the statistics
     (called on a background thread: it reads every file of the series and computes its results)."""
-    from foamlab.importers import load_run  # noqa: PLC0415
+    from foamlab.importers import load_run
 
     if not method:
         raise FoamlabError(f"{path.name} records no test method: a series is specimens of one method")
@@ -224,7 +224,7 @@ class SeriesView(QtWidgets.QWidget):
         if series is None:
             self.message.emit("no series to report: finish a run or open one first", True)
             return
-        from foamlab.reporting import write_series_report  # noqa: PLC0415
+        from foamlab.reporting import write_series_report
 
         self.message.emit(f"writing the series report {out.name}…", False)
         self.queue.submit(lambda: write_series_report(series, out),
