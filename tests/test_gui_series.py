@@ -109,6 +109,11 @@ def test_series_tab_shows_the_series_of_the_opened_run_and_exports_it(qtbot, win
     assert list(csv.reader(lines[1:])) == expected.rows()
     assert f"series written to {out}" in w.statusBar().currentMessage()
     assert set(tmp_path.rglob("*.csv")) == before | {out}
+    # The Series report (PDF)…, given its file, is written on the tab's thread.
+    pdf = tmp_path / "chosen" / "PU45.pdf"
+    w.write_series_report(pdf)
+    qtbot.waitUntil(lambda: "series report written" in w.statusBar().currentMessage(), timeout=SERIES_TIMEOUT_MS)
+    assert pdf.read_bytes().startswith(b"%PDF")
 
     # Another run opened (File > Open): its own series, of one specimen (no sd, no CV).
     w.open_file(runs / "PU60-01.csv")
