@@ -107,6 +107,7 @@ class SeriesView(QtWidgets.QWidget):
         self.table.setObjectName("series_table")
         self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         self.table.verticalHeader().setVisible(False)
+        self.table.verticalHeader().setDefaultSectionSize(self.table.fontMetrics().height() + 6)  # compact rows
         self.table.setAlternatingRowColors(True)
         layout.addWidget(self.table, 1)
         self.note = QtWidgets.QLabel("")
