@@ -18,3 +18,6 @@ def shut_window(w) -> None:
     if live is not None:
         live.shutdown()
     w.estop_queue.shutdown(wait=True)
+    series = getattr(w, "series_view", None)           # a window built before the Series tab
+    if series is not None:
+        series.queue.shutdown(wait=True)

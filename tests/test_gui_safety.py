@@ -5,6 +5,7 @@ Offscreen, against the built-in simulated machine (real Modbus TCP drivers on 12
 from __future__ import annotations
 
 import os
+from types import SimpleNamespace
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
@@ -58,12 +59,15 @@ def assert_estopped(qtbot, sim) -> None:
 
 
 @pytest.mark.parametrize("how", ["button", "esc"])
-@pytest.mark.parametrize("which", ["open", "export_png", "export_csv"])
+@pytest.mark.parametrize("which", ["open", "export_png", "export_csv", "series_csv", "series_report"])
 def test_estop_works_while_a_file_dialog_is_open(qtbot, win, how, which):
     w = win
     sim = connect(qtbot, w).simulator
     w.results.report.run = [("status", "finished")]      # something to export
-    {"open": w.open_file, "export_png": w.export_png, "export_csv": w.export_csv}[which]()
+    # A series to export (only its name and method's name are read before a file is chosen).
+    w.series_view.found = SimpleNamespace(name="PU45", series=SimpleNamespace(method=SimpleNamespace(name="m")))
+    {"open": w.open_file, "export_png": w.export_png, "export_csv": w.export_csv,
+     "series_csv": w.export_series_csv, "series_report": w.write_series_report}[which]()
     dialog = w.dialog
     assert isinstance(dialog, QtWidgets.QFileDialog) and dialog.isVisible()
     assert not dialog.isModal() and QtWidgets.QApplication.activeModalWidget() is None

@@ -5,7 +5,8 @@ parameters against the test date (or against the specimen series when the files 
 date), and the runs whose verdict differs from the verdict most runs of their series got.
 
 A run's series is its specimen label without the trailing run number ("PU45-03" -> "PU45");
-a file without a label is in the series of its folder.
+a file without a label is in the series of its folder (foamlab.reporting.series.series_name,
+the rule the window's Series tab uses too).
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ from __future__ import annotations
 import base64
 import html
 import io
-import re
 from pathlib import Path
 
 import numpy as np
@@ -22,23 +22,17 @@ from matplotlib.figure import Figure
 
 from foamlab import FoamlabError
 from foamlab.batch.rows import PARAMETER_PREFIX
+from foamlab.reporting.series import series_name
 
 #: Parameters shown first when the runs have them (elastic stiffness, first damping mode, first
 #: residual term of cycle 1); others follow up to MAX_PARAMETERS.
 PREFERRED = ("k1", "k2", "a1", "alpha1_re", "r1_1", "beta1_1")
 MAX_PARAMETERS = 6
-_RUN_NUMBER = re.compile(r"^(.*?)[\s_\-#./]*\d+$")
 
 
 def series_of(table: pd.DataFrame) -> pd.Series:
     """The specimen series of each row (see the module docstring)."""
-    def one(label, file) -> str:
-        label = "" if not isinstance(label, str) else label.strip()
-        if label:
-            m = _RUN_NUMBER.match(label)
-            return m.group(1) if m and m.group(1) else label
-        return Path(str(file)).parent.name or "(no series)"
-    return pd.Series([one(s, f) for s, f in zip(table["specimen"], table["file"])], index=table.index)
+    return pd.Series([series_name(s, f) for s, f in zip(table["specimen"], table["file"])], index=table.index)
 
 
 def odd_ones_out(table: pd.DataFrame) -> pd.DataFrame:

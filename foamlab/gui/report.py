@@ -15,16 +15,15 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from foamlab.gui.status import Flag
+from foamlab.reporting.series import READABLE
 
 if TYPE_CHECKING:
     from foamlab.identification import FitResult
     from foamlab.methods import Method, MethodResults
 
-#: Per-cycle results every method may have, by their names in foamlab.methods.
-READABLE_NAMES = {
-    "loading_energy": "Loading energy", "unloading_energy": "Unloading energy",
-    "hysteresis_loss": "Hysteresis loss", "residual_strain": "Residual strain",
-}
+#: Per-cycle results every method may have, by their names in foamlab.methods: the names the
+#: specimen series (`foamlab series`, the Series tab) and the PDF report use.
+READABLE_NAMES = READABLE
 
 #: The thermodynamic checks of the fit (foamlab.model.thermo), in words: what a FAIL means.
 CONSTRAINT_MEANINGS = {

@@ -23,20 +23,22 @@ from foamlab import FoamlabError
 from foamlab.acquisition.safety import check_run_fits, remember_contact
 from foamlab.gui.background import BackgroundQueue
 from foamlab.gui.bridge import EngineBridge
+from foamlab.gui.connection import ConnectionView
 from foamlab.gui.controls import ControlPanel
 from foamlab.gui.dialogs import DialogSlot, EscapeStops, ask, choose_file
 from foamlab.gui.display import RunDisplay
 from foamlab.gui.forms import ERROR_STYLE
 from foamlab.gui.idle import IdleCommands
-from foamlab.gui.machine_link import Connection, MachineLink, Readout
+from foamlab.gui.machine_link import MachineLink, Readout
+from foamlab.gui.menus import build_menus
 from foamlab.gui.plots import LOADING, UNLOADING
 from foamlab.gui.report import headline_names
+from foamlab.gui.series import SeriesView
 from foamlab.rundata import Specimen
 
 log = logging.getLogger(__name__)
 
 FRAME_HZ = 30          # plot refresh while samples arrive
-POLL_HZ = 5            # idle readouts
 #: Closing mid-run: how long to wait for the engine to stop before e-stopping (s).
 CLOSE_STOP_TIMEOUT_S = 20.0
 
@@ -63,8 +65,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.last_result = None
         self._phase_of_step: dict[int, str] = {}
         self._close_requested = False
-        self._link_trouble = False
-        self.last_readout: Readout | None = None   # the machine's state as last polled
         self._run_start_mm = 0.0                   # where "Return to start" goes: the last run's start
         self._run_title = ""
         self._run_method = None                    # the Method of the run going or last run
@@ -74,6 +74,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.estop_queue = BackgroundQueue("foamlab-estop", self)
 
         self._build_ui(auto_diagnose)
+        self.connection = ConnectionView(self.link, self.controls, self._status, self._update_controls, self)
+        self.poll_timer = self.connection.poll_timer
         self.idle = IdleCommands(self.link, self.controls, self._status, lambda: self._run_start_mm)
         self._fill_choices(profile, method)
         self._wire()
@@ -96,35 +98,24 @@ class MainWindow(QtWidgets.QMainWindow):
             c.limits_form, c.method_combo, c.method_info, c.specimen_form)
         self.start_button, self.stop_button, self.estop_button = c.start_button, c.stop_button, c.estop_button
 
-        menu = self.menuBar().addMenu("&File")
-        self.open_action = menu.addAction("&Open measured file…", QtGui.QKeySequence.StandardKey.Open)
-        self.export_png_action = menu.addAction("Export plot as &PNG…")
-        self.export_csv_action = menu.addAction("Export results as &CSV…")
-        self.report_action = menu.addAction("Write test &report (PDF)…")
-        menu.addSeparator()
-        self.quit_action = menu.addAction("&Quit", QtGui.QKeySequence.StandardKey.Quit)
-        analysis_menu = self.menuBar().addMenu("&Analysis")
-        # A diagnosis takes seconds to tens of seconds (it refits extended models); it runs in
-        # the background, and can be left for later.
-        self.auto_diagnose_action = analysis_menu.addAction("Diagnose &automatically")
-        self.auto_diagnose_action.setCheckable(True)
-        self.auto_diagnose_action.setChecked(auto_diagnose)
-        self.diagnose_action = analysis_menu.addAction("&Diagnose the shown run")
-        # The rest of a run predicted from its first cycles, while it runs (foamlab.prediction).
-        self.predict_action = analysis_menu.addAction("&Live prediction")
-        self.predict_action.setCheckable(True)
-        self.predict_action.setChecked(True)
+        m = self.menus = build_menus(self.menuBar(), auto_diagnose)
+        self.open_action, self.export_png_action, self.export_csv_action, self.report_action = (
+            m.open, m.export_png, m.export_csv, m.report)
+        self.series_csv_action, self.series_report_action, self.quit_action = m.series_csv, m.series_report, m.quit
+        self.auto_diagnose_action, self.diagnose_action, self.predict_action = m.auto_diagnose, m.diagnose, m.predict
 
-        # Right: the live test (plots, progress, results) and the run browser.
+        # Right: the live test (plots, progress, results), the run browser, the shown run's series.
         d = self.display = RunDisplay(self.auto_diagnose_action.isChecked, self.out_dir)
         self.plots, self.progress, self.run_status, self.results, self.analysis = (
             d.plots, d.progress, d.run_status, d.results, d.analysis)
         from foamlab.gui.browser import RunBrowser
 
         self.browser = RunBrowser(self.out_dir)
+        self.series_view = SeriesView(self.out_dir)
         self.tabs = QtWidgets.QTabWidget()
         self.tabs.addTab(d, "Test")
         self.tabs.addTab(self.browser, "Runs")
+        self.tabs.addTab(self.series_view, "Series")
         main = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)
         main.addWidget(c)
         main.addWidget(self.tabs)
@@ -133,8 +124,6 @@ class MainWindow(QtWidgets.QMainWindow):
 
         self.frame_timer = QtCore.QTimer(self)
         self.frame_timer.setInterval(int(1000 / FRAME_HZ))
-        self.poll_timer = QtCore.QTimer(self)
-        self.poll_timer.setInterval(int(1000 / POLL_HZ))
         self.resize(1400, 900)
 
     def _fill_choices(self, profile: str | None, method: str | None) -> None:
@@ -143,13 +132,6 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _wire(self) -> None:
         self.connect_button.clicked.connect(self.toggle_connection)
-        self.link.connected.connect(self._on_connected)
-        self.link.connect_failed.connect(self._on_connect_failed)
-        self.link.disconnected.connect(self._on_disconnected)
-        self.link.readout.connect(self._on_readout)
-        self.link.poll_failed.connect(self._on_poll_failed)
-        self.link.error.connect(lambda msg: self._status(msg, error=True))
-        self.poll_timer.timeout.connect(self.link.poll)
         self.frame_timer.timeout.connect(self._on_frame)
         self.method_combo.currentIndexChanged.connect(self.controls.show_method)
         self.jog_up.pressed.connect(lambda: self.idle.jog(-1))
@@ -168,6 +150,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self.export_png_action.triggered.connect(lambda: self.export_png())
         self.export_csv_action.triggered.connect(lambda: self.export_csv())
         self.report_action.triggered.connect(lambda: self.write_report())
+        self.series_csv_action.triggered.connect(lambda: self.export_series_csv())
+        self.series_report_action.triggered.connect(lambda: self.write_series_report())
+        self.series_view.csv_button.clicked.connect(self.series_csv_action.trigger)
+        self.series_view.pdf_button.clicked.connect(self.series_report_action.trigger)
+        self.series_view.message.connect(lambda text, error: self._status(text, error=error))
         self.quit_action.triggered.connect(self.close)
         self.diagnose_action.triggered.connect(self.diagnose_shown_run)
         self.browser.open_requested.connect(self.open_file)
@@ -203,6 +190,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.controls.set_state(self.connected, self.running, self._close_requested)
         self.open_action.setEnabled(not self.running)
         self.report_action.setEnabled(not self.running)
+        self.series_report_action.setEnabled(not self.running)
         self.browser.setEnabled(not self.running)
 
     def _status(self, text: str, error: bool = False, timeout_ms: int = 0) -> None:
@@ -216,52 +204,12 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ================================================================ connection
     def toggle_connection(self) -> None:
-        if self.connected:
-            self.poll_timer.stop()
-            self.link.disconnect_machine()
-            self.connection_label.setText("Disconnecting…")
-        else:
-            self.controls.show_connecting()
-            self.link.connect_machine(self.profile_combo.currentText(), self.speedup)
-        self._update_controls()
+        self.connection.toggle(self.speedup)
 
-    def _on_connected(self, conn: Connection) -> None:
-        from foamlab.acquisition import Limits
-
-        self._link_trouble = False
-        self.controls.show_connected(conn.name, conn.speedup)
-        try:
-            limits = Limits.from_profile(conn.profile)
-            self.limits_form.set_profile_limits(limits)
-            self.jog_speed.setRange(1.0, limits.max_speed_mm_min)
-        except FoamlabError as exc:
-            self._status(str(exc), error=True)
-        self._status(f"connected to {conn.name}", timeout_ms=5000)
-        self.poll_timer.start()
-        self._update_controls()
-
-    def _on_connect_failed(self, message: str) -> None:
-        self.controls.show_connect_failed(message)
-        self._status(f"connection failed: {message}", error=True)
-        self._update_controls()
-
-    def _on_disconnected(self) -> None:
-        self.poll_timer.stop()
-        self.controls.show_disconnected()
-        self.last_readout = None
-        self._update_controls()
-
-    def _on_poll_failed(self, message: str) -> None:
-        self._link_trouble = True
-        self.controls.show_no_answer(message)
-
-    def _on_readout(self, readout: Readout) -> None:
-        conn = self.link.connection
-        if self._link_trouble and conn is not None:
-            self._link_trouble = False
-            self.controls.show_connected(conn.name, conn.speedup)
-        self.last_readout = readout
-        self.controls.show_readout(readout)
+    @property
+    def last_readout(self) -> Readout | None:
+        """The machine's state as last polled (None when not connected)."""
+        return self.connection.last_readout
 
     # ================================================================ run
     def start_run(self) -> bool:
@@ -386,6 +334,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.statusBar().setStyleSheet(style)       # replaces the e-stop's or any earlier message
         self.statusBar().showMessage(text)
         self.browser.refresh()
+        if result.path is not None and result.run is not None:
+            self.series_view.show_series_of(result.path, result.run)
         if self._close_requested:
             self.close()
 
@@ -413,12 +363,13 @@ class MainWindow(QtWidgets.QMainWindow):
             self._show_dialog(choose_file(self, "Open measured data", self.out_dir,
                                           "Measured data (*.csv *.txt *.tsv);;All files (*)", self.open_file))
             return
-        self.display.open(Path(path), self._on_opened)
+        self.display.open(Path(path), lambda run, path=Path(path): self._on_opened(run, path))
 
-    def _on_opened(self, run) -> None:
+    def _on_opened(self, run, path: Path) -> None:
         self.last_result = None
         self.tabs.setCurrentIndex(0)
         self.controls.show_run_inputs(run)
+        self.series_view.show_series_of(path, run)
         self._status(f"opened {run.source}")
 
     def export_png(self, path: str | Path | None = None) -> Path | None:
@@ -448,6 +399,29 @@ class MainWindow(QtWidgets.QMainWindow):
                                           self.export_csv, save=True))
             return None
         return self.display.export_csv(Path(path))
+
+    def export_series_csv(self, path: str | Path | None = None) -> Path | None:
+        """The Series tab's series as one CSV (foamlab.reporting.series), where the operator chooses."""
+        if self.series_view.series is None:
+            self._status("no series to export: finish a run or open one first", error=True)
+            return None
+        if path is None:
+            self._show_dialog(choose_file(self, "Export series", self.series_view.default_path(".csv"),
+                                          "CSV (*.csv)", self.export_series_csv, save=True))
+            return None
+        return self.series_view.export_csv(Path(path))
+
+    def write_series_report(self, path: str | Path | None = None) -> None:
+        """The Series tab's series as a PDF (foamlab.reporting.write_series_report), in the background."""
+        if self.running or self.series_view.series is None:
+            self._status("a run is going: write the series report after it ends" if self.running else
+                         "no series to report: finish a run or open one first", error=True)
+            return
+        if path is None:
+            self._show_dialog(choose_file(self, "Write series report", self.series_view.default_path(".pdf"),
+                                          "PDF (*.pdf)", self.write_series_report, save=True))
+            return
+        self.series_view.write_report(Path(path))
 
     # ================================================================ dialogs, closing
     @property
@@ -492,6 +466,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.display.live.shutdown()
         self.estop_queue.shutdown(wait=False)
         self.browser.queue.shutdown(wait=False)
+        self.series_view.queue.shutdown(wait=False)
         self.link.shutdown()
         event.accept()
 

@@ -8,6 +8,8 @@
 Each specimen's method results are computed by the pipeline's method stage (foamlab.pipeline);
 the statistics are over the specimens that have a value: mean, sample standard deviation
 (n - 1, as the testing standards and Bluehill use) and coefficient of variation = sd / |mean|.
+A run's series name (series_name) is its specimen label without the trailing run number
+("PU45-03" -> "PU45"): the window's Series tab and `foamlab batch`'s summary use it.
 Named SpecimenSeries: foamlab.analysis.design.Series is a run's samples for the analysis core.
 """
 
@@ -15,12 +17,26 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from foamlab import FoamlabError
 from foamlab.methods import Method, MethodResults, ResultValue, load_method
 from foamlab.rundata import RunData
+
+_RUN_NUMBER = re.compile(r"^(.*?)[\s_\-#./]*\d+$")
+
+
+def series_name(label: str | None, path: str | Path) -> str:
+    """The specimen series a run belongs to: its specimen label without the trailing run number
+    ("PU45-03" -> "PU45", "PU45" -> "PU45"); a file without a label is in the series of its folder."""
+    label = label.strip() if isinstance(label, str) else ""
+    if label:
+        m = _RUN_NUMBER.match(label)
+        return m.group(1) if m and m.group(1) else label
+    return Path(str(path)).parent.name or "(no series)"
+
 
 #: Readable names of the per-cycle quantities (foamlab.methods); named values keep their own.
 READABLE = {"loading_energy": "Loading energy", "unloading_energy": "Unloading energy",
