@@ -183,11 +183,11 @@ class _Fractional:
         self.near_grid = np.clip(window, 0, n - 1)
         self.near_valid = window >= 0
         a, b = grid_t[i0], grid_t[np.minimum(i0 + 1, n - 1)]
-        tau = np.hstack([grid_t[self.near_grid], np.broadcast_to(self.src_t, (len(bt), len(self.src_t)))])
+        src_tau, src_ds = _near_sources(self.src_t, self.src_ds, bt, b, NEAR_STEPS * h)
+        tau = np.hstack([grid_t[self.near_grid], src_tau])
         self.missed = _Missed(bt, a, b, self.interp.w, tau)
-        # each near source's slope change (the grid's in the window, every turning point's)
-        self.near_ds = np.hstack([self.d_grid[self.near_grid] * self.near_valid,
-                                  np.broadcast_to(self.src_ds, (len(bt), len(self.src_t)))])
+        # each near source's slope change (the grid's in the window, the turning points' in it)
+        self.near_ds = np.hstack([self.d_grid[self.near_grid] * self.near_valid, src_ds])
         # grid nodes whose value is used, and the turning points' terms there
         used = np.union1d(self.at_grid_idx, np.concatenate([i0, i0 + 1]))
         self.used = np.clip(used, 0, n - 1).astype(int)
@@ -224,6 +224,26 @@ class _Fractional:
         if len(self.between):
             out[self.between] = self.interp(y.T) + np.einsum("krs,rs->rk", missed, self.near_ds)
         return out
+
+
+def _near_sources(src_t: np.ndarray, src_ds: np.ndarray, t: np.ndarray, b: np.ndarray,
+                  reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """The turning points near before each sample (before its next grid node b, at most reach
+    before t), padded to one width: (rows, S) times and slope changes. Sources further back are
+    smooth over a grid step, as the grid's own beyond NEAR_STEPS; taking every turning point for
+    every sample made a 20-cycle run's columns grow with the square of its cycles. Padding sits
+    after b (every lag negative: no term) with no slope change."""
+    lo = np.searchsorted(src_t, t - reach, side="left")
+    hi = np.searchsorted(src_t, b, side="left")
+    count = np.maximum(hi - lo, 0)
+    width = int(count.max()) if len(count) else 0
+    idx = lo[:, None] + np.arange(width)[None, :]
+    valid = np.arange(width)[None, :] < count[:, None]
+    idx = np.clip(idx, 0, max(len(src_t) - 1, 0))
+    if not len(src_t):
+        return np.zeros((len(t), 0)), np.zeros((len(t), 0))
+    tau = np.where(valid, src_t[idx], (b + 1.0)[:, None])
+    return tau, np.where(valid, src_ds[idx], 0.0)
 
 
 class _Missed:

@@ -70,6 +70,18 @@ def worker_pool() -> Executor:
                                                   initializer=_lower_priority)
 
 
+def _stop_workers(executor: Executor) -> None:
+    """End a fit still running in the worker: shutdown(wait=False) leaves it running, and the
+    interpreter's exit then waits for it (a long run's fit: a minute of a CLI that has finished)."""
+    terminate = getattr(executor, "terminate_workers", None)       # Python >= 3.14
+    if terminate is not None:
+        terminate()
+        return
+    for process in list((getattr(executor, "_processes", None) or {}).values()):
+        if process.is_alive():
+            process.terminate()
+
+
 @dataclass(frozen=True)
 class ForecastJob:
     after_cycle: int
@@ -137,6 +149,8 @@ class LivePredictor:
         self._completed = 0                            # highest cycle known complete
         self._waiting: int | None = None               # a complete cycle whose forecast waits for the worker
         self._finished_run = False
+        self._ended = False                            # the run's end has been seen
+        self._own_executor = executor is None
 
     def add_listener(self, listener: Any) -> None:
         """`listener` may implement on_forecast, on_compared, on_departure, on_score, on_note."""
@@ -172,6 +186,8 @@ class LivePredictor:
         self._inbox.put(None)
         if self._executor is not None:
             self._executor.shutdown(wait=False, cancel_futures=True)
+            if self._own_executor:
+                _stop_workers(self._executor)
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(5.0)
 
@@ -205,7 +221,7 @@ class LivePredictor:
             if item is None:
                 continue
             if isinstance(item, tuple) and item and item[0] is _END:
-                ending = True
+                ending = self._ended = True
                 self._finished_run = item[1]
                 if self._finished_run:
                     self._cycle_complete(max(self.samples.cycle, default=0))
@@ -230,8 +246,8 @@ class LivePredictor:
     def _forecast_next(self) -> None:
         """Start the forecast from the latest complete cycle, unless one is being made."""
         k = self._waiting
-        if k is None or any(isinstance(w, ForecastJob) for w in self._pending.values()):
-            return
+        if k is None or self._ended or any(isinstance(w, ForecastJob) for w in self._pending.values()):
+            return          # after the run's end nothing is left to predict
         self._waiting = None
         prefix = self.samples.upto_cycle(k)
         job = ForecastJob(k, time.monotonic(), float(prefix.time_s[-1]))
@@ -269,8 +285,14 @@ class LivePredictor:
         what = self._pending.pop(future, None)
         if what is None or future.cancelled():
             return
-        if isinstance(what, ForecastJob):
-            self._forecast_next()       # the latest complete cycle, if one came meanwhile
+        try:
+            self._take_result(what, future)
+        finally:
+            if isinstance(what, ForecastJob):
+                # after the result: its score job goes to the one worker before the next fit
+                self._forecast_next()
+
+    def _take_result(self, what: Any, future: Future) -> None:
         try:
             value = future.result()
         except FoamlabError as exc:
