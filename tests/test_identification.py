@@ -106,9 +106,11 @@ def test_fit_reports_table5_statistics_checks_and_json(default_fit, default_para
     run, result = default_fit
     d = result.to_dict()
     # DESIGN.md's four keys, then the noise level, the optimizer's end (as lmfit reports it) and
-    # the residual form with every form's scores (identification.forms) and the structure (given here)
-    assert list(d) == ["parameters", "statistics", "rmse", "constraints", "noise", "optimizer", "form", "forms",
-                       "structure"]
+    # the samples at turns the samples cannot place, the residual form with every form's scores
+    # (identification.forms) and the structure (given here)
+    assert list(d) == ["parameters", "statistics", "rmse", "constraints", "noise", "optimizer", "turn_samples",
+                       "form", "forms", "structure"]
+    assert d["turn_samples"] == {"count": 0, "rmse_without": d["rmse"], "max_abs": 0.0}   # an exact history
     assert d["structure"]["forced"] and d["structure"]["chosen"] == str(result.orders)
     assert d["form"] == d["forms"]["chosen"] and {s["form"] for s in d["forms"]["scores"]} == {"causal", "paper"}
     assert set(d["optimizer"]) == {"success", "status", "message"} and d["optimizer"]["message"]
@@ -175,7 +177,8 @@ def test_undetermined_parameters_are_flagged_not_printed_as_estimates(default_pa
     d = result.to_dict()["parameters"]
     without_error = [n for n in result.names if d[n]["stderr"] is None]
     # every parameter without a standard error is explained: not determined, or fixed
-    assert all(any(w.startswith(f"{n} =") for w in result.warnings + result.notes) for n in without_error)
+    assert all(any(w.startswith(f"{n} =") or f", {n} =" in w for w in result.warnings + result.notes)
+               for n in without_error)
 
 
 def test_orders_are_selectable_and_compared_by_information_criteria(default_params):

@@ -115,7 +115,8 @@ def round_trip_specimen() -> ModelParameters:
 def determined(fit) -> np.ndarray:
     """Parameters with a finite standard error that the fit does not flag as undetermined
     (or hold fixed)."""
-    flagged = {w.split(" ", 1)[0] for w in fit.warnings if "not determined" in w}
+    flagged = {item.split(" = ", 1)[0] for w in fit.warnings if "not determined" in w
+               for item in w.split(" not determined")[0].rsplit(" ", 1)[0].split(", ")}
     flagged |= {n.split(" ", 1)[0] for n in fit.notes if "(fixed)" in n}
     se = np.asarray(fit.stderr_autocorr, float)
     return np.isfinite(se) & (se > 0) & np.array([n not in flagged for n in fit.names])

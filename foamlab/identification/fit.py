@@ -29,7 +29,7 @@ from foamlab.identification.joint import (
     unpolished,
 )
 from foamlab.identification.paper import paper_steps
-from foamlab.identification.result import FitResult
+from foamlab.identification.result import FitResult, TurnSamples
 from foamlab.identification.structure import forced, select
 from foamlab.identification.statistics import (
     GoodnessOfFit,
@@ -391,6 +391,7 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
     first, last = int(fd.observed[0]), int(fd.observed[-1]) + 1
     whole = fd.f[first:last] - predicted[first:last]
     rmse = float(np.sqrt(np.mean(whole ** 2)))
+    turns = _turn_samples(fd.series.used[first:last], whole)
     blocks = np.split(y - predicted[fd.observed], np.flatnonzero(np.diff(fd.observed) > 1) + 1)
     tau = autocorrelation_time(blocks)
     aic, bic = information_criteria(joint.sse, joint.n, jf.n_free)
@@ -406,7 +407,7 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
     return FitResult(
         params=params, orders=orders, names=names, values=values, stderr=stderr,
         stderr_autocorr=stderr * np.sqrt(tau), correlation=corr, statistics=statistics,
-        rmse=rmse, constraints=thermodynamic_checks(params), warnings=warnings, notes=notes,
+        rmse=rmse, turns=turns, constraints=thermodynamic_checks(params), warnings=warnings, notes=notes,
         aic=aic, bic=bic,
         n_obs=joint.n, n_params=jf.n_free, autocorrelation_time=tau,
         contact_zero_N=jf.contact_zero_N, response=response, predicted_force_N=predicted,
@@ -418,6 +419,13 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
         noise_N=fd.noise_N, prepared=fd, core_fit=base,
         tied={names[i]: names[j] for i, j in lay.tied().items()},
     )
+
+
+def _turn_samples(evidence: np.ndarray, residual: np.ndarray) -> TurnSamples:
+    at_turns = residual[~evidence]
+    kept = residual[evidence] if evidence.any() else residual
+    return TurnSamples(int(len(at_turns)), float(np.sqrt(np.mean(kept ** 2))),
+                       float(np.abs(at_turns).max()) if len(at_turns) else 0.0)
 
 
 def _placed_by_force(fd: PreparedRun, params, predicted: np.ndarray, zero: float, base: Fit | None) -> np.ndarray:

@@ -27,6 +27,8 @@ STEPS = ("damping", "residual", "elastic", "joint")
 UNITS = (("alpha", "1/s"), ("beta", ""), ("k", "N"), ("a", "N/(mm s)"), ("r", "N s^beta/mm"))
 #: The terminal summary lists at most this many warnings (all are in --json and the sidecar).
 SUMMARY_WARNINGS = 3
+#: The RMSE without the turn samples is shown when it is below this share of the whole run's.
+TURNS_SHOWN = 0.9
 
 
 def unit_of(name: str) -> str:
@@ -62,6 +64,19 @@ class Parameter:
 
 def _num(v) -> float | None:
     return float(v) if v is not None and math.isfinite(float(v)) else None
+
+
+@dataclass(frozen=True)
+class TurnSamples:
+    """The samples within a step of a turning point that the samples cannot place (predicted, not
+    evidence: analysis.path.path_determined) and the fit's RMSE without them."""
+
+    count: int
+    rmse_without_N: float          # RMS of measured - fitted over the evidence samples
+    max_abs_N: float               # the largest |measured - fitted| among the turn samples
+
+    def to_dict(self) -> dict:
+        return {"count": self.count, "rmse_without": _num(self.rmse_without_N), "max_abs": _num(self.max_abs_N)}
 
 
 @dataclass
@@ -107,6 +122,7 @@ class FitResult:
     structure: StructureChoice | None = None   # the structures tried and the one chosen (or forced)
     tied: dict[str, str] = field(default_factory=dict)   # shared orders: later cycle's beta -> first's
     largest: "FitResult | None" = None   # the largest structure's fit when another was chosen (diagnosis' base)
+    turns: TurnSamples | None = None     # the samples at turns the samples cannot place, and the RMSE without them
 
     # -- views -----------------------------------------------------------------------
     @property
@@ -155,6 +171,7 @@ class FitResult:
                 "constraints": {k: bool(v) for k, v in self.constraints.items()},
                 "noise": _num(self.noise_N),
                 "optimizer": {"success": self.success, "status": self.status, "message": self.message},
+                "turn_samples": self.turns.to_dict() if self.turns is not None else None,
                 "form": self.params.residual_form, "forms": self._forms_dict(),
                 "structure": self.structure.to_dict() if self.structure is not None else None}
 
@@ -213,6 +230,11 @@ class FitResult:
                  f"  RMSE {self.rmse:.4g} N = {ratio:.2f} x the load cell's noise ({self.noise_N:.3g} N)"
                  + (f", R^2 {joint.r2:.6f}" if joint is not None else ""),
                  f"  optimizer: {'converged' if self.success else 'stopped'} ({self.message})"]
+        if self.turns is not None and self.turns.count and self.turns.rmse_without_N < TURNS_SHOWN * self.rmse:
+            t = self.turns
+            lines.insert(3, f"  without the {t.count} samples at turns the samples cannot place (predicted, not "
+                            f"evidence; up to {t.max_abs_N:.3g} N off): RMSE {t.rmse_without_N:.4g} N = "
+                            f"{t.rmse_without_N / self.noise_N:.2f} x the noise")
         if self.structure is not None:
             lines.append(f"  structure: {self.structure.why}"
                          + (f" ({len(self.structure.candidates)} tried, see --full)" if self.structure.candidates else ""))

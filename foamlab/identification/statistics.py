@@ -89,6 +89,13 @@ def autocorrelation_time(residual_blocks: list[np.ndarray], max_lag: int = 2000)
     return float(max(tau, 1.0))
 
 
+#: Why a parameter is not determined (one parameter, several).
+INSENSITIVE = ("the data are insensitive to it", "the data are insensitive to them")
+TRADES_OFF = ("it trades off exactly against other parameters", "they trade off exactly against other parameters")
+TOO_WIDE = ("its 95 % interval is wider than its whole search range",
+            "their 95 % intervals are wider than their whole search ranges")
+
+
 @dataclass
 class Uncertainty:
     stderr: np.ndarray            # nan where not determined
@@ -124,7 +131,7 @@ def parameter_uncertainty(jac: np.ndarray, residual: np.ndarray, values: np.ndar
     determined = norms > big * 1e-14
     why = {}
     for i in np.flatnonzero(~determined):
-        why[i] = "the data are insensitive to it"
+        why[i] = INSENSITIVE
     while True:
         idx = np.flatnonzero(determined)
         if not len(idx):
@@ -134,7 +141,7 @@ def parameter_uncertainty(jac: np.ndarray, residual: np.ndarray, values: np.ndar
         if s[-1] <= s[0] * NULL_RCOND:             # an exact trade-off: drop its main actor
             worst = idx[int(np.argmax(np.abs(vt[-1])))]
             determined[worst] = False
-            why[worst] = "it trades off exactly against other parameters"
+            why[worst] = TRADES_OFF
             continue
         inv = (vt.T / s**2) @ vt
         se = np.sqrt(np.clip(np.diag(inv), 0, None) * sigma2) / norms[idx]
@@ -142,11 +149,14 @@ def parameter_uncertainty(jac: np.ndarray, residual: np.ndarray, values: np.ndar
         if too_wide.any():                         # drop the least determined, recompute
             k = int(np.argmax(np.where(too_wide, se / ranges[idx], -np.inf)))
             determined[idx[k]] = False
-            why[idx[k]] = "its 95 % interval is wider than its whole search range"
+            why[idx[k]] = TOO_WIDE
             continue
         break
-    for i in sorted(why):
-        warnings.append(f"{names[i]} = {values[i]:.4g} is not determined: {why[i]} "
+    # one line per reason (a long run's per-cycle terms made dozens of lines of one message)
+    for reason in dict.fromkeys(why[i] for i in sorted(why)):
+        which = [f"{names[i]} = {values[i]:.4g}" for i in sorted(why) if why[i] == reason]
+        one = len(which) == 1
+        warnings.append(f"{', '.join(which)} {'is' if one else 'are'} not determined: {reason[0 if one else 1]} "
                         "(held fixed for the other standard errors)")
     stderr = np.full(p, np.nan)
     corr = np.full((p, p), np.nan)
