@@ -49,6 +49,10 @@ CORNER_SAMPLES = 1
 #: Samples between the operators' grid nodes: what a line between the nodes misses of the
 #: sources this many grid nodes before them is added exactly (the memory's cusp after a corner).
 NEAR_STEPS = 16
+#: ...and of the turning points this many grid steps before them: a turn's slope change is
+#: large, and what the line misses of it decays slowly for orders near 1 (the kernel's
+#: curvature as lag^(nu - 2)); few turns lie within this reach, so it costs little.
+TURN_REACH_STEPS = 256
 #: Cached operator outputs are cleared beyond this many entries or bytes (a long run's
 #: full-resolution columns are ~1 MB each: a count alone let a 20-cycle fit hold ~0.5 GB).
 CACHE_LIMIT = 512
@@ -183,7 +187,7 @@ class _Fractional:
         self.near_grid = np.clip(window, 0, n - 1)
         self.near_valid = window >= 0
         a, b = grid_t[i0], grid_t[np.minimum(i0 + 1, n - 1)]
-        src_tau, src_ds = _near_sources(self.src_t, self.src_ds, bt, b, NEAR_STEPS * h)
+        src_tau, src_ds = _near_sources(self.src_t, self.src_ds, bt, b, TURN_REACH_STEPS * h)
         tau = np.hstack([grid_t[self.near_grid], src_tau])
         self.missed = _Missed(bt, a, b, self.interp.w, tau)
         # each near source's slope change (the grid's in the window, the turning points' in it)
