@@ -49,6 +49,7 @@ from foamlab.diagnosis.evidence import (
 from foamlab.diagnosis.extend import (
     PROBE_NFEV,
     fit_joint,
+    multistart,
     probe,
     reidentify,
     screen,
@@ -152,19 +153,28 @@ class Procedure:
         accepted = [c.cause for c in self.findings]
         probes = sorted((probe(self.ref, self.coarse, current_coarse, accepted + [cause])
                          for cause in self.remaining), key=lambda f: f.rss)
-        fits = [fit_joint(self.coarse, f, current_coarse) if i < JOINT_CANDIDATES else f
+        fits = [fit_joint(self.coarse, f, current_coarse)
+                if i < JOINT_CANDIDATES or f.causes[-1].imitated_by_base else f
                 for i, f in enumerate(probes)]
         coarse_cands = [Candidate(f.causes[-1], f, current_coarse) for f in fits]
         compare(coarse_cands, current_coarse)
         coarse_cands.sort(key=lambda c: -c.delta_bic)
         cands = []
         for i, c in enumerate(coarse_cands):
-            if (i < FULL_CANDIDATES and c.delta_bic > 0) or c.delta_bic > DELTA_BIC_MIN:
+            if c.cause.imitated_by_base:
+                # decimation loses part of its handle (the high-force samples): judged at full resolution
+                fit = self._imitated(c.cause, self.current, self._full(c.fit))
+                cands.append(Candidate(c.cause, fit, self.current, coarse_fit=self._coarse(fit)))
+            elif (i < FULL_CANDIDATES and c.delta_bic > 0) or c.delta_bic > DELTA_BIC_MIN:
                 cands.append(Candidate(c.cause, self._full(c.fit), self.current, coarse_fit=c.fit))
             else:    # keeps its decimated-scale evidence (weaker than it would be at full scale)
                 c.coarse_fit = c.fit
                 cands.append(c)
         return cands
+
+    def _imitated(self, cause: type[Cause], current: Fit, start: Fit | None = None) -> Fit:
+        """An effect the base imitates, fitted on every sample from several sizes (extend.multistart)."""
+        return multistart(self.series, current, [c.cause for c in self.findings] + [cause], start)
 
     def restart(self, polished: list[Candidate]) -> None:
         """Stage 4: an extension that leaves structure may be stuck where the base bent itself:
@@ -199,11 +209,18 @@ class Procedure:
         screening (alpha/beta held)."""
         accepted = [c.cause for c in self.findings]
         for i, c in enumerate(sorted(polished, key=lambda c: -c.delta_bic)):
-            if c.fit.rss >= self.current.rss:
+            # a strong candidate still below the new base is refitted too: its gain over the old
+            # base may be mostly the base's (alpha/beta it found by luck), and its effect's own
+            # gain is only seen from the better base (docs/analysis.md, "Fair comparison")
+            if c.cause.imitated_by_base:
+                c.fit = self._imitated(c.cause, self.current, c.fit if c.fit.rss < self.current.rss else None)
+                c.coarse_fit = self._coarse(c.fit)
+            elif c.fit.rss >= self.current.rss or i < FULL_CANDIDATES:
                 again = fit_joint(self.coarse, screen(self.coarse, current_coarse, accepted + [c.cause]),
                                   current_coarse, None if i < FULL_CANDIDATES else PROBE_NFEV)
-                c.coarse_fit = again
-                c.fit = self._full(again)
+                full = self._full(again)
+                if c.fit.rss >= self.current.rss or full.rss < c.fit.rss:
+                    c.coarse_fit, c.fit = again, full
             c.before = self.current
         compare(polished, self.current)
         rest = [c for c in cands if c not in polished]
