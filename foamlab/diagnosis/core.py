@@ -301,6 +301,8 @@ class Procedure:
             partial, findings, final = self.first_partial or findings, [], base
             final_analysis = base_analysis
         if findings:
+            # best first: the finding that removed the most (the verdict names the larger cause)
+            findings = sorted(findings, key=lambda c: -(c.before.rss - c.fit.rss))
             verdict, partial = findings[0].name, []
         else:
             verdict = "unexplained" if base_analysis.whiteness.min_p < WHITE_P else "none"
