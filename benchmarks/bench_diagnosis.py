@@ -40,6 +40,7 @@ sys.path.append(str(Path(__file__).resolve().parents[1] / "tests"))   # independ
 
 import numpy as np  # noqa: E402
 from _table import publish  # noqa: E402
+
 from foamlab.diagnosis import diagnose  # noqa: E402
 from foamlab.diagnosis.synthetic import NOISE_N, hidden_effect_run  # noqa: E402
 from foamlab.model import ModelParameters, label_history, triangular_history  # noqa: E402
@@ -139,6 +140,7 @@ def independent_run(regime: str, seed: int, hz: float = 16.0, *, compliance: flo
     specimen follows the generator's triangle and the crosshead travels the frame's deflection
     C F on top (measured displacement = specimen's + C F, to the encoder's 1 um)."""
     import independent_model as im
+
     from foamlab.rundata import RunData
 
     reg = im.REGIMES[regime].with_(sampling_hz=hz)
@@ -162,10 +164,12 @@ def left_after_base(regime: str, hz: float, **effect) -> float:
     to the noise-free run with the effect (the most chi-square evidence any extension can gain;
     ~18 is needed to be named: Delta BIC > 10 plus the parameter's ln n)."""
     import independent_model as im
+
     from foamlab.identification import fit_run
 
-    fit = fit_run(independent_run(regime, 0, hz, noise_scale=1e-3, **effect)).core_fit
-    return fit.n * fit.rmse ** 2 / im.NOISE_N ** 2
+    res = fit_run(independent_run(regime, 0, hz, noise_scale=1e-3, **effect))
+    n, rmse = (res.core_fit.n, res.core_fit.rmse) if res.core_fit is not None else (res.n_obs, res.rmse)
+    return n * rmse ** 2 / im.NOISE_N ** 2
 
 
 HARD = [("machine_compliance", {"compliance": 1e-3}), ("machine_compliance", {"compliance": 5e-4}),
@@ -209,7 +213,7 @@ TWO_CAUSES = [{"cycle_softening": 0.03, "force_zero_drift": 0.003},
 def two_causes(seeds: int, hz: float) -> list[str]:
     rows = []
     for combo in TWO_CAUSES:
-        both, first_right, found = 0, 0, []
+        both, found = 0, []
         for s in range(seeds):
             d = diagnose([hidden_effect_run(combo, sampling_hz=hz, seed=700 + s)])
             names = [c.name for c in d.findings]

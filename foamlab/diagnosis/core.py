@@ -5,7 +5,8 @@ round of the search (``Procedure.round``) runs these stages:
 
 1. search (extend.py): every applicable cause fitted on the decimated runs as an extension
    of the current model - screened with the base's alpha/beta held, probed jointly, and
-   the JOINT_CANDIDATES best fitted jointly to convergence;
+   the JOINT_CANDIDATES best fitted jointly to convergence; a cause the base imitates
+   (Cause.imitated_by_base) always, from several starts (extend.multistart);
 2. compare (evidence.compare): Delta BIC and the likelihood-ratio p-value of each, on one
    prewhitened scale (an AR(p) filter fitted to the best model's residuals);
 3. polish: the best and every strong candidate carried to every sample;
@@ -17,7 +18,8 @@ round of the search (``Procedure.round``) runs these stages:
    evidence, not pinned at a limit, effect determined, explains the structure, held-out
    prediction better; the best candidate passing all is a finding.
 
-The others are tried again on top of a finding (up to MAX_FINDINGS). Verdict: `none` when
+Every other cause is tried again on top of a finding (up to MAX_FINDINGS), until the model
+leaves white residuals at the noise level; findings are listed best first (what each removed). Verdict: `none` when
 nothing passes and the base residuals are white; the first finding when the extension
 leaves white residuals or explains most of the structure above the noise; `unexplained`
 otherwise (structure, and where it is).
@@ -28,12 +30,17 @@ from __future__ import annotations
 import time
 
 import numpy as np
-
 from threadpoolctl import threadpool_limits
 
 from foamlab.analysis.noise import WHITE_P, series_noise_sigma, whiteness
 from foamlab.analysis.prepared import PreparedRun
-from foamlab.analysis.solve import POLISH_NFEV, SEARCH_SAMPLES, Fit, at_full_resolution, decimation
+from foamlab.analysis.solve import (
+    POLISH_NFEV,
+    SEARCH_SAMPLES,
+    Fit,
+    at_full_resolution,
+    decimation,
+)
 from foamlab.diagnosis.causes import CAUSES, Cause
 from foamlab.diagnosis.evidence import (
     DELTA_BIC_MIN,
@@ -49,9 +56,9 @@ from foamlab.diagnosis.evidence import (
     rule_not_pinned,
 )
 from foamlab.diagnosis.extend import (
+    MULTISTART_SIZES,
     PROBE_NFEV,
     fit_joint,
-    MULTISTART_SIZES,
     multistart,
     probe,
     reidentify,
@@ -64,8 +71,8 @@ from foamlab.diagnosis.result import Candidate, Diagnosis
 #: Candidates (by Delta BIC) that get the held-out check in each round.
 HELDOUT_CANDIDATES = 3
 MAX_FINDINGS = 3
-#: After a finding, residual variance within this fraction of the noise variance is not
-#: searched further (what is left is the fit's own imperfection, not a second cause).
+#: After a finding, white residuals with a variance within this fraction of the noise variance
+#: are not searched further (what is left is the fit's own imperfection, not a second cause).
 NEAR_NOISE = 0.1
 #: Candidates (by the screening's gain) refitted with the base model's alpha/beta free.
 JOINT_CANDIDATES = 2
@@ -172,7 +179,7 @@ class Procedure:
         cands = []
         for i, c in enumerate(coarse_cands):
             if c.cause.imitated_by_base:
-                # decimation loses part of its handle (the high-force samples): judged at full resolution
+                # one joint fit from the base stays in the base's basin: several starts (_imitated)
                 fit = self._imitated(c.cause, self.current, c.fit)
                 cands.append(Candidate(c.cause, fit, self.current, coarse_fit=self._coarse(fit)))
             elif (i < FULL_CANDIDATES and c.delta_bic > 0) or c.delta_bic > DELTA_BIC_MIN:
@@ -230,7 +237,7 @@ class Procedure:
         for i, c in enumerate(sorted(polished, key=lambda c: -c.delta_bic)):
             # a strong candidate still below the new base is refitted too: its gain over the old
             # base may be mostly the base's (alpha/beta it found by luck), and its effect's own
-            # gain is only seen from the better base (docs/analysis.md, "Fair comparison")
+            # gain is only seen from the better base (docs/analysis.md, "Effects the base model imitates")
             if c.cause.imitated_by_base:
                 # from the new base: the screening's start and the effect value found before
                 again = self._imitated(c.cause, self.current, c.fit, sizes=())
