@@ -71,15 +71,15 @@ from foamlab.diagnosis.result import Candidate, Diagnosis
 #: Candidates (by Delta BIC) that get the held-out check in each round.
 HELDOUT_CANDIDATES = 3
 MAX_FINDINGS = 3
-#: After a finding, white residuals with a variance within this fraction of the noise variance
-#: are not searched further (what is left is the fit's own imperfection, not a second cause).
-NEAR_NOISE = 0.1
+#: After a finding, white residuals with a variance within NEAR_NOISE of the noise variance, or
+#: any within AT_NOISE, are not searched further (what is left is the fit's own imperfection).
+NEAR_NOISE, AT_NOISE = 0.1, 0.05
 #: Candidates (by the screening's gain) refitted with the base model's alpha/beta free.
 JOINT_CANDIDATES = 2
 #: ...and of those, this many carried to full resolution (the others are judged on the search's samples).
 FULL_CANDIDATES = 2
 #: Samples per run an effect the base imitates is fitted on from several starts (Procedure._imitated).
-MULTISTART_SAMPLES = 2 * SEARCH_SAMPLES
+MULTISTART_SAMPLES = int(1.6 * SEARCH_SAMPLES)
 
 
 def diagnose_prepared(runs: list[PreparedRun], base: Fit, causes: list[str] | None = None) -> Diagnosis:
@@ -121,12 +121,13 @@ class Procedure:
 
     def _done(self) -> bool:
         """Nothing left to explain: the extended model leaves white noise at the noise level.
-        Either alone is not enough: a second cause can leave residuals the whiteness tests pass
-        at 1.5 x the noise variance, or within NEAR_NOISE of it and far from white
-        (docs/analysis.md, "Two causes")."""
+        Whiteness alone is not enough: a second cause can leave residuals the whiteness tests
+        pass at 1.5 x the noise variance, or 1.07 x and far from white (docs/analysis.md,
+        "Two causes")."""
         c = self.current
-        return bool(self.findings) and (whiteness(c.solution.residual).min_p >= WHITE_P
-                                        and c.rss / c.n < (1 + NEAR_NOISE) * self.sigma ** 2)
+        excess = c.rss / (c.n * self.sigma ** 2) - 1
+        return bool(self.findings) and (excess < AT_NOISE or (
+            excess < NEAR_NOISE and whiteness(c.solution.residual).min_p >= WHITE_P))
 
     # -- the procedure
     def run(self) -> Diagnosis:
