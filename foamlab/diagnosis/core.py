@@ -73,7 +73,7 @@ HELDOUT_CANDIDATES = 3
 MAX_FINDINGS = 3
 #: After a finding, white residuals with a variance within NEAR_NOISE of the noise variance, or
 #: any within AT_NOISE, are not searched further (what is left is the fit's own imperfection).
-NEAR_NOISE, AT_NOISE = 0.1, 0.05
+NEAR_NOISE, AT_NOISE = 0.1, 0.005
 #: Candidates (by the screening's gain) refitted with the base model's alpha/beta free.
 JOINT_CANDIDATES = 2
 #: ...and of those, this many carried to full resolution (the others are judged on the search's samples).
@@ -122,7 +122,7 @@ class Procedure:
     def _done(self) -> bool:
         """Nothing left to explain: the extended model leaves white noise at the noise level.
         Whiteness alone is not enough: a second cause can leave residuals the whiteness tests
-        pass at 1.5 x the noise variance, or 1.07 x and far from white (docs/analysis.md,
+        pass at 1.5 x the noise variance, or 1.01 x and far from white (docs/analysis.md,
         "Two causes")."""
         c = self.current
         excess = c.rss / (c.n * self.sigma ** 2) - 1
