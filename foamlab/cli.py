@@ -14,7 +14,7 @@ import sys
 from foamlab import FoamlabError, __version__
 
 # Order here is the order in `foamlab --help`.
-COMMAND_MODULES = ["run", "sim", "fit", "diagnose", "gui", "show", "catalog"]
+COMMAND_MODULES = ["run", "sim", "fit", "diagnose", "batch", "report", "series", "gui", "show", "catalog"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -32,7 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
                 continue  # command not built yet
             raise
         module.register(sub)
-    for subparser in sub.choices.values():
+    for subparser in [parser, *sub.choices.values()]:   # the top parser reports unknown options
         subparser.error = _one_line_error(subparser)
     return parser
 

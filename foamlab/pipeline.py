@@ -1,6 +1,8 @@
 """The analysis of a recorded run: one pipeline for `foamlab run`, the window and batches.
 
     method results -> fit -> diagnosis with that same fit -> files beside the run -> catalog
+    (forecast: each cycle predicted from the earlier ones - the live prediction's scores when
+    the run had one, else forecast_stage)
 
     from foamlab import pipeline
     a = pipeline.analyse(run, path, method=method, folder=out_dir)   # every stage
@@ -26,8 +28,9 @@ from foamlab.diagnosis.store import store_diagnosis
 from foamlab.identification import FitResult, fit_run
 from foamlab.identification.store import store_fit
 from foamlab.methods import Method, MethodResults, load_method
+from foamlab.prediction.forecast import ForecastScores, forecast_scores
 from foamlab.rundata import RunData
-from foamlab.storage.catalog import Catalog
+from foamlab.storage.catalog import CATALOG_NAME, Catalog
 from foamlab.storage.runfile import is_run_file
 
 log = logging.getLogger(__name__)
@@ -58,6 +61,8 @@ class Analysis:
     files_error: str = ""
     catalog: Path | None = None                # the catalog the run is indexed in
     catalog_error: str = ""
+    forecast: ForecastScores | None = None     # each cycle predicted from the earlier ones
+    forecast_error: str = ""
 
     @property
     def verdict(self) -> str:
@@ -69,20 +74,29 @@ class Analysis:
         return [p for p in (self.path, self.fit_path, self.diagnosis_path) if p is not None]
 
 
+def _attempt(what: str, make: Callable[[], object]) -> tuple[object, str]:
+    """(make(), "") - or (None, why in one line). A stage that fails must not cost the others:
+    the run is saved already, and a bug in one stage must not hide what the others found."""
+    try:
+        return make(), ""
+    except FoamlabError as exc:
+        return None, str(exc)
+    except Exception as exc:
+        log.debug("%s failed", what, exc_info=True)
+        return None, f"{what} failed: {type(exc).__name__}: {exc}"
+
+
 def method_stage(a: Analysis, method: Method | None = None, progress: Progress = _quiet) -> Analysis:
     """The method's results (the run's own method, by name, when none is given)."""
     progress("method results", 0.0)
-    try:
-        method = method or (load_method(a.run.method) if a.run.method else None)
-        if method is None:
-            a.method_error = "no test method recorded with the run"
-        elif len(a.run):
-            a.method_results = method.compute_results(a.run)
-    except FoamlabError as exc:
-        a.method_error = str(exc)
-    except Exception as exc:   # a results bug must not cost the fit
-        log.debug("method results failed", exc_info=True)
-        a.method_error = f"method results failed: {type(exc).__name__}: {exc}"
+
+    def results() -> MethodResults | None:
+        chosen = method or (load_method(a.run.method) if a.run.method else None)
+        if chosen is None:
+            raise FoamlabError("no test method recorded with the run")
+        return chosen.compute_results(a.run) if len(a.run) else None
+
+    a.method_results, a.method_error = _attempt("method results", results)
     progress("method results", 1.0)
     return a
 
@@ -91,14 +105,8 @@ def fit_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
     """Identify the model on the run - once: a fit the Analysis already has is kept."""
     if a.fit is not None:
         return a
-    try:
-        a.fit = fit_run(a.run, progress=lambda stage, fraction: progress(f"fit: {stage}", fraction))
-        a.fit_error = ""
-    except FoamlabError as exc:
-        a.fit_error = str(exc)
-    except Exception as exc:   # a fitting bug must not cost the run: it is saved already
-        log.debug("fit failed", exc_info=True)
-        a.fit_error = f"fit failed: {type(exc).__name__}: {exc}"
+    a.fit, a.fit_error = _attempt("fit", lambda: fit_run(
+        a.run, progress=lambda stage, fraction: progress(f"fit: {stage}", fraction)))
     return a
 
 
@@ -110,27 +118,32 @@ def diagnose_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
         a.diagnosis_error = f"not diagnosed: no fit ({a.fit_error or 'the fit stage has not run'})"
         return a
     progress("diagnosis", 0.0)
-    try:
-        a.diagnosis = _diagnose(a.run, a.fit)
-        a.diagnosis_error = ""
-    except FoamlabError as exc:
-        a.diagnosis_error = str(exc)
-    except Exception as exc:   # the run is done and saved; a diagnosis bug must not hide that
-        log.debug("diagnosis failed", exc_info=True)
-        a.diagnosis_error = f"diagnosis failed: {type(exc).__name__}: {exc}"
+    a.diagnosis, a.diagnosis_error = _attempt("diagnosis", lambda: _diagnose(
+        a.run, a.fit, lambda stage, f: progress(f"diagnosis: {stage}", f)))
     progress("diagnosis", 1.0)
     return a
 
 
-def _diagnose(run: RunData, fit: FitResult) -> Diagnosis:
+def forecast_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
+    """Each cycle predicted from the earlier ones (foamlab.prediction.forecast_scores: one fit
+    per scored cycle); kept when the live prediction already scored the run."""
+    if a.forecast is not None:
+        return a
+    progress("forecast", 0.0)
+    a.forecast, a.forecast_error = _attempt("forecast", lambda: forecast_scores(a.run))
+    progress("forecast", 1.0)
+    return a
+
+
+def _diagnose(run: RunData, fit: FitResult, progress: Progress = _quiet) -> Diagnosis:
     # The one call into the diagnosis: it extends this fit instead of fitting the run again.
-    return diagnose([run], fit=fit)
+    return diagnose([run], fit=fit, progress=progress)
 
 
 def files_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
     """Write the fit and the diagnosis beside the run file (foamlab run files only: a vendor
     export opened for a look is not ours to add to); what is written already is left alone."""
-    if a.path is None or not _ours(a.path):
+    if a.path is None or not is_ours(a.path):
         return a
     progress("files", 0.0)
     try:
@@ -148,23 +161,31 @@ def files_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
 def catalog_stage(a: Analysis, folder: str | Path | None = None, progress: Progress = _quiet) -> Analysis:
     """Index the run, its fit and its diagnosis in `folder`'s catalog (default: the run's folder).
     Idempotent: run it after each stage whose result should be listed."""
-    if a.path is None or not _ours(a.path):
+    if a.path is None or not is_ours(a.path):
         return a
     progress("catalog", 0.0)
     folder = Path(folder) if folder is not None else a.path.parent
     try:
-        with Catalog.for_folder(folder, sync=False) as catalog:
-            catalog.add_run(a.path, a.run)
-            if a.fit_path is not None:
-                catalog.add_fit(a.path, a.fit_path, rmse=a.fit.rmse)
-            if a.diagnosis_path is not None:
-                catalog.add_diagnosis(a.path, a.diagnosis_path, verdict=a.verdict)
-            a.catalog = catalog.path
+        a.catalog = index_run(folder / CATALOG_NAME, a.path, a.run, a.fit_path,
+                              a.fit.rmse if a.fit is not None else None, a.diagnosis_path, a.verdict)
         a.catalog_error = ""
     except Exception as exc:   # the files are the record; `foamlab catalog rebuild` recovers the index
         a.catalog_error = f"not added to the catalog: {exc}"
     progress("catalog", 1.0)
     return a
+
+
+def index_run(catalog_path: Path, path: Path, run: RunData | None, fit_path: Path | None = None,
+              rmse: float | None = None, diagnosis_path: Path | None = None, verdict: str = "") -> Path:
+    """The catalog stage's one write: the run, its fit and its diagnosis files in a catalog
+    (also what `foamlab batch` calls on its client, which holds the results, not the Analysis)."""
+    with Catalog(catalog_path) as catalog:
+        catalog.add_run(path, run)
+        if fit_path is not None:
+            catalog.add_fit(path, fit_path, rmse=rmse)
+        if diagnosis_path is not None:
+            catalog.add_diagnosis(path, diagnosis_path, verdict=verdict)
+        return catalog.path
 
 
 def analyse(run: RunData, path: str | Path | None = None, *, method: Method | None = None,
@@ -181,7 +202,8 @@ def analyse(run: RunData, path: str | Path | None = None, *, method: Method | No
     return catalog_stage(a, folder, progress)
 
 
-def _ours(path: Path) -> bool:
+def is_ours(path: Path) -> bool:
+    """A foamlab run file (its analyses may be written beside it; a vendor export is not ours)."""
     try:
         with open(path, encoding="utf-8-sig", errors="replace") as fh:
             return is_run_file(fh.readline())

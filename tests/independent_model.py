@@ -42,6 +42,11 @@ Components (x in mm, t in s, F in N):
   In cycle k's own unloading this is Eq. 11; in later half-cycles it is the causal
   continuation (docs/model.md inconsistency 5), not the paper's Eq. 20c-f reading.
   Cycles beyond the rows of r/beta reuse the last row.
+  ``form="paper"`` (Eqs. 20b-f as printed): V_Rk is the same function of x in every
+  half-cycle after cycle k's peak: the value cycle k's own unloading has at that x. Written
+  here as the corner sum of cycle k's own triangle alone (corners t_k: +v, t_k + T/2: -2v)
+  at the instant tau(x) = t_k + T - x/v of its unloading where it passes x - not as Eq. 11's
+  closed form in x.
 * Total, Eq. 20a-f: F = E + V_D [loading] + sum_{k: past its peak} V_Rk.
 * Load cell: reads max(F, 0) (contact loss: the plate cannot pull the foam), plus a
   constant zero offset and Gaussian noise sigma (0.15 N); the displacement is exact,
@@ -114,6 +119,7 @@ class Regime:
     depth_mm: float = 100.0
     start_s: float | None = None             # motion starts this long after the first sample
                                              # (None: a phase in [0, 1/fs) drawn from the seed)
+    form: str = "causal"                     # the residual: "causal" (Eq. 10) or "paper" (Eq. 20b-f)
 
     @property
     def stroke_mm(self) -> float:
@@ -291,13 +297,17 @@ def corner_sum(t, corners: list[tuple[float, float]], beta: float) -> np.ndarray
 
 
 def residual_cycle(regime: Regime, hist: History, k: int) -> np.ndarray:
-    """V_Rk at hist.t: zero up to cycle k's peak instant, then Eq. 10 (causal)."""
+    """V_Rk at hist.t: zero up to cycle k's peak instant, then Eq. 10 (causal) or Eqs. 20b-f."""
     r, beta = regime.residual_row(k)
     corners = hist.corners(k)
     out = np.zeros(len(hist.t))
     on = hist.t > hist.peak_time(k) + EPS_S
+    at = hist.t[on]
+    if regime.form == "paper":      # cycle k's own triangle, where its unloading passes x
+        corners = corners[:2]
+        at = hist.start_time(k) + hist.period_s - hist.x[on] / hist.rate
     for r_i, b_i in zip(r, beta):
-        out[on] += r_i * corner_sum(hist.t[on], corners, b_i)
+        out[on] += r_i * corner_sum(at, corners, b_i)
     return out
 
 

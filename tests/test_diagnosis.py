@@ -96,7 +96,9 @@ def test_whiteness_and_prewhitening():
 #: benchmark measures the smallest (in units of the noise) and the false-alarm rate.
 HIDDEN = [
     ("cycle_softening", (0.01, 0.05)),
-    ("damping_cycle_change", (0.5, 1.5)),
+    # at 0.5 the base's per-cycle residual terms take the change up within the noise (base RMSE
+    # 0.2006 N for 0.2 N noise, seed 11): nothing is left to name
+    ("damping_cycle_change", (0.7, 1.5)),
     ("channel_lag", (0.1, 0.5)),
     ("force_zero_drift", (0.001, 0.005)),
     ("machine_compliance", (0.003, 0.008)),

@@ -34,7 +34,7 @@ def plain_csv(tmp_path_factory) -> Path:
 def test_json_is_exactly_the_design_object(plain_csv, capsys, tmp_path):
     run = tmp_path / plain_csv.name
     shutil.copy(plain_csv, run)
-    assert main(["fit", str(run), "--json", "--orders", "2,3,7"]) == 0
+    assert main(["fit", str(run), "--json", "--orders", "2,3,7", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr()
     obj = json.loads(out.out)                            # stdout: one JSON object, nothing else
     assert list(obj)[:4] == ["parameters", "statistics", "rmse", "constraints"]
@@ -44,7 +44,7 @@ def test_json_is_exactly_the_design_object(plain_csv, capsys, tmp_path):
     assert obj["parameters"]["x_scale_mm"]["stderr"] is None
     assert all(isinstance(v, bool) for v in obj["constraints"].values())
     assert isinstance(obj["rmse"], float) and obj["rmse"] < 0.15
-    # stored beside the run (note on stderr), and usable as a simulator specimen
+    # kept in the folder named (note on stderr), and usable as a simulator specimen
     side = run.with_name("synthetic.fit.json")
     assert side.exists() and "stored" in out.err
     assert ModelParameters.load(side).order_N == 2
@@ -81,13 +81,12 @@ def test_real_bluehill_file_from_the_command_line(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     obj = json.loads(proc.stdout)
-    assert obj["statistics"]["joint"]["r2"] > 0.999
+    assert obj["statistics"]["joint"]["r2"] > 0.998      # no cancelling terms (test_identification)
 
 
 @pytest.mark.parametrize("make, expected", [
     (lambda d: d / "missing.csv", "not found"),
-    (lambda d: _write(d / "half.csv", halves=1), "single half-cycle"),
-    (lambda d: _write(d / "one.csv", halves=2), "too few cycles"),
+    (lambda d: _write(d / "half.csv", halves=1), "no complete cycle"),
     (lambda d: _write(d / "flat.csv", halves=6, flat=True), "force is flat"),
 ])
 def test_bad_runs_exit_2_with_one_line(tmp_path, capsys, make, expected):
@@ -95,6 +94,19 @@ def test_bad_runs_exit_2_with_one_line(tmp_path, capsys, make, expected):
     assert main(["fit", str(path), "--no-store"]) == 2
     err = capsys.readouterr().err.strip()
     assert expected in err and "\n" not in err and "Traceback" not in err
+
+
+def test_a_single_cycle_is_fitted_and_says_what_it_skipped(tmp_path, capsys):
+    path = _write(tmp_path / "one.csv", halves=2)
+    assert main(["fit", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "three steps skipped" in out and "a single cycle" in out
+    # an imported file gets nothing beside it unless a folder is named
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["one.csv"]
+    keep = tmp_path / "fits"
+    keep.mkdir()
+    assert main(["fit", str(path), "--out", str(keep)]) == 0
+    assert (keep / "one.fit.json").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["fits", "one.csv"]
 
 
 def test_bad_orders_exit_2(plain_csv, capsys):

@@ -9,7 +9,8 @@ of machine time a speedup S needs 16*S samples per wall second, and the paper's 
 Modbus sample's p99 5.2-5.4 ms, max 9.7 ms, one start 6.3 ms late: at speedup 5 their sum
 cost one deadline; ASCII ~3 ms with stalls to 17 ms), so the engine keeps the schedule
 without a quiet computer (hil_support.assert_keeps_the_schedule: its own work p99 <= 25 % of
-the period, <= 0.5 % missed): ~3.7 min each over Modbus, ~2 min over ASCII.
+the period, <= 0.5 % missed); on a specimen half the default height (~7 000 samples): ~1.9 min
+each over Modbus, ~1 min over ASCII.
 `foamlab run --speedup 15` (the README's main job) runs the same protocol over Modbus TCP at
 3.75x the sample rate of the per-transport test: it must keep >= 97 % of the deadlines and fit.
 """
@@ -17,6 +18,7 @@ the period, <= 0.5 % missed): ~3.7 min each over Modbus, ~2 min over ASCII.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -24,13 +26,16 @@ import pytest
 from foamlab import cli, pipeline
 from foamlab.methods import cycle_spans, load_method
 from foamlab.storage.runfile import read_run_file
-from tests.hil_support import (approach, assert_keeps_the_schedule, machine_for, make_engine,
+from tests.hil_support import (SPECIMEN, approach, assert_keeps_the_schedule, machine_for, make_engine,
                                simulated, wait_at_rest)
 
 pytestmark = [pytest.mark.hil]
 
 #: Speedup per transport for the full protocol (see the module docstring).
 FULL_SPEEDUP = {"modbus-tcp": 4.0, "serial": 8.0, "modbus-rtu-pty": 4.0}
+#: The per-transport runs test a specimen half the default height: the same protocol, the
+#: same sample rate and speedups, half the samples (~7 000; the CI suite has 20 minutes).
+HALF_HEIGHT = replace(SPECIMEN, height_mm=SPECIMEN.height_mm / 2)
 
 
 def _expected(method, height=72.5):
@@ -88,6 +93,26 @@ def test_paper_protocol_through_foamlab_run(tmp_path, capsys):
         assert [r.path for r in catalog.runs()] == [str(run_file.resolve())]
 
 
+@pytest.mark.timeout(200)
+def test_twenty_cycles_through_foamlab_run(tmp_path, capsys):
+    """A long run through the drivers (configs/methods/cyclic-20.toml on a 20 mm specimen:
+    20 cycles, ~2 900 samples), fitted with the later cycles sharing the third's terms."""
+    out = tmp_path / "data"
+    code = cli.main(["run", "--method", "cyclic-20", "--specimen-height", "20", "--speedup", "20",
+                     "--out", str(out), "--quiet", "--specimen-label", "long", "--no-diagnose"])
+    printed = capsys.readouterr()
+    assert code == 0, printed.err
+    run_file = next(out.glob("*_long_cyclic-20.csv"))
+    method = load_method("cyclic-20")
+    run = read_run_file(run_file)
+    spans = cycle_spans(method, run)
+    assert len(spans) == 20 and all(s.complete for s in spans)
+    assert all(s.peak_mm == pytest.approx(0.6 * 20, abs=0.05) for s in spans)
+    fit = json.loads(run_file.with_name(f"{run_file.stem}.fit.json").read_text())
+    assert fit["orders"]["C"] == 3 and len(fit["model"]["residual"]["r"]) == 3
+    assert fit["rmse"] < 0.05 * run.force_N.max()
+
+
 @pytest.mark.timeout(400)
 @pytest.mark.parametrize("transport", list(FULL_SPEEDUP))
 def test_full_paper_protocol_through_each_transport(tmp_path, transport):
@@ -95,12 +120,12 @@ def test_full_paper_protocol_through_each_transport(tmp_path, transport):
     method = load_method("paper-3cycle")
     with simulated(transport, speedup=speedup) as sim:
         approach(machine_for(sim))
-        engine = make_engine(sim, method, tmp_path, speedup=speedup)
+        engine = make_engine(sim, method, tmp_path, speedup=speedup, specimen=HALF_HEIGHT)
         result = engine.wait(350) if engine.start() is None else None
         assert result is not None, "the run did not end"
         wait_at_rest(sim)
     _check_run(result, method, cycles=3)
-    expected = _expected(method)
+    expected = _expected(method, HALF_HEIGHT.height_mm)
     assert expected <= result.n_samples + result.missed <= 1.01 * expected + 20
     analysis = pipeline.fit_stage(pipeline.Analysis(result.run, result.path))
     assert analysis.fit is not None, analysis.fit_error

@@ -13,6 +13,7 @@ import pytest
 from foamlab import cli, pipeline
 from foamlab.identification import fit as identification_fit
 from foamlab.storage.catalog import Catalog
+from tests.gui_support import shut_window
 from tests.hil_support import short_method
 from tests.synthetic import triangle_run
 
@@ -111,13 +112,7 @@ def test_the_window_fits_the_run_once_and_diagnoses_that_fit(qtbot, tmp_path, fi
         assert len(diagnosed_with) == 1 and diagnosed_with[0] is w.shown_analysis.fit
         assert result.path.with_name(f"{result.path.stem}.diagnosis.json").is_file()
     finally:
-        if w.engine is not None:
-            w.engine.emergency_stop()
-            w.engine.wait(10.0)
-            w.engine = None
-        w.link.shutdown()
-        w.analysis.shutdown(wait=True)
-        w.estop_queue.shutdown(wait=True)
+        shut_window(w)
 
 
 def test_stages_say_why_they_did_nothing_and_never_fit_behind_the_callers_back(tmp_path, fits):

@@ -256,15 +256,20 @@ def compare_with_closed_form(params, t, f, x, rate, exclude_s):
     return np.abs(f - ref)[far].max(), ref.max()
 
 
-def test_force_equals_closed_form_on_ideal_triangle(clock):
-    # ideal triangle: a crosshead that reverses in 0.4 ms (1e5 mm/s^2), a host with no latency
-    m = SimulatedMachine(clock=clock, noise_sigma_N=0.0, acceleration_mm_s2=1e5, max_step_s=0.1)
+def traced_triangle(m, clock):
+    """(t from the first loading, contact force, specimen x) of the paper's triangle driven ideally."""
     m.start_trace()
     t0 = drive_triangle(m, clock)
     tr = m.trace()
     sel = tr["t"] >= t0
     t, idx = np.unique(tr["t"][sel] - t0, return_index=True)
-    f, x = tr["contact_force_N"][sel][idx], tr["x_specimen_mm"][sel][idx]
+    return t, tr["contact_force_N"][sel][idx], tr["x_specimen_mm"][sel][idx]
+
+
+def test_force_equals_closed_form_on_ideal_triangle(clock):
+    # ideal triangle: a crosshead that reverses in 0.4 ms (1e5 mm/s^2), a host with no latency
+    m = SimulatedMachine(clock=clock, noise_sigma_N=0.0, acceleration_mm_s2=1e5, max_step_s=0.1)
+    t, f, x = traced_triangle(m, clock)
     err, peak = compare_with_closed_form(m.params, t, f, x, SPEED / 60, exclude_s=0.01)
     assert err <= CLOSED_FORM_RTOL * peak, err
     # the paper's features are there: contact lost early in cycles 2 and 3, first peak highest
@@ -497,3 +502,21 @@ def test_fault_plan_semantics():
     fine = np.mean([any(p.fires_during("stall", k * 0.01, (k + 1) * 0.01) for k in range(100))
                     for _ in range(400)])
     assert fine == pytest.approx(0.5, abs=0.08)
+
+
+def test_a_paper_form_specimen_from_a_fit_file_runs_the_paper_form(clock, tmp_path):
+    """The form travels in the fit file: the machine's specimen follows Eqs. 20b-f as printed."""
+    import json
+    from dataclasses import replace
+
+    from foamlab.model import ModelParameters
+    spec = tmp_path / "run.fit.json"
+    spec.write_text(json.dumps({"model": replace(ModelParameters.default(), residual_form="paper").to_dict()}))
+    m = SimulatedMachine(clock=clock, noise_sigma_N=0.0, acceleration_mm_s2=1e5, max_step_s=0.1, specimen=spec)
+    assert m.params.residual_form == "paper"
+    t, f, x = traced_triangle(m, clock)
+    err, peak = compare_with_closed_form(m.params, t, f, x, SPEED / 60, exclude_s=0.01)
+    assert err <= CLOSED_FORM_RTOL * peak, err
+    causal_err, _ = compare_with_closed_form(ModelParameters.default(), t, f, x, SPEED / 60, exclude_s=0.01)
+    assert causal_err > 100 * CLOSED_FORM_RTOL * peak          # and it is not the causal form
+    m.close()

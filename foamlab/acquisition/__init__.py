@@ -5,7 +5,7 @@
 - sampling.py: Sampler, one sample per deadline (read, record, check the limits, tell the
   listeners) and the drive's status between samples;
 - safety.py: Limits (force, travel, speed), the crosshead's alarms, stop / e-stop / park,
-  the stall watchdog;
+  the stall watchdog; the travel check before a run and the tare refusal (window and engine);
 - schedule.py: SampleSchedule (fixed deadlines, misses counted and attributed),
   ScheduleStats, real-time priority, CPU wake-up latency;
 - events.py: what a run reports - states, Sample, Progress, RunResult, listeners.

@@ -37,7 +37,7 @@ from foamlab.acquisition.events import (ABORTED, CONNECTING, CONTACT_SEARCH, END
                                         IDLE, PARK_AFTER, PARKING, RUNNING, STOPPING, TARING, Listeners,
                                         ProgressReporter, RunAborted, RunResult)
 from foamlab.acquisition.safety import (AT_TARGET_MM, STOP_CONFIRM_S, Limits, StallWatch, Stopper,
-                                        check_crosshead_status, fault_name, park)
+                                        check_crosshead_status, check_safe_to_tare, fault_name, park)
 from foamlab.acquisition.sampling import Sampler
 from foamlab.acquisition.schedule import CpuWakeupLatency, raise_thread_priority
 from foamlab.methods import Method, PlannedStep
@@ -239,6 +239,7 @@ class RunEngine:
                                         f"limits [{lim.travel_upper_mm:g}, {lim.travel_lower_mm:g}] mm")
         command(crosshead.set_travel_limits, lim.travel_upper_mm, lim.travel_lower_mm)
         self._set_state(TARING)
+        command(check_safe_to_tare, self.machine)   # never tare a squeezed specimen (issue 18)
         command(self.machine.load_cell.tare)
 
     def _contact_search(self) -> None:

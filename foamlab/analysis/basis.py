@@ -28,11 +28,14 @@ at full resolution.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 from scipy import fft as sfft
 from scipy.signal import lfilter
 from scipy.special import digamma, gammaln
 
+from foamlab.model.components import residual_static
 from foamlab.model.history import HistoryLabels
 from foamlab.model.layout import Layout
 from foamlab.model.operators import (
@@ -43,8 +46,13 @@ from foamlab.model.operators import (
 ALPHA_FD_STEP = 1e-6
 #: Samples on each side of a corner of x kept as exact nodes of the fractional operator.
 CORNER_SAMPLES = 1
-#: Cached operator outputs kept before the cache is cleared (memory bound).
+#: Samples between the operators' grid nodes: what a line between the nodes misses of the
+#: sources this many grid nodes before them is added exactly (the memory's cusp after a corner).
+NEAR_STEPS = 16
+#: Cached operator outputs are cleared beyond this many entries or bytes (a long run's
+#: full-resolution columns are ~1 MB each: a count alone let a 20-cycle fit hold ~0.5 GB).
 CACHE_LIMIT = 512
+CACHE_BYTES = 32 * 2 ** 20
 
 
 class _Interp:
@@ -107,20 +115,26 @@ class _Fractional:
     nodes would otherwise be cut, and the residual is switched on right at one). Then
     D^beta x(t) = sum_n ds_n (t - t_n)_+^nu / Gamma(nu + 1) over the nodes' slope
     changes ds_n (the cycle's start is a node: x - x(t_k) is zero before it). Grid
-    sources by FFT convolution, turning-point sources and off-grid samples directly.
+    sources by FFT convolution, turning-point sources directly; samples between grid nodes
+    from the line through their nodes, corrected by what it misses of the near sources.
     """
 
     def __init__(self, t, x, start: int, peak: int, obs: np.ndarray, grid_t: np.ndarray,
-                 grid_x: np.ndarray, turning: np.ndarray):
+                 grid_x: np.ndarray, turning: np.ndarray, later_starts=(), rows: np.ndarray | None = None):
+        """later_starts: starts of later cycles whose memories share this one's terms: the sum
+        of their D^beta, each from its own start, is one convolution (the slope changes
+        counted once per memory that has begun). rows: observed rows to evaluate (default:
+        those after the peak)."""
         h = grid_t[1] - grid_t[0]
         tol = 1e-6 * h
         tk = float(t[start])
-        self.rows = np.flatnonzero(obs > peak)
+        self.rows = np.flatnonzero(obs > peak) if rows is None else np.asarray(rows, int)
         obs_t = t[obs[self.rows]]
         on_grid = grid_t > tk + tol
         j0 = int(np.argmax(on_grid)) if on_grid.any() else len(grid_t)
         # turning points at or after the start that are not grid nodes
-        tp = np.asarray([i for i in turning if t[i] >= tk - tol], dtype=int)
+        # (a node after the grid's end reaches no row: rows lie on the grid's span)
+        tp = np.asarray([i for i in turning if tk - tol <= t[i] <= grid_t[-1] + tol], dtype=int)
         tp_t = t[tp]
         off = np.abs((tp_t - grid_t[0]) / h - np.round((tp_t - grid_t[0]) / h)) * h > tol
         off |= tp_t <= tk + tol            # the start is always its own node
@@ -136,6 +150,12 @@ class _Fractional:
         if len(slopes):
             ds[0] = slopes[0]
             ds[1:len(slopes)] = np.diff(slopes)
+        if len(later_starts) and len(slopes):
+            # memory k adds its initial slope at its start and every slope change after it
+            at = np.searchsorted(node_t, t[np.asarray(later_starts, int)] - tol)
+            begun = 1 + np.searchsorted(np.sort(at), np.arange(len(node_t)), side="left")
+            ds[1:] *= begun[1:]
+            np.add.at(ds, at[at < len(slopes)], slopes[at[at < len(slopes)]])
         n = len(grid_t)
         self.h, self.n = h, n
         self.d_grid = np.zeros(n)
@@ -144,26 +164,34 @@ class _Fractional:
         self.log_m_h = np.log(h * np.arange(1, n))
         self.nfft = sfft.next_fast_len(2 * n - 1, real=True)
         self.d_hat = sfft.rfft(self.d_grid[:-1], self.nfft)
-        # where each observed sample's value comes from
+        # where each observed sample's value comes from: a grid node, or between two nodes their
+        # line, corrected by what it misses of the sources near before the sample (all the
+        # turning points, the last NEAR_STEPS grid nodes): after a corner the memory has a cusp,
+        # (t - t_c)^nu, that a line through the nodes cuts (10 x the noise on a 20-cycle run
+        # decimated 8-fold, whose samples right after each turn are kept); sources further back
+        # are smooth over a step
         pos = (obs_t - grid_t[0]) / h
         near = np.round(pos).astype(int)
         exact = np.abs(pos - near) * h <= tol
-        special = np.isin(obs[self.rows], turning)
         self.at_grid = np.flatnonzero(exact)
         self.at_grid_idx = np.clip(near[exact], 0, n - 1)
-        direct = ~exact & special
-        self.direct = np.flatnonzero(direct)
-        interp = ~exact & ~special
-        self.interp_rows = np.flatnonzero(interp)
-        self.interp = _Interp(float(grid_t[0]), h, obs_t[interp], n)
-        # grid nodes whose value is used, and the lags of the non-grid terms:
-        # extra sources -> used grid nodes, grid and extra sources -> direct samples
-        used = np.union1d(self.at_grid_idx, np.concatenate([self.interp.i0, self.interp.i0 + 1]))
-        self.used = used.astype(int)
-        dt = obs_t[direct][:, None]
+        self.between = np.flatnonzero(~exact)
+        bt = obs_t[~exact]
+        self.interp = _Interp(float(grid_t[0]), h, bt, n)
+        i0 = self.interp.i0
+        window = i0[:, None] - np.arange(NEAR_STEPS)[None, :]
+        self.near_grid = np.clip(window, 0, n - 1)
+        self.near_valid = window >= 0
+        a, b = grid_t[i0], grid_t[np.minimum(i0 + 1, n - 1)]
+        tau = np.hstack([grid_t[self.near_grid], np.broadcast_to(self.src_t, (len(bt), len(self.src_t)))])
+        self.missed = _Missed(bt, a, b, self.interp.w, tau)
+        # each near source's slope change (the grid's in the window, every turning point's)
+        self.near_ds = np.hstack([self.d_grid[self.near_grid] * self.near_valid,
+                                  np.broadcast_to(self.src_ds, (len(bt), len(self.src_t)))])
+        # grid nodes whose value is used, and the turning points' terms there
+        used = np.union1d(self.at_grid_idx, np.concatenate([i0, i0 + 1]))
+        self.used = np.clip(used, 0, n - 1).astype(int)
         self.lag_src_grid = _Lags(grid_t[None, self.used] - self.src_t[:, None])
-        self.lag_direct_grid = _Lags(dt - grid_t[None, :])
-        self.lag_direct_src = _Lags(dt - self.src_t[None, :])
 
     def columns(self, betas: np.ndarray, derivative: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """D^beta on the observed rows for each beta (rows x M) and, with derivative,
@@ -172,17 +200,19 @@ class _Fractional:
         m = len(nu)
         lg = gammaln(nu + 1.0)
         kern = np.exp(nu[:, None] * self.log_m_h[None, :] - lg[:, None])   # (m h)^nu / Gamma(nu+1)
-        lags = (self.lag_src_grid, self.lag_direct_grid, self.lag_direct_src)
-        powers = [lag.power(nu, lg) for lag in lags]
+        p_sg = self.lag_src_grid.power(nu, lg)
         if derivative:
             # d/dbeta of lag^nu / Gamma(nu + 1) = -(log lag - psi(nu + 1)) * value
             psi = digamma(nu + 1.0)
             kern = np.vstack([kern, -kern * (self.log_m_h[None, :] - psi[:, None])])
-            powers = [np.concatenate([pw, lag.dbeta(pw, psi)]) for lag, pw in zip(lags, powers)]
-        out = self._assemble(kern, *powers)
+            p_sg = np.concatenate([p_sg, self.lag_src_grid.dbeta(p_sg, psi)])
+            missed = self.missed.values(nu, lg, psi)
+        else:
+            missed = self.missed.values(nu, lg)
+        out = self._assemble(kern, p_sg, missed)
         return (out[:, :m], out[:, m:]) if derivative else (out, None)
 
-    def _assemble(self, kern, p_sg, p_dg, p_ds) -> np.ndarray:
+    def _assemble(self, kern, p_sg, missed) -> np.ndarray:
         K = kern.shape[0]
         y = np.zeros((K, self.n))
         spec = self.d_hat[None, :] * sfft.rfft(kern, self.nfft, axis=1)
@@ -191,11 +221,41 @@ class _Fractional:
             y[:, self.used] += np.einsum("ksu,s->ku", p_sg, self.src_ds)
         out = np.empty((len(self.rows), K))
         out[self.at_grid] = y[:, self.at_grid_idx].T
-        if len(self.direct):
-            out[self.direct] = (p_dg @ self.d_grid + p_ds @ self.src_ds).T
-        if len(self.interp_rows):
-            out[self.interp_rows] = self.interp(y.T)
+        if len(self.between):
+            out[self.between] = self.interp(y.T) + np.einsum("krs,rs->rk", missed, self.near_ds)
         return out
+
+
+class _Missed:
+    """For samples at t between grid nodes a and b (t = a + w h) and sources at tau: what the line
+    between the nodes misses of each source's term, K(t - tau) - (1 - w) K(a - tau) - w K(b - tau),
+    K(u) = u_+^nu / Gamma(nu + 1), and its derivative in beta (the three lags in one array)."""
+
+    def __init__(self, t: np.ndarray, a: np.ndarray, b: np.ndarray, w: np.ndarray, tau: np.ndarray):
+        self.lags = _Lags(np.stack([u[:, None] - tau for u in (t, a, b)]))       # (3, rows, sources)
+        self.weights = np.stack([np.ones_like(w), -(1.0 - w), -w])[:, :, None]    # (3, rows, 1)
+
+    def values(self, nu: np.ndarray, log_gamma: np.ndarray, psi: np.ndarray | None = None) -> np.ndarray:
+        """(len(nu), rows, sources), then as many again for d/dbeta when psi is given."""
+        power = np.exp(nu[:, None, None, None] * self.lags.log[None] - log_gamma[:, None, None, None]) * self.lags.mask
+        out = np.einsum("kirs,irs->krs", power, np.broadcast_to(self.weights, power.shape[1:]))
+        if psi is None:
+            return out
+        dpower = -power * (self.lags.log[None] - psi[:, None, None, None])
+        return np.concatenate([out, np.einsum("kirs,irs->krs", dpower, np.broadcast_to(self.weights, power.shape[1:]))])
+
+
+class _Static:
+    """The paper form's residual of cycle k (Eq. 11 in x, model.components.residual_static)
+    at the observed samples after its peak: no memory, so no grid and no convolution."""
+
+    def __init__(self, t, x, start: int, peak: int, obs: np.ndarray):
+        self.rows = np.flatnonzero(obs > peak)
+        self.x_rel = x[obs[self.rows]] - x[start]
+        self.stroke, self.period = float(x[peak] - x[start]), 2.0 * float(t[peak] - t[start])
+
+    def columns(self, betas: np.ndarray, derivative: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        return residual_static(self.x_rel, self.stroke, self.period, betas, derivative)
 
 
 class _Lags:
@@ -211,6 +271,20 @@ class _Lags:
 
     def dbeta(self, power: np.ndarray, psi: np.ndarray) -> np.ndarray:
         return -power * (self.log[None] - psi[:, None, None])
+
+
+class _ColumnCache(dict):
+    """Columns by (kind, rate/order): bounded in entries and bytes (a long run's columns are big)."""
+
+    nbytes = 0
+
+    def store(self, key, value) -> None:
+        size = sum(v.nbytes for v in value if v is not None)
+        if len(self) >= CACHE_LIMIT or self.nbytes + size > CACHE_BYTES:
+            self.clear()
+            self.nbytes = 0
+        self[key] = value
+        self.nbytes += size
 
 
 class ModelBasis:
@@ -244,11 +318,50 @@ class ModelBasis:
         turning = turning[(turning >= 0) & (turning < len(self.t))]
         self.damping_parts = [_Damping(self.t, self.x, s, p, self.obs, step_s)
                               for s, p in zip(starts, peaks)]
-        self.residual_parts = [_Fractional(self.t, self.x, s, p, self.obs, grid_t, grid_x, turning)
-                               for s, p in zip(starts, peaks)]
+        self.residual_parts = self._residual_parts(starts, peaks, grid_t, grid_x, turning)
         xs = self.x[self.obs] / self.x_scale_mm
         self.elastic = np.vander(xs, layout.P + 1, increasing=True)
-        self._cache: dict = {}
+        self._cache = _ColumnCache()
+
+    def with_layout(self, layout: Layout) -> "ModelBasis":
+        """The same basis for another layout of the same columns (Layout.same_columns: other
+        orders N, M, shared or not): the operators and their cached columns are shared, so the
+        structures a selection tries cost their solves, not their columns again."""
+        if not layout.same_columns(self.layout):
+            raise ValueError("another layout of a basis must keep its cycles, elastic order and form")
+        other = copy.copy(self)
+        other.layout = layout
+        return other
+
+    def _residual_parts(self, starts, peaks, grid_t, grid_x, turning) -> list[tuple[int, float, "_Fractional"]]:
+        """(layout cycle, sign, part) of each residual memory (paper form: of each cycle's Eq. 11,
+        later cycles on the last one's terms). Cycles up to the layout's last
+        have a part each; the last and every later cycle share its terms, so their memories
+        are one convolution from the last's start (each later one's own start and slope
+        changes counted as they begin) minus, on each later cycle's loading, that cycle's own
+        memory (not yet switched on there): the cost stays linear in the cycles."""
+        last = self.layout.C - 1
+        if self.layout.form == "paper":
+            return [(min(k, last), 1.0, _Static(self.t, self.x, s, p, self.obs)) for k, (s, p) in enumerate(zip(starts, peaks))]
+        parts = [(k, 1.0, _Fractional(self.t, self.x, s, p, self.obs, grid_t, grid_x, turning))
+                 for k, (s, p) in enumerate(zip(starts[:last], peaks[:last]))]
+        if len(starts) <= last:
+            return parts
+        later = list(zip(starts[last + 1:], peaks[last + 1:]))
+        parts.append((last, 1.0, _Fractional(self.t, self.x, starts[last], peaks[last], self.obs, grid_t,
+                                             grid_x, turning, later_starts=[s for s, _ in later])))
+        for s, p in later:
+            loading = np.flatnonzero((self.obs >= s) & (self.obs <= p))
+            if not len(loading):
+                continue
+            # its memory on the grid from its own start to its peak (a grid from the run's start
+            # would make the later cycles cost cycles^2)
+            h = grid_t[1] - grid_t[0]
+            first = max(int(np.searchsorted(grid_t, self.t[s], side="right")) - 1, 0)
+            end = max(int(np.searchsorted(grid_t, self.t[p] + h, side="right")), first + 2)
+            parts.append((last, -1.0, _Fractional(self.t, self.x, s, p, self.obs, grid_t[first:end],
+                                                  grid_x[first:end], turning, rows=loading)))
+        return parts
 
     # -- columns -----------------------------------------------------------------
     def damping_column(self, alpha: complex, derivative: bool = False):
@@ -281,22 +394,19 @@ class ModelBasis:
             return hit
         col = np.zeros((self.n_obs, len(betas)))
         dcol = np.zeros((self.n_obs, len(betas))) if derivative else None
-        last = self.layout.C - 1
-        for k, part in enumerate(self.residual_parts):
-            if min(k, last) != c or not len(part.rows):
+        for k, sign, part in self.residual_parts:
+            if k != c or not len(part.rows):
                 continue
             y, dy = part.columns(betas, derivative)
-            col[part.rows] += y
+            col[part.rows] += sign * y
             if derivative:
-                dcol[part.rows] += dy
+                dcol[part.rows] += sign * dy
         out = (col, dcol)
         self._store(key, out)
         return out
 
     def _store(self, key, value) -> None:
-        if len(self._cache) >= CACHE_LIMIT:
-            self._cache.clear()
-        self._cache[key] = value
+        self._cache.store(key, value)
 
     # -- design matrix -----------------------------------------------------------------
     def _alphas(self, nonlinear: np.ndarray) -> np.ndarray:
@@ -312,20 +422,21 @@ class ModelBasis:
         for al in self._alphas(nonlinear):
             out[:, j] = self.damping_column(al)[0]
             j += 1
-        betas = np.asarray(nonlinear[2 * lay.N:], float).reshape(lay.C, lay.M)
+        betas = lay.betas(nonlinear)
         for c in range(lay.C):
             out[:, j:j + lay.M] = self.residual_columns(c, betas[c])[0]
             j += lay.M
         return out
 
     def design_derivatives(self, nonlinear: np.ndarray) -> np.ndarray:
-        """(n_obs, n_nonlinear): d(column of j)/d(nonlinear_j) for each j."""
+        """(n_obs, pairs): for each (parameter, column) of Layout.derivative_pairs, the column's
+        derivative in its parameter (Layout.combine sums a shared order's over its cycles)."""
         lay = self.layout
-        out = np.empty((self.n_obs, lay.n_nonlinear))
+        out = np.empty((self.n_obs, len(lay.derivative_pairs[0])))
         for i, al in enumerate(self._alphas(nonlinear)):
             _, d_re, d_im = self.damping_column(al, derivative=True)
             out[:, 2 * i], out[:, 2 * i + 1] = d_re, d_im
-        betas = np.asarray(nonlinear[2 * lay.N:], float).reshape(lay.C, lay.M)
+        betas = lay.betas(nonlinear)
         j = 2 * lay.N
         for c in range(lay.C):
             out[:, j:j + lay.M] = self.residual_columns(c, betas[c], derivative=True)[1]

@@ -164,6 +164,10 @@ class Series:
         """Design of the displacement history, or (frame_tau_s given) of the force the frame
         deflects under (machine_compliance subtracts C times its memory columns)."""
         key = (layout, x_scale_mm, frame_tau_s)
+        kin = next((v for k, v in self._bases.items() if isinstance(v, ModelBasis) and k[1:] == key[1:]
+                    and k[0].same_columns(layout)), None)
+        if key not in self._bases and kin is not None:     # another structure of the same cycles
+            self._bases[key] = kin.with_layout(layout)
         if key not in self._bases:
             f = self.source
             src = None if frame_tau_s is None else f.frame_force(frame_tau_s)
@@ -187,6 +191,8 @@ class Series:
         memory_lag releases the force), and a k-times coarser grid would cut it."""
         if k <= 1 or self.full is not None:
             return self
+        if ("decimated", k) in self._bases:     # one copy: its columns are cached with it
+            return self._bases[("decimated", k)]
         n = len(self.t)
         turning = np.concatenate([np.asarray(self.labels.starts, int), np.asarray(self.labels.peaks, int)])
         halves = np.diff(np.sort(turning))
@@ -194,10 +200,12 @@ class Series:
         after = (turning[:, None] + np.arange(dense + 1)[None, :]).ravel()
         keep = np.unique(np.concatenate([np.arange(0, n, k), turning, after, [n - 1]]))
         keep = keep[(keep >= 0) & (keep < n)]
-        return Series(self.name, self.t[keep], self.x[keep], self.y[keep], self.labels,
-                      self.velocity[keep], self.rate[keep], self.speed_mm_min, full=self, obs=keep,
-                      evidence=self.used[keep],
-                      no_contact=None if self.no_contact is None else self.no_contact[keep])
+        out = Series(self.name, self.t[keep], self.x[keep], self.y[keep], self.labels,
+                     self.velocity[keep], self.rate[keep], self.speed_mm_min, full=self, obs=keep,
+                     evidence=self.used[keep],
+                     no_contact=None if self.no_contact is None else self.no_contact[keep])
+        self._bases[("decimated", k)] = out
+        return out
 
 
 def specimen_gains(chain: EffectChain, cycle, velocity, rate) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
@@ -292,7 +300,7 @@ class ExtendedModel:
         self.n_linear = self.n_model + 1          # + the load cell's zero offset
         lay = self.layout
         self._component = np.array([0] * (lay.P + 1) + [1] * lay.N + [2] * (lay.C * lay.M))
-        self._column_of = np.array([lay.column_of_nonlinear(j) for j in range(lay.n_nonlinear)], int)
+        self._column_of = lay.derivative_pairs[1]      # design column of each derivative column
         # the contact set the first solve starts from (see solve): the set of the model this
         # one extends, when given; a start from the force's sign alone can end the active-set
         # iteration in a worse fixed point than that model had reached
@@ -353,7 +361,8 @@ class ExtendedModel:
     # -- columns for one series
     def _columns(self, s: Series, chain: EffectChain, phi, derivative: bool = False):
         """Pre-contact specimen force: design (n, L), offset (n,), specimen x, and with
-        derivative the phi-derivative columns (n, K) (each of its own design column)."""
+        derivative the phi-derivative columns (n, D) (Layout.derivative_pairs: each of its own
+        design column)."""
         lay, xs_mm = self.layout, self.params.x_scale_mm
         basis = s.basis(lay, xs_mm)
         if self.free_base and not derivative:
@@ -530,7 +539,7 @@ class ExtendedModel:
             if self.free_base:
                 _, _, _, deriv = self._columns(s, chain, phi, derivative=True)
                 out[:, :self.n_phi] = self._through_sensor(
-                    s, chain, deriv * (mask[:, None] * theta[self._column_of][None, :]))
+                    s, chain, self.layout.combine(deriv * (mask[:, None] * theta[self._column_of][None, :])))
             base_pred = m @ theta + const
             for j in range(self.n_eta):
                 step = np.zeros(self.n_eta)

@@ -64,6 +64,17 @@ class Whiteness:
                 "lag1_correlation": self.lag1_correlation}
 
 
+#: A fit whose RMSE is within this factor of the noise, or whose residuals are white, leaves
+#: nothing another start or structure could fit.
+AT_NOISE_RATIO = 1.05
+
+
+def at_the_noise(residual: np.ndarray, noise_N: float) -> bool:
+    """Is what a fit leaves the load cell's noise?"""
+    rmse = float(np.sqrt(np.mean(np.asarray(residual, float) ** 2)))
+    return rmse <= AT_NOISE_RATIO * noise_N or whiteness(residual).min_p >= WHITE_P
+
+
 def whiteness(residual: np.ndarray) -> Whiteness:
     r = np.asarray(residual, float)
     r = r - r.mean()

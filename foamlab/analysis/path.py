@@ -29,7 +29,9 @@ CORNER_AT_SAMPLE = 0.02
 CORNER_STEPS_BEFORE, CORNER_STEPS_AFTER = 1.5, 2.5
 STEADY_NOISE_MULTIPLE = 4.0
 #: A displacement is measured (not an exact synthetic history) when more than this share of its
-#: second differences is not zero.
+#: second differences is not zero - above EXACT_BEND of its range: the rounding of a file written
+#: with 6 decimals (1e-6 mm) is not a bend, a 1 um encoder's step (1.7e-5 of 58 mm) is.
+EXACT_BEND = 1e-7
 MEASURED_BENDS = 0.05
 
 
@@ -46,7 +48,7 @@ def exact_history(x: np.ndarray) -> bool:
     if len(x) < 5:
         return True
     d2 = np.abs(np.diff(x, 2))
-    return not bool(np.mean(d2 > 1e-9 * max(float(np.ptp(x)), 1.0)) > MEASURED_BENDS)
+    return not bool(np.mean(d2 > EXACT_BEND * max(float(np.ptp(x)), 1.0)) > MEASURED_BENDS)
 
 
 def displacement_path(t: np.ndarray, x: np.ndarray, corners) -> np.ndarray:
@@ -145,8 +147,22 @@ def _lines_meet(t: np.ndarray, path: np.ndarray, first: int, last: int, v_in: fl
     return None
 
 
+def _just_before(t: np.ndarray, path: np.ndarray, first: int, v_in: float, v_out: float):
+    """A turn just before the extreme sample, which then lies on the outgoing line: the other
+    placement of a turn whose lines meet at the sample within the encoder's resolution (a
+    sample a fraction of a millisecond after the turn reads the peak, and only its force
+    says on which side of the turn it was)."""
+    if v_in == v_out:
+        return None
+    a = first - 1
+    when = (path[first] - path[a] + v_in * t[a] - v_out * t[first]) / (v_in - v_out)
+    gap = t[first] - t[a]
+    when = float(np.clip(when, t[a] + 1e-3 * gap, t[first] - 1e-3 * gap))
+    return when, float(path[first] - v_out * (t[first] - when)), first
+
+
 def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, bool]],
-               tol: float, between_samples: bool = True) -> PathNodes:
+               tol: float, between_samples: bool = True, before_extreme: bool = False) -> PathNodes:
     """The crosshead's path with the corners the samples miss.
 
     A drive that reverses from rest arrives at a turning point between two samples,
@@ -160,7 +176,9 @@ def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, b
     departure (the last node at the extreme, as model.label_history does). A path that
     turns without stopping turns where the lines into and out of the turning point meet
     (_lines_meet: between_samples) or at its extreme sample (a polyline made of its
-    samples, as foamlab's own synthetic runs are); the samples alone cannot tell which."""
+    samples, as foamlab's own synthetic runs are); the samples alone cannot tell which.
+    Where the lines meet at the extreme sample itself (within the encoder's resolution), a
+    measured path's other placement (before_extreme) turns just before it (_just_before)."""
     n = len(t)
     inserts: list[tuple[float, float, int]] = []          # (time, x, sample it precedes)
     arrival, departure = {}, {}
@@ -186,7 +204,9 @@ def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, b
             turn = _lines_meet(t, path, first, last, incoming[1], outgoing[1])
             if turn is not None:
                 between.append(turn[0])
-            if turn is not None and between_samples:
+            elif before_extreme and first == last:
+                turn = _just_before(t, path, first, incoming[1], outgoing[1])
+            if turn is not None and (between_samples or turn[0] not in between):
                 departure[k] = len(inserts)
                 inserts.append(turn)
             continue

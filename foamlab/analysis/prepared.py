@@ -32,6 +32,7 @@ from foamlab.model import (
     evaluate,
     labels_from_extrema,
 )
+from foamlab.model.response import paper_residual
 from foamlab.model.components import elastic_force
 from foamlab.model.effects import estimate_velocity, loading_rate
 from foamlab.rundata import RunData
@@ -40,6 +41,9 @@ from foamlab.segmentation import HalfCycle, Segmentation, segment
 #: The decimated fit keeps about this many samples per half-cycle (the curves are
 #: smooth over a half-cycle; the final polish and the statistics use every sample).
 FIT_SAMPLES_PER_HALF_CYCLE = 100
+#: ...and at most about this many rows in all: a long run's search costs no more than a short
+#: one's (the polish on every sample is what grows with the run).
+FIT_ROWS_MAX = 2500
 #: Block radius at most (samples since the last turning point) / this.
 CUSP_DISTANCE_RATIO = 4
 #: A force range smaller than this many times the force noise is "flat".
@@ -67,7 +71,11 @@ def model_response(params: ModelParameters, fd: "PreparedRun") -> ModelResponse:
     labels = labels_from_extrema(len(grid), at(nodes.labels.starts), at(nodes.labels.peaks))
     fine = evaluate(params, grid, grid_x, labels)
     back = lambda values: np.interp(t, grid, values)
-    return ModelResponse(t, x, elastic_force(params, x), back(fine.damping), back(fine.residual), fd.labels)
+    # the paper form's residual has no memory: exact on the nodes themselves (on the grid its
+    # stroke would be cut at the turn, and near the peak Eq. 11 is steep in the stroke)
+    residual = (paper_residual(params, nodes.t, nodes.x, nodes.labels)[nodes.of_sample]
+                if params.residual_form == "paper" else back(fine.residual))
+    return ModelResponse(t, x, elastic_force(params, x), back(fine.damping), residual, fd.labels)
 
 
 @dataclass
@@ -101,8 +109,9 @@ class PreparedRun:
     def other_turns(self) -> "PreparedRun":
         """The same run with its turns without a stop at the other place: between samples where
         this one has them at a sample, or the other way round (path.path_nodes)."""
+        between = self.nodes.between_samples
         nodes = path_nodes(self.t, self.path_mm, self.extremes, self.corner_tol,
-                           between_samples=not self.nodes.between_samples)
+                           between_samples=not between, before_extreme=between)
         return replace(self, nodes=nodes, series=_series(self.run, self.series.name, self.labels, nodes,
                                                          self.seg.contact_lost))
 
@@ -252,13 +261,10 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
     seg = segment(run)
     cycles = seg.cycles
     halves = seg.half_cycles
-    if len(halves) == 1:
-        raise FoamlabError(f"run has a single half-cycle ({halves[0].direction}); identification "
-                           "needs at least two cycles (loading, unloading, second loading)")
-    if len(cycles) < 2 or cycles[0].unloading is None:
+    if not cycles or cycles[0].unloading is None:
         have = ", ".join(h.label for h in halves) or "none"
-        raise FoamlabError(f"too few cycles: identification needs at least two (the paper's Eq. 15 "
-                           f"subtracts the first unloading from the second loading); found {have}")
+        raise FoamlabError(f"no complete cycle: identification needs at least one loading and its "
+                           f"unloading; found {have}")
     minima, maxima, dwell_starts = _turning_points(run.displacement_mm, seg)
     labels = labels_from_extrema(n, minima, maxima)
     # (first, last, is_maximum) at each turning point, in the order _turning_points found them
@@ -280,7 +286,7 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
     dt = np.diff(run.time_s)
     native = float(np.median(dt))
     half_samples = min(len(h) for h in own_halves)
-    q = max(1, half_samples // FIT_SAMPLES_PER_HALF_CYCLE)
+    q = max(1, half_samples // FIT_SAMPLES_PER_HALF_CYCLE, len(observed) // FIT_ROWS_MAX)
     in_contact = observed[contact]
     # decimated rows: the samples nearest to the operators' grid (every q-th sample
     # from the first cycle's start on a regular clock), plus the turning points

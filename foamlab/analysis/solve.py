@@ -13,13 +13,14 @@ diagnosis extends that fit; neither has a fitting loop of its own.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, Iterable
 
 import numpy as np
 from scipy.optimize import least_squares
 
 from foamlab.analysis.design import ExtendedModel, Series, Solution
 from foamlab.model import ModelParameters
-from foamlab.model.layout import Orders, nonlinear_bounds
+from foamlab.model.layout import nonlinear_bounds
 
 #: Samples per run in the parameter search (decimated; decisions are made at full resolution).
 SEARCH_SAMPLES = 3000
@@ -72,6 +73,17 @@ class Fit:
         """The base model's parameters in this fit (effects aside)."""
         return self.model.parameters(self.nu, self.solution.theta)
 
+    def jacobian(self, rows: np.ndarray | None = None) -> np.ndarray:
+        """Of the prediction in [the model's linear parameters (k, a, r), nu, the load cell's
+        zero] at the solution (contact set held), at the rows of the first series (default:
+        its used samples)."""
+        sol = self.solution
+        rows = np.flatnonzero(sol.used[0]) if rows is None else rows
+        design = sol.designs[0][0][rows]
+        deriv = self.model.prediction_derivatives(self.nu, sol)[rows]
+        L = self.model.n_model
+        return np.hstack([design[:, :L], deriv, design[:, L:L + 1]])
+
     def effect_values(self) -> list[dict]:
         """Fitted values of each effect in the chain, with standard errors."""
         out, i = [], 0
@@ -93,7 +105,7 @@ def loading_time_s(series: list[Series]) -> float:
 def base_bounds(series: list[Series], params: ModelParameters) -> tuple[np.ndarray, np.ndarray]:
     """Identification's bounds of alpha and beta (from the loading time), widened to hold params."""
     lay = params.layout
-    lo, hi = nonlinear_bounds(Orders(N=lay.N, M=lay.M, P=lay.P), lay.C, loading_time_s(series))
+    lo, hi = nonlinear_bounds(lay.orders, lay.C, loading_time_s(series))
     phi = lay.from_flat(params.to_vector())[1]
     return np.minimum(lo, phi), np.maximum(hi, phi)
 
@@ -168,17 +180,34 @@ def at_full_resolution(fit: Fit, full: list[Series], polish_nfev: int = 0) -> Fi
     return Fit(list(fit.causes), model, nu, fit.stderr, model.solve(nu), status=fit.status, message=fit.message)
 
 
+def solved_at(series: list[Series], params: ModelParameters) -> Fit:
+    """The base model at these alpha and beta (free in the model: its Jacobian has them), the
+    linear parameters and the contact set solved, nothing searched."""
+    model = ExtendedModel(series, params, [], free_base=True, base_bounds=base_bounds(series, params))
+    nu = model.start()
+    return Fit([], model, nu, np.zeros(0), model.solve(nu))
+
+
 def fit_base(series: list[Series], params: ModelParameters) -> Fit:
     """The base model on all runs: identification's alpha/beta polished with the rest."""
     model = ExtendedModel(series, params, [], free_base=True, base_bounds=base_bounds(series, params))
     return Fit.of([], model, varpro(model, model.start(), max_nfev=BASE_NFEV))
 
 
-def polish(series: list[Series], params: ModelParameters) -> Fit:
+def polish(series: list[Series], params: ModelParameters,
+           other_starts: Callable[[Fit], Iterable[ModelParameters]] | None = None) -> Fit:
     """The base model on every sample of the runs, from ``params``: all of alpha and beta
     searched with the linear parameters, the contact set and the load cell's zero (on the
     decimated series, then polished on every sample). Identification's last step, and the
-    base of a diagnosis of several runs."""
+    base of a diagnosis of several runs.
+
+    other_starts: given the first decimated fit, more starts to try (none when it needs
+    none); the best decimated fit is the one carried to every sample."""
     k = decimation(series)
     coarse = [s.decimated(k) for s in series]
-    return at_full_resolution(fit_base(coarse, params), series, POLISH_NFEV if k > 1 else 0)
+    best = fit_base(coarse, params)
+    for start in (other_starts(best) if other_starts is not None else ()):
+        other = fit_base(coarse, start)
+        if other.rss < best.rss:
+            best = other
+    return at_full_resolution(best, series, POLISH_NFEV if k > 1 else 0)

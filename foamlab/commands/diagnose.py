@@ -7,6 +7,7 @@ import json
 import sys
 
 from foamlab import FoamlabError
+from foamlab.commands.progress import terminal_progress
 
 HELP = "find what the model gets wrong on measured data, name the likely cause, measure the gain"
 
@@ -46,6 +47,12 @@ def register(subparsers) -> None:
                    help=f"test only these causes (default: all: {', '.join(CAUSES)})")
     p.add_argument("--no-store", action="store_true",
                    help="do not write <run>.diagnosis.json beside a foamlab run file or index it")
+    p.add_argument("--form", choices=("auto", "causal", "paper"), default="auto",
+                   help="the base model's residual form (see foamlab fit --form); a form named here is "
+                        "checked against the other, which is a finding of its own when the data follow it")
+    p.add_argument("--out", metavar="DIR",
+                   help="keep <run>.diagnosis.json in this folder (for an imported export nothing is "
+                        "written unless --out is given)")
     p.set_defaults(func=run)
 
 
@@ -69,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
 
     causes = _causes(args.causes)
     runs = [load_run(p) for p in args.paths]
-    result = diagnose(runs, causes=causes)
+    with terminal_progress("diagnose", quiet=args.json) as report:
+        result = diagnose(runs, causes=causes, progress=report, form=args.form)
     obj = result.to_dict()
     notes: list[str] = []
     if args.report:
@@ -79,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_store and len(args.paths) == 1:
         from foamlab.diagnosis.store import store_diagnosis  # noqa: PLC0415
         try:
-            stored = store_diagnosis(obj, args.paths[0])
+            stored = store_diagnosis(obj, args.paths[0], args.out)
             if stored.path is not None:
                 notes.append(f"stored: {stored.path}" + (f" (catalog {stored.catalog})" if stored.catalog
                                                           else f" ({stored.note})"))
@@ -98,7 +106,10 @@ def run(args: argparse.Namespace) -> int:
 
 def summary(d) -> str:
     lines = [f"verdict: {d.verdict}",
-             f"noise level (from the data): {d.noise_sigma:.4g} N; base model RMSE {d.base.rmse:.4g} N"]
+             f"noise level (from the data): {d.noise_sigma:.4g} N; base model RMSE {d.base.rmse:.4g} N",
+             f"base model: {d.base_form_reason}"]
+    if d.form_finding is not None:
+        lines.append(f"  {d.form_finding.description()}")
     if d.findings:
         lines.append("findings (best first):")
         lines.append(f"  {'effect':<22}{'RMSE':>17}{'held-out RMSE':>21}{'dBIC':>10}  fitted")

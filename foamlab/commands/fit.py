@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from foamlab import FoamlabError
+from foamlab.commands.progress import terminal_progress
 
 HELP = "identify the model's parameters from a run (paper's three steps + joint refinement)"
 
@@ -16,11 +17,15 @@ examples:
   foamlab fit run.csv --full                  # the whole report: Table-5 statistics, every parameter, checks, warnings
   foamlab fit Specimen_RawData_6.csv --json   # one JSON object (parameters, statistics, rmse, constraints)
   foamlab fit run.csv --plot fit.png          # measured vs fitted per cycle, residuals below
-  foamlab fit run.csv --orders 2,3,7          # N damping modes, M residual terms per cycle, P elastic order
+  foamlab fit run.csv --orders 2,3,7          # force N damping modes, M residual terms per cycle, P elastic order
+  foamlab fit run.csv --orders paper          # the paper's table: 3,3,7, every cycle its own terms
+  foamlab fit run.csv --orders auto           # the structure the data determine (no cancelling terms)
   foamlab fit run.csv --compare 1,1,7 2,2,7 3,3,7   # AIC/BIC of several orders
+  foamlab fit run.csv --form paper            # the residual as the paper prints it (Eqs. 20b-f)
 
-The fit is stored beside the run as <run>.fit.json (loadable as a simulator specimen:
-foamlab sim --specimen <run>.fit.json) and indexed in the run catalog; --no-store skips that.
+The fit of a foamlab run file is stored beside it as <run>.fit.json (loadable as a simulator
+specimen: foamlab sim --specimen <run>.fit.json) and indexed in the run catalog; --no-store
+skips that. Nothing is written beside an imported export unless --out DIR names a folder.
 """
 
 
@@ -42,12 +47,24 @@ def register(subparsers) -> None:
     p.add_argument("--full", action="store_true",
                    help="print the whole report (Table-5 statistics, every parameter, checks, all warnings)")
     p.add_argument("--plot", metavar="OUT.png", help="draw measured vs fitted force per cycle, residuals below")
-    p.add_argument("--orders", metavar="N,M,P", default="3,3,7",
-                   help="damping modes N, residual terms per cycle M, elastic order P (default 3,3,7, the paper's)")
+    p.add_argument("--orders", metavar="N,M,P[,C][,shared]|auto|paper", default=None,
+                   help="the structure (default 3,3,7,3): damping modes N, residual terms per cycle M, elastic "
+                        "order P, C cycles with residual terms of their own (later ones reuse the last's), "
+                        "',shared': one order per term for every cycle; 'auto': the structure the data "
+                        "determine (chosen from 3,3,7,3 down by BIC, every parameter determined, no cancelling "
+                        "terms; several fits: 3-10 x the time); 'paper': 3,3,7 with every cycle's own terms "
+                        "(the paper's table, any run length)")
+    p.add_argument("--form", choices=("auto", "causal", "paper"), default="auto",
+                   help="the residual force: 'causal' (Eq. 10, a memory of the history), 'paper' (each "
+                        "cycle's Eq. 11 in x, in every later half-cycle, as Eqs. 20b-f print it) or "
+                        "'auto' (default: both fitted, the one that predicts held-out blocks better kept)")
     p.add_argument("--compare", nargs="+", metavar="N,M,P",
                    help="fit each of these orders too and print their AIC/BIC (lower is better)")
     p.add_argument("--no-store", action="store_true",
                    help="do not write <run>.fit.json beside the run or index it in the catalog")
+    p.add_argument("--out", metavar="DIR",
+                   help="keep <run>.fit.json in this folder (for an imported export nothing is written "
+                        "unless --out is given; a foamlab run file keeps its fit beside it)")
     p.set_defaults(func=run)
 
 
@@ -56,17 +73,22 @@ def run(args: argparse.Namespace) -> int:
     from foamlab.identification import Orders, fit_run  # noqa: PLC0415 (keep `foamlab --help` fast)
     from foamlab.importers import load_run  # noqa: PLC0415
 
-    orders = Orders.parse(args.orders)
+    orders = None if not args.orders else (
+        "auto" if args.orders.strip().lower() == "auto" else Orders.parse(args.orders))
     compare = [Orders.parse(o) for o in args.compare or []]
     run_data = load_run(args.path)
-    result = fit_run(run_data, orders)
+    with terminal_progress("fit", quiet=args.json) as report:
+        result = fit_run(run_data, orders, progress=report, form=args.form)
     notes: list[str] = []
     if not args.no_store:
         from foamlab.identification.store import store_fit  # noqa: PLC0415
         try:
-            stored = store_fit(result, args.path)
-            notes.append(f"stored: {stored.path}" + (f" (catalog {stored.catalog})" if stored.catalog
-                                                      else f" ({stored.note})"))
+            stored = store_fit(result, args.path, args.out)
+            if stored.path is None:
+                notes.append(f"not stored: {stored.note}")
+            else:
+                notes.append(f"stored: {stored.path}" + (f" (catalog {stored.catalog})" if stored.catalog
+                                                          else f" ({stored.note})"))
         except FoamlabError as exc:       # the fit itself is fine: say so, do not fail
             notes.append(f"not stored: {exc}")
     if args.plot:
@@ -82,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
         for note in notes:
             print(note)
     if compare:
-        _print_comparison(run_data, [orders] + [o for o in compare if o != orders], result,
+        first = result.orders
+        _print_comparison(run_data, [first] + [o for o in compare if o != first], result,
                           sys.stderr if args.json else sys.stdout)
     return 0
 

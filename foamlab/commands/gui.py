@@ -10,6 +10,7 @@ examples:
   foamlab gui --speedup 20            # the simulated machine's clock runs 20x faster
   foamlab gui --machine sim-serial    # preselect a machine profile (configs/machines/)
   foamlab gui --open run.csv          # show a measured file (Bluehill, testXpert, plain CSV)
+  foamlab gui --speedup 8 --effect cycle_softening=0.1   # a specimen the live prediction catches
 """
 
 
@@ -31,12 +32,18 @@ def register(subparsers) -> None:
     p.add_argument("--method", metavar="METHOD", help="test method preselected (configs/methods/)")
     p.add_argument("--out", metavar="DIR", help="data folder (default $FOAMLAB_DATA or ~/foamlab-data)")
     p.add_argument("--open", metavar="FILE", dest="open_path", help="measured file to show at start")
+    p.add_argument("--effect", action="append", default=[], metavar="NAME=MAG",
+                   help="hide an effect in the built-in simulated machine's specimen (repeatable), "
+                        "e.g. cycle_softening=0.1")
+    p.add_argument("--seed", type=int, default=0, help="seed of the built-in machine's noise (default 0)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from foamlab.commands.run import data_dir
+    from foamlab.commands.sim import parse_effects
     from foamlab.gui.app import run_gui
 
+    simulator = {"seed": args.seed, "effects": parse_effects(args.effect) or None}
     return run_gui(speedup=args.speedup, out_dir=data_dir(args.out), profile=args.machine,
-                   method=args.method, open_path=args.open_path)
+                   method=args.method, open_path=args.open_path, simulator=simulator)

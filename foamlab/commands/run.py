@@ -7,6 +7,7 @@ import contextlib
 import logging
 import math
 import sys
+import threading
 import tomllib
 from pathlib import Path
 
@@ -69,6 +70,9 @@ def register(subparsers) -> None:
     sim.add_argument("--fault", action="append", default=[], metavar="SPEC",
                      help="inject a fault (repeatable): NAME@T, NAME@T+D, NAME:p=P (see foamlab sim --help)")
     sim.add_argument("--seed", type=int, default=0, help="seed of its noise and random faults (default 0)")
+    p.add_argument("--no-predict", action="store_true",
+                   help="no live prediction (from cycle 3 on: the rest of the run predicted from the cycles "
+                        "measured, and a line when the specimen leaves the prediction)")
     p.add_argument("--no-fit", action="store_true", help="do not fit the model after the run")
     p.add_argument("--no-diagnose", action="store_true",
                    help="do not diagnose the fitted run (the diagnosis takes ~20 s; Ctrl-C skips it too)")
@@ -134,6 +138,16 @@ class ProgressLine:
         self.tty = enabled and stream.isatty()
         self._cycle = -1
         self._width = 0
+        self._lock = threading.Lock()      # the engine's thread and the live prediction's both write
+
+    def say(self, text: str) -> None:
+        """A line of its own, at once (on a terminal it replaces the progress line, which follows)."""
+        with self._lock:
+            if self.tty and self._width:
+                text = "\r" + text + " " * max(self._width - len(text), 0)
+                self._width = 0
+            self.stream.write(text + "\n")
+            self.stream.flush()
 
     def on_progress(self, p) -> None:
         if not self.enabled:
@@ -142,15 +156,16 @@ class ProgressLine:
         cycle = f"cycle {p.cycle}/{p.n_cycles}" if p.cycle else "contact search"
         text = (f"{cycle}  x {p.displacement_mm:7.2f} mm  F {p.force_N:7.1f} N  "
                 f"{p.fraction * 100:5.1f} %  {left} left")
-        if self.tty:
-            pad = max(self._width - len(text), 0)
-            self.stream.write("\r" + text + " " * pad)
-            self.stream.flush()
-            self._width = len(text)
-        elif p.cycle != self._cycle:
-            self.stream.write(text + "\n")
-            self.stream.flush()
-        self._cycle = p.cycle
+        with self._lock:
+            if self.tty:
+                pad = max(self._width - len(text), 0)
+                self.stream.write("\r" + text + " " * pad)
+                self.stream.flush()
+                self._width = len(text)
+            elif p.cycle != self._cycle:
+                self.stream.write(text + "\n")
+                self.stream.flush()
+            self._cycle = p.cycle
 
     def close(self) -> None:
         if self.tty and self._width:
@@ -197,7 +212,7 @@ def run(args) -> int:
     out_dir = data_dir(args.out)
     Recorder(out_dir).check_folder()     # before the simulator starts; the engine checks again
 
-    sim = None
+    sim = predictor = scores = None
     try:
         if builtin:
             sim = _start_builtin(args)
@@ -214,13 +229,47 @@ def run(args) -> int:
                   f"{f', {width:g} x {depth:g} mm' if width else ''}; speedup {args.speedup:g}x", flush=True)
         progress = ProgressLine(enabled=not args.quiet)
         engine.add_listener(progress)
+        predictor = None if args.no_predict else _start_prediction(engine, method, progress)
         with _engine_logging(args.verbose):
             result = _wait(engine)
+            scores = predictor.finish(PREDICTION_WAIT_S) if predictor is not None else None
         progress.close()
     finally:
         if sim is not None:
             sim.stop()
-    return _report(result, method, out_dir, fit=not args.no_fit, diagnose=not args.no_diagnose)
+        if predictor is not None:
+            predictor.close()
+    return _report(result, method, out_dir, fit=not args.no_fit, diagnose=not args.no_diagnose, forecast=scores)
+
+
+#: After the run, how long `foamlab run` waits for the live prediction's last forecast score (s).
+PREDICTION_WAIT_S = 60.0
+
+
+class PredictionLines:
+    """What the live prediction says, each a line at once (foamlab.prediction.LivePredictor)."""
+
+    def __init__(self, out: ProgressLine) -> None:
+        self.out = out
+
+    def on_forecast(self, forecast) -> None:
+        self.out.say(f"prediction: {forecast.describe()}")
+
+    def on_departure(self, departure) -> None:
+        self.out.say(f"prediction: {departure.message}")
+
+    def on_note(self, text: str) -> None:
+        self.out.say(f"prediction: {text}")
+
+
+def _start_prediction(engine, method, progress: ProgressLine):
+    from foamlab.prediction.live import LivePredictor
+
+    predictor = LivePredictor(engine.plan, method.sampling_hz, method.n_cycles)
+    predictor.add_listener(PredictionLines(progress))      # said even with --quiet: it matters
+    engine.add_listener(predictor)
+    predictor.start()
+    return predictor
 
 
 #: Wall-clock silence the built-in machine's drive watchdog tolerates at any speedup (s).
@@ -277,11 +326,13 @@ def _wait(engine):
                 engine.emergency_stop()
 
 
-def _report(result, method, out_dir: Path, fit: bool = True, diagnose: bool = True) -> int:
+def _report(result, method, out_dir: Path, fit: bool = True, diagnose: bool = True, forecast=None) -> int:
     """Say how the run went, then analyse it (foamlab.pipeline: the window's stages too)."""
     from foamlab import pipeline
 
     analysis = pipeline.Analysis(result.run, result.path) if result.run is not None else None
+    if analysis is not None:
+        analysis.forecast = forecast
     if result.status != "finished":
         kept = f"; {result.n_samples} samples kept in {result.path}" if result.path else ""
         print(f"foamlab run: aborted: {result.reason}{kept}", file=sys.stderr)
@@ -307,6 +358,7 @@ def _report(result, method, out_dir: Path, fit: bool = True, diagnose: bool = Tr
             print("  " + analysis.fit.brief().replace("\n", "\n  "))
         else:
             print(f"fit: not available: {analysis.fit_error}")
+    _print_forecast(forecast)
     pipeline.files_stage(analysis)      # the fit file now: a skipped diagnosis does not hold it up
     if analysis.fit_path:
         print(f"  fit file: {analysis.fit_path}")
@@ -326,6 +378,18 @@ def _report(result, method, out_dir: Path, fit: bool = True, diagnose: bool = Tr
         print(f"foamlab run: warning: {analysis.files_error}", file=sys.stderr)
     _warn_catalog(pipeline.catalog_stage(analysis, out_dir))
     return 0
+
+
+def _print_forecast(scores) -> None:
+    """Each cycle's forecast from the earlier ones, as the live prediction scored it."""
+    if scores is None:
+        return
+    if scores.scores:
+        print("forecast (each cycle predicted from the earlier ones, during the run):")
+        for s in scores.scores:
+            print(f"  {s.describe()}")
+    if scores.note:
+        print(f"forecast: {scores.note}")
 
 
 def _print_acquisition(result, method) -> None:

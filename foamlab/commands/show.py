@@ -18,9 +18,10 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "show", help=HELP,
         description="Import a foamlab run file, plain CSV (time_s,displacement_mm,force_N), "
-                    "Instron Bluehill raw-data CSV or ZwickRoell testXpert export and print what "
-                    "it holds: samples, rate, cycles, turning points, contact-loss spans and the "
-                    "first-cycle linear region.")
+                    "Instron Bluehill (2 or 3) raw-data CSV, Instron WaveMatrix tracking CSV, "
+                    "MTS 793 MPT specimen.dat or ZwickRoell testXpert export and print what "
+                    "it holds: samples, rate, cycles, turning points, contact-loss spans, the "
+                    "first-cycle linear region and what the import had to do (notes).")
     parser.add_argument("path", metavar="PATH", help="data file to read")
     parser.add_argument("--plot", metavar="OUT.png",
                         help="also draw force-displacement per cycle and force-time to this image")
@@ -59,6 +60,7 @@ def summarize(seg: Segmentation) -> dict:
         "encoding": r.metadata.get("encoding", ""),
         "specimen": r.specimen.label,
         "started_at": r.started_at,
+        "operator": r.metadata.get("operator", ""),
         "status": r.status,
         "samples": len(r),
         "sampling_hz": round(r.sampling_hz, 4),
@@ -80,6 +82,7 @@ def summarize(seg: Segmentation) -> dict:
         "contact_lost": [dict(_span(seg, a, b), cycle=seg.cycle_of(b - 1))
                          for a, b in seg.contact_lost_spans],
         "linear_region": None,
+        "import_notes": list(r.metadata.get("import_notes", [])),
     }
     if seg.first_cycle_linear_region:
         a, b = seg.first_cycle_linear_region
@@ -96,8 +99,12 @@ def format_summary(s: dict) -> str:
         f"file:          {s['path']}",
         f"format:        {s['format']} ({s['encoding']})",
     ]
-    if s["specimen"] or s["started_at"]:
-        lines.append(f"specimen:      {s['specimen'] or '-'}   started {s['started_at'] or '-'}")
+    if s["specimen"] or s["started_at"] or s.get("operator"):
+        operator = f"   operator {s['operator']}" if s.get("operator") else ""
+        lines.append(f"specimen:      {s['specimen'] or '-'}   started {s['started_at'] or '-'}"
+                     f"{operator}")
+    for note in s.get("import_notes", []):
+        lines.append(f"import note:   {note}")
     lines += [
         f"samples:       {s['samples']} at {s['sampling_hz']:g} Hz over {s['duration_s']:.2f} s",
         f"displacement:  {s['displacement_mm'][0]:.3f} .. {s['displacement_mm'][1]:.3f} mm "

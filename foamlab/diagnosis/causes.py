@@ -113,6 +113,9 @@ def distinct_speeds(series: list[Series], rel_tol: float = 0.1) -> list[float]:
 @register
 class CycleSoftening(Cause):
     effect = fx.CycleSoftening
+    # like a damping change: identification gives a later cycle's lower elastic force to the
+    # residual terms of the earlier cycles, a base the joint fit cannot leave
+    absorbed_by_identification = True
 
     @classmethod
     def applicable(cls, series):

@@ -28,10 +28,12 @@ otherwise (structure, and where it is).
 from __future__ import annotations
 
 import time
+from typing import Callable
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from foamlab.analysis.heldout import heldout_rmse
 from foamlab.analysis.noise import WHITE_P, series_noise_sigma, whiteness
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import (
@@ -48,7 +50,6 @@ from foamlab.diagnosis.evidence import (
     compare,
     explained_share,
     explains,
-    heldout_rmse,
     rule_effect_determined,
     rule_evidence,
     rule_explains,
@@ -82,18 +83,23 @@ FULL_CANDIDATES = 2
 MULTISTART_SAMPLES = int(1.6 * SEARCH_SAMPLES)
 
 
-def diagnose_prepared(runs: list[PreparedRun], base: Fit, causes: list[str] | None = None) -> Diagnosis:
+def diagnose_prepared(runs: list[PreparedRun], base: Fit, causes: list[str] | None = None,
+                      progress: Callable[[str, float], None] | None = None) -> Diagnosis:
     """Diagnose prepared runs (the first the reference) from a base model fitted on all of them
-    (identification's core fit for one run, analysis.solve.polish for several)."""
+    (identification's core fit for one run, analysis.solve.polish for several). progress:
+    called with (stage, fraction 0..1)."""
     with threadpool_limits(1, user_api="blas"):    # small dense solves: threads only contend
-        return Procedure(runs, base, causes).run()
+        return Procedure(runs, base, causes, progress).run()
 
 
 class Procedure:
     """One diagnosis: the runs, the model found so far, and what each round decided."""
 
-    def __init__(self, runs: list[PreparedRun], base: Fit, causes: list[str] | None):
+    def __init__(self, runs: list[PreparedRun], base: Fit, causes: list[str] | None,
+                 progress: Callable[[str, float], None] | None = None):
         self.started = time.perf_counter()
+        self.report = progress or (lambda stage, fraction: None)
+        self.round_no = 0
         self.ref, self.series = runs[0], [r.series for r in runs]
         self.sigma = series_noise_sigma([s.y for s in self.series])
         self.k = decimation(self.series)
@@ -119,6 +125,13 @@ class Procedure:
     def _coarse(self, fit: Fit) -> Fit:
         return at_full_resolution(fit, self.coarse) if self.k > 1 else fit
 
+    def _progress(self, stage: str, within_round: float) -> None:
+        """Rounds after the first are shorter (fewer causes left): the first gets most of the bar."""
+        done = 0.0 if self.round_no <= 1 else 0.7 + 0.3 * (1 - 0.5 ** (self.round_no - 1))
+        width = 0.7 if self.round_no <= 1 else 0.3 * 0.5 ** (self.round_no - 1)
+        prefix = f"round {self.round_no}: " if self.round_no > 1 else ""
+        self.report(prefix + stage, done + width * within_round)
+
     def _done(self) -> bool:
         """Nothing left to explain: the extended model leaves white noise at the noise level.
         Whiteness alone is not enough: a second cause can leave residuals the whiteness tests
@@ -134,6 +147,7 @@ class Procedure:
         for _ in range(MAX_FINDINGS):
             if not self.remaining or self._done():
                 break
+            self.round_no += 1
             cands, current_coarse = self.round()
             self.tested.append(cands)
             chosen = self.decide(cands, current_coarse)
@@ -169,8 +183,12 @@ class Procedure:
         """Stages 1-3: every cause probed on the decimated runs, the best fitted jointly,
         compared, and the best and every strong one carried to every sample."""
         accepted = [c.cause for c in self.findings]
-        probes = sorted((probe(self.ref, self.coarse, current_coarse, accepted + [cause])
-                         for cause in self.remaining), key=lambda f: f.rss)
+        probes = []
+        for i, cause in enumerate(self.remaining):
+            self._progress(f"testing {cause.name} ({i + 1} of {len(self.remaining)})", i / len(self.remaining))
+            probes.append(probe(self.ref, self.coarse, current_coarse, accepted + [cause]))
+        probes.sort(key=lambda f: f.rss)
+        self._progress("fitting the strongest candidates jointly", 0.8)
         fits = [fit_joint(self.coarse, f, current_coarse)
                 if i < JOINT_CANDIDATES or f.causes[-1].imitated_by_base else f
                 for i, f in enumerate(probes)]
@@ -283,6 +301,7 @@ class Procedure:
             if c.reason:
                 continue
             checked += 1
+            self._progress(f"held-out check of {c.name}", 0.95)
             c.reason = rule_heldout(c, self.current, current_coarse)
             if c.reason:
                 continue

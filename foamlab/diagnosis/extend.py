@@ -25,7 +25,6 @@ from foamlab.analysis.solve import (
 from foamlab.diagnosis.causes import Cause
 from foamlab.identification.joint import search_start
 from foamlab.identification.paper import paper_steps
-from foamlab.model.layout import Orders
 
 #: Iteration budgets of the screening (effect parameters only) and of the joint fits.
 SCREEN_NFEV, PROBE_NFEV, JOINT_NFEV = 10, 4, 20
@@ -152,7 +151,7 @@ def reidentify(ref: PreparedRun, series: list[Series], fit: Fit, eta: np.ndarray
     lay = fit.params.layout
     try:
         corrected = ref.with_force(ref.series.y - effect)
-        orders = Orders(N=lay.N, M=lay.M, P=lay.P)
+        orders = lay.orders
         params = search_start(corrected, orders, paper_steps(corrected, orders).start)
     except FoamlabError:
         return fit

@@ -4,6 +4,7 @@ and the verdict, as typed objects; ``Diagnosis.to_dict()`` is `foamlab diagnose 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -13,6 +14,9 @@ from foamlab.analysis.solve import Fit
 from foamlab.diagnosis.causes import Cause
 from foamlab.diagnosis.residuals import ResidualAnalysis
 from foamlab.model import ModelParameters
+
+if TYPE_CHECKING:
+    from foamlab.diagnosis.form import FormFinding
 
 #: An effect that ends within this fraction of its range of a non-zero limit is pinned there.
 PINNED_FRACTION = 0.01
@@ -95,10 +99,12 @@ class Diagnosis:
     params: ModelParameters
     seconds: float = 0.0
     notes: list[str] = field(default_factory=list)
+    base_form_reason: str = ""                  # which residual form the base uses, and why
+    form_finding: "FormFinding | None" = None   # the other form is what the base got wrong
 
     def to_dict(self) -> dict:
         """The JSON object of `foamlab diagnose --json` (see docs/DESIGN: verdict, findings)."""
-        findings = []
+        findings = [self.form_finding.to_dict()] if self.form_finding is not None else []
         if self.verdict == "unexplained":
             findings.append({
                 "effect": "unexplained",
@@ -118,11 +124,12 @@ class Diagnosis:
                 "description": c.description(),
                 "meaning": c.cause.meaning,
                 "p_value": c.lr_p,
-                "rank": i + 1,
+                "rank": i + 1 + (self.form_finding is not None),
                 "named": self.verdict == c.name,
                 "explained_share": c.share,
             })
-        return {"verdict": self.verdict, "findings": _jsonable(findings)}
+        return {"verdict": self.verdict, "findings": _jsonable(findings),
+                "base": {"form": self.params.residual_form, "why": self.base_form_reason}}
 
 
 def _jsonable(obj):

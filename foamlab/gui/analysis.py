@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -16,8 +16,10 @@ import numpy as np
 
 from foamlab import FoamlabError, pipeline
 from foamlab.gui.plots import labels_from_segmentation
+from foamlab.gui.report import headline_names
 from foamlab.identification import FitResult
 from foamlab.importers import load_run
+from foamlab.methods import load_method
 from foamlab.rundata import RunData
 from foamlab.storage.catalog import sidecar_path
 
@@ -33,6 +35,7 @@ class Loaded:
     analysis: pipeline.Analysis
     segmentation_note: str = ""
     stored_diagnosis: dict | None = None   # <run>.diagnosis.json beside the file, when there is one
+    headline: list[str] = field(default_factory=list)   # the method's headline results (report.py)
 
     @property
     def method_results(self):
@@ -78,11 +81,17 @@ def load_for_display(path: str | Path) -> Loaded:
     except FoamlabError as exc:
         note = f"no cycles found: {exc}"
     analysis = pipeline.Analysis(run, Path(path))
+    headline: list[str] = []
     if run.method:
-        pipeline.method_stage(analysis)
+        try:
+            method = load_method(run.method)
+            headline = headline_names(method)
+            pipeline.method_stage(analysis, method)
+        except FoamlabError as exc:
+            analysis.method_error = str(exc)
         if analysis.method_error:
             log.info("method results of %s not computed: %s", path, analysis.method_error)
-    return Loaded(run, cycles, phases, n_cycles, analysis, note, stored_diagnosis(path))
+    return Loaded(run, cycles, phases, n_cycles, analysis, note, stored_diagnosis(path), headline)
 
 
 def stored_diagnosis(path: str | Path) -> dict | None:

@@ -12,7 +12,8 @@ from foamlab import FoamlabError
 
 
 def run_gui(speedup: float = 1.0, out_dir: str | Path = "foamlab-data", profile: str | None = None,
-            method: str | None = None, open_path: str | None = None) -> int:
+            method: str | None = None, open_path: str | None = None, simulator: dict | None = None) -> int:
+    """`simulator`: the built-in simulated machine's options (effects, seed; simulator.launch)."""
     if not (math.isfinite(speedup) and speedup > 0):
         raise FoamlabError(f"--speedup must be a positive number, got {speedup}")
     if (sys.platform.startswith("linux") and not os.environ.get("QT_QPA_PLATFORM")
@@ -29,7 +30,7 @@ def run_gui(speedup: float = 1.0, out_dir: str | Path = "foamlab-data", profile:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
     app.setApplicationName("foamlab")
-    window = MainWindow(speedup=speedup, out_dir=out_dir, profile=profile, method=method)
+    window = MainWindow(speedup=speedup, out_dir=out_dir, profile=profile, method=method, simulator=simulator)
     # Deleted while the event loop still runs: Qt objects left to interpreter shutdown can crash it.
     window.setAttribute(QtCore.Qt.WidgetAttribute.WA_DeleteOnClose)
     window.show()

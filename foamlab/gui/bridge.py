@@ -40,10 +40,15 @@ class EngineBridge(QtCore.QObject):
     # -- GUI side --------------------------------------------------------------------------
     def drain(self) -> list:
         """Every sample received since the last call, in order."""
-        out = []
-        pop = self._samples.popleft
-        try:
-            while True:
-                out.append(pop())
-        except IndexError:
-            return out
+        return drained(self._samples)
+
+
+def drained(queue: collections.deque) -> list:
+    """Everything appended to `queue` (by another thread) so far, in order, taken out of it."""
+    out = []
+    pop = queue.popleft
+    try:
+        while True:
+            out.append(pop())
+    except IndexError:
+        return out

@@ -54,8 +54,9 @@ class MachineLink(QtCore.QObject):
     poll_failed = QtCore.Signal(str)          # the machine did not answer an idle readout
     error = QtCore.Signal(str)                # one line for the status area
 
-    def __init__(self, parent: QtCore.QObject | None = None) -> None:
+    def __init__(self, parent: QtCore.QObject | None = None, simulator: dict | None = None) -> None:
         super().__init__(parent)
+        self.simulator_options = dict(simulator or {})   # the built-in machine's effects, seed
         self.queue = BackgroundQueue("foamlab-machine", self)
         self.connection: Connection | None = None
         self._poll_in_flight = False
@@ -76,7 +77,7 @@ class MachineLink(QtCore.QObject):
                 # the simulated machine needs to answer on time (see simulator/process.py).
                 from simulator.process import start_simulator_process
 
-                sim = start_simulator_process(BUILTIN_TRANSPORT, speedup=speedup)
+                sim = start_simulator_process(BUILTIN_TRANSPORT, speedup=speedup, **self.simulator_options)
                 try:
                     machine = open_machine(sim.profile, **sim.profile_overrides)
                 except Exception:

@@ -4,6 +4,9 @@ Samples are appended into preallocated numpy buffers; every (cycle, half-cycle)
 segment is one curve whose data is a *view* of those buffers, so a frame only
 calls setData on the curves that changed (the growing segment and force–time),
 never re-plots the run. The window calls `refresh()` from a ~30 Hz timer.
+
+The buffers keep the run as measured (N, mm); `set_units` shows it as stress–strain
+(foamlab.gui.units): curves, fit overlay and exported images then carry the scaled values.
 """
 
 from __future__ import annotations
@@ -13,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
+
+from foamlab.gui.units import FORCE_DISPLACEMENT, PlotUnits
 
 LOADING = "loading"
 UNLOADING = "unloading"
@@ -119,16 +124,11 @@ class LivePlots(QtWidgets.QWidget):
         layout.addWidget(self.view)
 
         self.fd_plot: pg.PlotItem = self.view.addPlot(row=0, col=0)
-        self.fd_plot.setLabel("bottom", "Displacement", units="mm")
-        self.fd_plot.setLabel("left", "Force", units="N")
-        self.fd_plot.setTitle("Force – displacement")
         # No grid: pyqtgraph repaints grid lines with the axes on every frame (~17 ms).
         self.legend = self.fd_plot.addLegend(offset=(10, 10))
 
         self.ft_plot: pg.PlotItem = self.view.addPlot(row=0, col=1)
         self.ft_plot.setLabel("bottom", "Time", units="s")
-        self.ft_plot.setLabel("left", "Force", units="N")
-        self.ft_plot.setTitle("Force – time")
         # Only force–time is monotonic in x, so clipToView is valid there; downsampling
         # (peak mode keeps the extremes) bounds the cost of a frame whatever the run length.
         self.ft_plot.setClipToView(True)
@@ -137,6 +137,9 @@ class LivePlots(QtWidgets.QWidget):
 
         self.fit_fd: pg.PlotDataItem | None = None
         self.fit_ft: pg.PlotDataItem | None = None
+        self._fit_data: tuple | None = None       # the fit as given (s, mm, N): redrawn in other units
+        self.units: PlotUnits = FORCE_DISPLACEMENT
+        self._label_axes()
         self.buffer = SampleBuffer()
         self.segments: list[Segment] = []
         self._tracker = PhaseTracker()
@@ -203,17 +206,43 @@ class LivePlots(QtWidgets.QWidget):
                 continue
             stop = self.segments[i + 1].start + 1 if i + 1 < len(self.segments) else n
             seg.curve.setData(
-                self.buffer.displacement_mm[seg.start:stop],
-                self.buffer.force_N[seg.start:stop],
+                _scaled(self.buffer.displacement_mm[seg.start:stop], self.units.x_per_mm),
+                _scaled(self.buffer.force_N[seg.start:stop], self.units.y_per_N),
                 skipFiniteCheck=True,
             )
             seg.dirty = False
             updated += 1
         if self._ft_dirty:
-            self.ft_curve.setData(self.buffer.time_s[:n], self.buffer.force_N[:n], skipFiniteCheck=True)
+            self.ft_curve.setData(self.buffer.time_s[:n], _scaled(self.buffer.force_N[:n], self.units.y_per_N),
+                                  skipFiniteCheck=True)
             self._ft_dirty = False
             updated += 1
         return updated
+
+    # ---- units ---------------------------------------------------------------------
+    def set_units(self, units: PlotUnits) -> None:
+        """Show the run, its fit and exported images in `units` (foamlab.gui.units)."""
+        if units == self.units:
+            return
+        self.units = units
+        self._label_axes()
+        for seg in self.segments:
+            seg.dirty = True
+        self._ft_dirty = self.buffer.n > 0
+        self.refresh()
+        if self._fit_data is not None:
+            self.show_fit(*self._fit_data)
+        self.fd_plot.enableAutoRange()
+        self.ft_plot.enableAutoRange()
+
+    def _label_axes(self) -> None:
+        u = self.units
+        for plot, side, name, unit in ((self.fd_plot, "bottom", u.x, u.x_unit), (self.fd_plot, "left", u.y, u.y_unit),
+                                       (self.ft_plot, "left", u.y, u.y_unit)):
+            plot.getAxis(side).enableAutoSIPrefix(u.si_prefix)
+            plot.setLabel(side, name, units=unit)
+        self.fd_plot.setTitle(u.title)
+        self.ft_plot.setTitle(f"{u.y} – time")
 
     @property
     def sample_count(self) -> int:
@@ -236,14 +265,17 @@ class LivePlots(QtWidgets.QWidget):
         self.ft_plot.enableAutoRange()
 
     def show_fit(self, time_s, displacement_mm, force_N) -> None:
-        """Overlay the model's predicted force (dashed, dark) on both plots."""
+        """Overlay the model's predicted force (dashed, dark) on both plots (given in s, mm, N)."""
         self.clear_fit()
+        self._fit_data = (time_s, displacement_mm, force_N)
+        x = _scaled(np.asarray(displacement_mm, dtype=float), self.units.x_per_mm)
+        y = _scaled(np.asarray(force_N, dtype=float), self.units.y_per_N)
         # Dark, thin, dashed and a little transparent: the measured curves stay readable under it.
         colour = QtGui.QColor(FIT_COLOUR)
         colour.setAlpha(190)
         pen = pg.mkPen(colour, width=1, style=QtCore.Qt.PenStyle.DashLine)
-        self.fit_fd = self.fd_plot.plot(np.asarray(displacement_mm), np.asarray(force_N), pen=pen, name="fitted model")
-        self.fit_ft = self.ft_plot.plot(np.asarray(time_s), np.asarray(force_N), pen=pen)
+        self.fit_fd = self.fd_plot.plot(x, y, pen=pen, name="fitted model")
+        self.fit_ft = self.ft_plot.plot(np.asarray(time_s), y, pen=pen)
 
     def clear_fit(self) -> None:
         for item, plot in ((self.fit_fd, self.fd_plot), (self.fit_ft, self.ft_plot)):
@@ -252,6 +284,7 @@ class LivePlots(QtWidgets.QWidget):
                 if plot is self.fd_plot:
                     self.legend.removeItem(item)
         self.fit_fd = self.fit_ft = None
+        self._fit_data = None
 
     def export_png(self, path: str, width: int = 1600) -> None:
         from pyqtgraph.exporters import ImageExporter
@@ -260,6 +293,11 @@ class LivePlots(QtWidgets.QWidget):
         exporter = ImageExporter(self.view.scene())
         exporter.parameters()["width"] = width
         exporter.export(str(path))
+
+
+def _scaled(values: np.ndarray, factor: float) -> np.ndarray:
+    """`values` in the plotted unit: the buffer's own view when unscaled (no copy per frame)."""
+    return values if factor == 1.0 else values * factor
 
 
 def labels_from_segmentation(segmentation, n_samples: int) -> tuple[np.ndarray, list[str]]:

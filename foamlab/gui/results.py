@@ -1,121 +1,31 @@
-"""What the window shows after a run: run summary, fitted parameters with standard
-errors, Table-5 statistics, the method's results and the diagnosis; CSV export.
-
-Fit and diagnosis results are read through their JSON form (the contract of
-`foamlab fit --json` / `foamlab diagnose --json` in docs/DESIGN), so the window does
-not depend on their classes' internals.
+"""The results view. For the technician ("Results"): the method's headline results large,
+with units; the verdict in one line of plain words; data-quality flags in colour with
+their meaning; the run summary and the other results with readable names. For the
+engineer ("Expert"): fitted parameters with units, the Table-5 statistics, the
+thermodynamic checks with what a failure means, the fit's warnings and notes, and the
+diagnosis findings. The data come from foamlab.gui.report.Report.
 """
 
 from __future__ import annotations
 
-import csv
-import json
-import math
-from dataclasses import dataclass, field
+import html
 from typing import Any
 
 from PySide6 import QtCore, QtWidgets
 
+from foamlab.gui.report import (
+    CONSTRAINT_MEANINGS,
+    STEP_NAMES,
+    Report,
+    ResultRow,
+    number,
+)
 
-def as_dict(obj: Any) -> dict | None:
-    """The JSON-shaped dict of a result object (to_dict(), to_json(), or a dict already)."""
-    if obj is None:
-        return None
-    if isinstance(obj, dict):
-        return obj
-    for name in ("to_dict", "as_dict"):
-        fn = getattr(obj, name, None)
-        if callable(fn):
-            value = fn()
-            if isinstance(value, dict):
-                return value
-    fn = getattr(obj, "to_json", None)
-    if callable(fn):
-        value = fn()
-        return json.loads(value) if isinstance(value, str) else value
-    return None
+__all__ = ["Report", "ResultsPanel"]
 
-
-def fmt(value: Any, digits: int = 4) -> str:
-    if value is None:
-        return "–"
-    if isinstance(value, bool):
-        return "yes" if value else "no"
-    if isinstance(value, (int, float)):
-        v = float(value)
-        if math.isnan(v):
-            return "n/a"
-        return f"{v:.{digits}g}"
-    return str(value)
-
-
-@dataclass
-class Report:
-    """Everything shown in the results tab, as plain rows (also what the CSV holds)."""
-
-    run: list[tuple[str, str]] = field(default_factory=list)
-    parameters: list[tuple[str, Any, Any]] = field(default_factory=list)        # name, value, stderr
-    statistics: list[tuple[str, Any, Any, Any, Any]] = field(default_factory=list)  # step, sse, r2, adj_r2, rmse
-    constraints: list[tuple[str, bool]] = field(default_factory=list)
-    method_results: list[tuple[str, Any, Any, str, str]] = field(default_factory=list)  # name, cycle, value, unit, note
-    verdict: str = ""
-    findings: list[tuple[str, Any, Any, Any]] = field(default_factory=list)     # effect, rmse before, after, delta BIC
-    fit_note: str = ""
-    fit_warnings: list[str] = field(default_factory=list)
-    diagnosis_note: str = ""
-
-    def set_fit(self, fit: Any) -> None:
-        data = as_dict(fit) or {}
-        self.parameters = [(name, p.get("value"), p.get("stderr")) if isinstance(p, dict) else (name, p, None)
-                           for name, p in (data.get("parameters") or {}).items()]
-        stats = data.get("statistics") or {}
-        self.statistics = [(step, s.get("sse"), s.get("r2"), s.get("adj_r2"), s.get("rmse"))
-                           for step, s in stats.items() if isinstance(s, dict)]
-        if "rmse" in data and not any(row[0] in ("run", "whole run", "total") for row in self.statistics):
-            self.statistics.append(("whole run", None, None, None, data["rmse"]))
-        self.constraints = [(name, bool(ok)) for name, ok in (data.get("constraints") or {}).items()]
-        self.fit_warnings = [str(w) for w in (getattr(fit, "warnings", None) or data.get("warnings") or [])]
-
-    def set_method_results(self, results: Any) -> None:
-        values = results.to_dict() if hasattr(results, "to_dict") else (results or [])
-        self.method_results = [(v["name"], v.get("cycle"), v.get("value"), v.get("unit", ""), v.get("note", ""))
-                               for v in values]
-
-    def set_diagnosis(self, diagnosis: Any) -> None:
-        data = as_dict(diagnosis) or {}
-        self.verdict = str(data.get("verdict", ""))
-        self.findings = []
-        for finding in data.get("findings") or []:
-            gain = finding.get("gain") or {}
-            self.findings.append((finding.get("effect", "?"), gain.get("rmse_before"), gain.get("rmse_after"),
-                                  gain.get("delta_bic")))
-
-    def csv_rows(self) -> list[list[str]]:
-        rows = [["section", "name", "value", "stderr_or_unit", "extra"]]
-        rows += [["run", k, v, "", ""] for k, v in self.run]
-        rows += [["parameter", n, _num(v), _num(e), ""] for n, v, e in self.parameters]
-        for step, sse, r2, adj, rmse in self.statistics:
-            for key, value in (("sse", sse), ("r2", r2), ("adj_r2", adj), ("rmse", rmse)):
-                if value is not None:
-                    rows.append(["statistic", f"{step}.{key}", _num(value), "", ""])
-        rows += [["constraint", n, "pass" if ok else "FAIL", "", ""] for n, ok in self.constraints]
-        rows += [["fit_warning", "", w, "", ""] for w in self.fit_warnings]
-        rows += [["method_result", n + (f" (cycle {c})" if c else ""), _num(v), u, note]
-                 for n, c, v, u, note in self.method_results]
-        if self.verdict:
-            rows.append(["diagnosis", "verdict", self.verdict, "", ""])
-        rows += [["finding", e, _num(b), _num(a), _num(d)] for e, b, a, d in self.findings]
-        return rows
-
-    def write_csv(self, path: str) -> None:
-        with open(path, "w", newline="", encoding="utf-8") as f:
-            csv.writer(f).writerows(self.csv_rows())
-
-
-def _num(value: Any) -> str:
-    if value is None:
-        return ""
-    return repr(float(value)) if isinstance(value, (int, float)) and not isinstance(value, bool) else str(value)
+GOOD_STYLE = "color: #1B7F3B;"
+FLAG_COLOUR = "#9A5B00"
+MUTED = "color: #555;"
 
 
 def _table(headers: list[str], name: str) -> QtWidgets.QTableWidget:
@@ -130,89 +40,169 @@ def _table(headers: list[str], name: str) -> QtWidgets.QTableWidget:
     return table
 
 
-def _fill(table: QtWidgets.QTableWidget, rows: list[tuple]) -> None:
+def _fill(table: QtWidgets.QTableWidget, rows: list[tuple[str, ...]], numeric: set[int] = frozenset()) -> None:
+    """Rows of ready-formatted text; `numeric` columns are right-aligned."""
     table.setRowCount(len(rows))
     for r, row in enumerate(rows):
-        for c, value in enumerate(row):
-            item = QtWidgets.QTableWidgetItem(fmt(value) if not isinstance(value, str) else value)
-            if not isinstance(value, str):
+        for c, text in enumerate(row):
+            item = QtWidgets.QTableWidgetItem(text)
+            if c in numeric:
                 item.setTextAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
             table.setItem(r, c, item)
     table.resizeColumnsToContents()
 
 
-class ResultsPanel(QtWidgets.QWidget):
-    def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
-        super().__init__(parent)
-        self.report = Report()
-        layout = QtWidgets.QVBoxLayout(self)
-        self.summary = QtWidgets.QLabel("No run yet.")
-        self.summary.setObjectName("run_summary")
-        self.summary.setWordWrap(True)
-        self.summary.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
-        layout.addWidget(self.summary)
-
-        self.verdict = QtWidgets.QLabel("")
-        self.verdict.setObjectName("diagnosis_verdict")
-        self.verdict.setWordWrap(True)
-        layout.addWidget(self.verdict)
-
-        splitter = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
-        top = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)
-        self.parameters = _table(["parameter", "value", "std. error", "rel. error"], "fit_parameters")
-        self.statistics = _table(["step", "SSE", "R²", "adj. R²", "RMSE [N]"], "fit_statistics")
-        top.addWidget(_boxed("Fitted parameters", self.parameters))
-        top.addWidget(_boxed("Fit statistics (Table 5)", self.statistics))
-        bottom = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)
-        self.method_results = _table(["result", "cycle", "value", "unit", "note"], "method_results")
-        self.findings = _table(["effect", "RMSE before", "RMSE after", "ΔBIC"], "diagnosis_findings")
-        bottom.addWidget(_boxed("Method results", self.method_results))
-        bottom.addWidget(_boxed("Diagnosis findings", self.findings))
-        splitter.addWidget(top)
-        splitter.addWidget(bottom)
-        splitter.setSizes([3000, 2000])   # proportions: the fit tables get the larger share
-        layout.addWidget(splitter, 1)
-
-    def clear(self) -> None:
-        self.report = Report()
-        self.summary.setText("No run yet.")
-        self.verdict.setText("")
-        for table in (self.parameters, self.statistics, self.method_results, self.findings):
-            table.setRowCount(0)
-
-    def show_report(self, report: Report) -> None:
-        self.report = report
-        parts = [f"<b>{k}</b>: {v}" for k, v in report.run]
-        if report.fit_note:
-            parts.append(f"<b>fit</b>: {report.fit_note}")
-        text = " &nbsp;·&nbsp; ".join(parts) or "No run yet."
-        if report.fit_warnings:
-            # Often a dozen long lines: a count here, the list in the tooltip and the CSV.
-            text += (f"<br><b>fit warnings</b>: {len(report.fit_warnings)} (hover for the list; "
-                     f"exported with the results)")
-            self.summary.setToolTip("\n".join(report.fit_warnings))
-        else:
-            self.summary.setToolTip("")
-        self.summary.setText(text)
-        params = []
-        for name, value, stderr in report.parameters:
-            rel = None
-            if isinstance(value, (int, float)) and isinstance(stderr, (int, float)) and value:
-                rel = f"{abs(stderr / value):.1%}"
-            params.append((name, value, stderr, rel or "–"))
-        _fill(self.parameters, params)
-        stats = list(report.statistics) + [(f"constraint {n}", "pass" if ok else "FAIL", None, None, None)
-                                           for n, ok in report.constraints]
-        _fill(self.statistics, stats)
-        _fill(self.method_results, [(n, c if c else "", v, u, note) for n, c, v, u, note in report.method_results])
-        _fill(self.findings, report.findings)
-        if report.verdict:
-            self.verdict.setText(f"<b>Diagnosis verdict:</b> {report.verdict}")
-        else:
-            self.verdict.setText(f"<b>Diagnosis:</b> {report.diagnosis_note}" if report.diagnosis_note else "")
+def _label(name: str, wrap: bool = True) -> QtWidgets.QLabel:
+    label = QtWidgets.QLabel("")
+    label.setObjectName(name)
+    label.setWordWrap(wrap)
+    label.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
+    return label
 
 
 def _boxed(title: str, widget: QtWidgets.QWidget) -> QtWidgets.QGroupBox:
     box = QtWidgets.QGroupBox(title)
     QtWidgets.QVBoxLayout(box).addWidget(widget)
     return box
+
+
+def shown_value(row: ResultRow) -> tuple[str, str]:
+    """Value and unit as read: a strain (a ratio) in %, 'n/a' with the reason when missing."""
+    if row.value is None:
+        return "n/a", row.note
+    if row.name == "residual_strain" and not row.unit:
+        return number(100 * row.value, 3), "%"
+    return number(row.value), row.unit
+
+
+class ResultsPanel(QtWidgets.QTabWidget):
+    def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.report = Report()
+        self.addTab(self._technician_tab(), "Results")
+        self.addTab(self._expert_tab(), "Expert")
+
+    # -- construction -------------------------------------------------------------------
+    def _technician_tab(self) -> QtWidgets.QWidget:
+        page = QtWidgets.QWidget()
+        layout = QtWidgets.QVBoxLayout(page)
+        self.headline = _label("headline_results")
+        self.headline.setTextFormat(QtCore.Qt.TextFormat.RichText)
+        self.verdict = _label("diagnosis_verdict")
+        self.flags = _label("quality_flags")
+        self.flags.setTextFormat(QtCore.Qt.TextFormat.RichText)
+        self.summary = _label("run_summary")
+        self.summary.setStyleSheet(MUTED)
+        self.method_results = _table(["result", "cycle", "value", "unit", "what it is"], "method_results")
+        for w in (self.headline, self.verdict, self.flags, self.summary):
+            layout.addWidget(w)
+        layout.addWidget(self.method_results, 1)
+        return page
+
+    def _expert_tab(self) -> QtWidgets.QWidget:
+        self.parameters = _table(["parameter", "value", "std. error", "rel. error", "unit"], "fit_parameters")
+        self.statistics = _table(["step", "SSE [N²]", "R²", "adj. R²", "RMSE [N]"], "fit_statistics")
+        self.constraints = _table(["check", "result", "a failure means"], "fit_constraints")
+        # The meaning is a sentence: wrapped in the width there is, not cut off.
+        self.constraints.setWordWrap(True)
+        self.constraints.horizontalHeader().setSectionResizeMode(2, QtWidgets.QHeaderView.ResizeMode.Stretch)
+        self.warnings = QtWidgets.QPlainTextEdit()
+        self.warnings.setObjectName("fit_warnings")
+        self.warnings.setReadOnly(True)
+        self.findings = _table(["effect", "found", "RMSE before [N]", "RMSE after [N]", "held-out before",
+                                "held-out after", "ΔBIC"], "diagnosis_findings")
+        self.forecast = _table(["cycle", "predicted from", "RMSE [N]", "× noise", "mean [N]"], "forecast_scores")
+        left = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
+        left.addWidget(_boxed("Fitted parameters", self.parameters))
+        left.addWidget(_boxed("Fit statistics (Table 5)", self.statistics))
+        left.addWidget(_boxed("Forecast: each cycle predicted from the earlier ones", self.forecast))
+        right = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
+        right.addWidget(_boxed("Thermodynamic checks (Eqs. 23-25)", self.constraints))
+        right.addWidget(_boxed("Fit warnings and notes", self.warnings))
+        right.addWidget(_boxed("Diagnosis findings", self.findings))
+        page = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)
+        page.addWidget(left)
+        page.addWidget(right)
+        return page
+
+    # -- content ------------------------------------------------------------------------
+    def clear(self) -> None:
+        self.show_report(Report())
+
+    def show_report(self, report: Report) -> None:
+        self.report = report
+        self._show_headline(report)
+        self._show_verdict(report)
+        self._show_flags(report)
+        parts = [f"<b>{html.escape(k)}</b>: {html.escape(v)}" for k, v in report.run]
+        if report.fit_note:
+            parts.append(f"<b>fit</b>: {html.escape(report.fit_note)}")
+        self.summary.setText(" &nbsp;·&nbsp; ".join(parts) or "No run yet.")
+        rows = []
+        # The headline results lead the table too; then the per-cycle ones in cycle order.
+        for r in sorted(report.results, key=lambda r: r.name not in report.headline):
+            value, unit = shown_value(r)
+            rows.append((r.label, str(r.cycle or ""), value, unit, r.description))
+        _fill(self.method_results, rows, numeric={1, 2})
+        self._show_expert(report)
+
+    def _show_headline(self, report: Report) -> None:
+        cells = []
+        for row in report.headline_rows():
+            value, unit = shown_value(row)
+            where = f", cycle {row.cycle}" if row.cycle and row.name in _PER_CYCLE else ""
+            cells.append(f"<div><span style='font-size:24pt; font-weight:bold'>{html.escape(value)} "
+                         f"{html.escape(unit) if row.value is not None else ''}</span>"
+                         f"<br><span style='font-size:11pt'><b>{html.escape(row.label)}</b>{where}"
+                         f"{' — ' + html.escape(row.description) if row.description else ''}</span>"
+                         f"{'<br>' + html.escape(row.note) if row.value is None and row.note else ''}</div>")
+        self.headline.setText("".join(cells))
+        self.headline.setVisible(bool(cells))
+
+    def _show_verdict(self, report: Report) -> None:
+        text = html.escape(report.verdict_text())
+        self.verdict.setText(f"<b>Diagnosis verdict:</b> {text}" if report.verdict else text)
+        self.verdict.setStyleSheet(GOOD_STYLE if report.verdict == "none" else
+                                   (f"color: {FLAG_COLOUR};" if report.verdict else ""))
+
+    def _show_flags(self, report: Report) -> None:
+        flags = report.all_flags()
+        self.flags.setText("<br>".join(f"<span style='color:{FLAG_COLOUR}'><b>⚠ {html.escape(f.name)}</b>: "
+                                       f"{html.escape(f.meaning)}</span>" for f in flags))
+        self.flags.setVisible(bool(flags))
+
+    def _show_expert(self, report: Report) -> None:
+        params = []
+        for p in report.parameters:
+            rel = f"{abs(p.stderr / p.value):.1%}" if p.stderr is not None and p.value else "–"
+            error = number(p.stderr, 2) if p.stderr is not None else ("fixed" if not p.varied else "not determined")
+            params.append((p.name, number(p.value), error, rel, p.unit))
+        _fill(self.parameters, params, numeric={1, 2, 3})
+        stats = [(STEP_NAMES.get(step, step), _opt(sse), _r2(r2), _r2(adj), _opt(rmse))
+                 for step, sse, r2, adj, rmse in report.statistics]
+        if report.rmse is not None:
+            stats.append(("whole run", "", "", "", number(report.rmse)))
+        _fill(self.statistics, stats, numeric={1, 2, 3, 4})
+        _fill(self.constraints, [(CONSTRAINT_MEANINGS.get(n, (n, ""))[0], "pass" if ok else "FAIL",
+                                  "" if ok else CONSTRAINT_MEANINGS.get(n, (n, ""))[1])
+                                 for n, ok in report.constraints])
+        self.constraints.resizeRowsToContents()
+        lines = [f"• {w}" for w in report.fit_warnings] + [f"note: {n}" for n in report.fit_notes]
+        self.warnings.setPlainText("\n".join(lines) or "none")
+        _fill(self.forecast, [(str(f.cycle), f"cycles 1–{f.from_cycles}", number(f.rmse, 3), number(f.ratio, 2),
+                               number(f.bias, 3)) for f in report.forecast], numeric={0, 2, 3, 4})
+        _fill(self.findings, [(f.effect, f.description, _opt(f.rmse_before), _opt(f.rmse_after),
+                               _opt(f.heldout_before), _opt(f.heldout_after), _opt(f.delta_bic))
+                              for f in report.findings], numeric={2, 3, 4, 5, 6})
+
+
+_PER_CYCLE = {"loading_energy", "unloading_energy", "hysteresis_loss", "residual_strain"}
+
+
+def _opt(value: Any) -> str:
+    return "" if value is None else number(value)
+
+
+def _r2(value: Any) -> str:
+    """R² near 1 needs its decimals: 0.999987, never '1'."""
+    return "" if value is None else f"{float(value):.6f}"

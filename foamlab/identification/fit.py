@@ -16,18 +16,21 @@ from typing import Callable
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from foamlab.analysis.noise import WHITE_P, whiteness
+from foamlab.analysis.noise import AT_NOISE_RATIO, at_the_noise
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
-from foamlab.analysis.solve import Fit, polish
+from foamlab.analysis.solve import Fit, model_like, polish
 from foamlab.identification.joint import (
+    AT_BOUND,
     MIN_CENSORED,
+    REAL_MODE_RATIO,
     JointFit,
-    alternative_starts,
+    JointSearch,
     evaluable,
-    joint_fit,
+    unpolished,
 )
 from foamlab.identification.paper import paper_steps
 from foamlab.identification.result import FitResult
+from foamlab.identification.structure import forced, select
 from foamlab.identification.statistics import (
     GoodnessOfFit,
     autocorrelation_time,
@@ -35,7 +38,8 @@ from foamlab.identification.statistics import (
     parameter_uncertainty,
 )
 from foamlab.model import thermodynamic_checks
-from foamlab.model.layout import BETA_HI, BETA_LO, Orders, nonlinear_bounds
+from foamlab.identification.forms import choose as forms_choose
+from foamlab.model.layout import BETA_HI, BETA_LO, RESIDUAL_FORMS, Orders, check_form, nonlinear_bounds
 from foamlab.rundata import RunData
 
 Progress = Callable[[str, float], None]
@@ -44,33 +48,72 @@ Progress = Callable[[str, float], None]
 ZERO_T_VALUE = 1.96
 
 
-def fit_run(run: RunData, orders: Orders | str | tuple = Orders(), progress: Progress | None = None,
-            x_scale_mm: float | None = None) -> FitResult:
+def fit_run(run: RunData, orders: Orders | str | tuple | None = None, progress: Progress | None = None,
+            x_scale_mm: float | None = None, form: str = "auto") -> FitResult:
     """Identify the model's parameters from one run (any importer's RunData).
 
-    orders: Orders(N, M, P), 'N,M,P' or a tuple; the paper's (3, 3, 7) by default.
+    orders: Orders(N, M, P[, C]), 'N,M,P' or a tuple; None (default): LARGEST (3,3,7,3); 'auto':
+    the structure the data determine, chosen from LARGEST down (identification.structure: no
+    cancelling terms, every parameter determined; it fits 3-12 structures, 3-10 x the time).
     progress: called with (stage, fraction 0..1) as the fit advances.
     x_scale_mm: the elastic polynomial's scale (default: the run's largest compression).
+    form: the residual form, 'causal' or 'paper', or 'auto': both fitted, the one that
+    predicts held-out blocks better kept (identification.forms).
     Raises FoamlabError (one line, what is missing) for runs that cannot be identified.
     """
     report = progress or (lambda stage, fraction: None)
     report("segmenting the run", 0.0)
-    return fit_prepared(prepare(run, x_scale_mm=x_scale_mm), orders, progress)
+    return fit_prepared(prepare(run, x_scale_mm=x_scale_mm), orders, progress, form)
 
 
-def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple = Orders(),
-                 progress: Progress | None = None) -> FitResult:
-    """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run.
+def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
+                 progress: Progress | None = None, form: str = "auto") -> FitResult:
+    """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run."""
+    select = isinstance(orders, str) and orders.strip().lower() == AUTO_ORDERS
+    given = None if select else (_orders(orders) or LARGEST)
+    orders = given or LARGEST
+    forms = RESIDUAL_FORMS if form == "auto" else (check_form(form),)
+    report = progress or (lambda stage, fraction: None)
+    started = time.perf_counter()
+    with threadpool_limits(1, user_api="blas"):
+        paper = paper_steps(fd, orders)          # the same in either form (identification.paper)
+    select = given is None
+    # with the form to choose, both are fitted in the largest structure and the structure the
+    # data determine is selected in the form kept only (a selection costs two to three fits)
+    steps = len(forms) + (select and len(forms) > 1)
+    results = []
+    for i, f in enumerate(forms):
+        def scaled(stage: str, fraction: float, i=i, f=f) -> None:
+            report(f"{f} form: {stage}" if len(forms) > 1 else stage, (i + fraction) / steps)
+        rival = min((r.rmse for r in results), default=np.inf)
+        results.append(_fit_placed(fd, replace(orders, form=f), select and len(forms) == 1, scaled, paper, rival))
+    chosen = forms_choose(results, forced=form != "auto")
+    if select and len(forms) > 1:
+        choice, alternatives = chosen.form_choice, chosen.alternatives
+        chosen = _fit_placed(fd, replace(orders, form=choice.chosen), True,
+                             lambda stage, fraction: report(f"structure: {stage}", (steps - 1 + fraction) / steps),
+                             paper)
+        chosen.form_choice, chosen.alternatives = choice, alternatives
+    chosen.elapsed_s = time.perf_counter() - started
+    return chosen
+
+
+def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progress, paper,
+                rival: float = np.inf) -> FitResult:
+    """One form's fit (select: of the structure the data determine, from orders down), with its
+    turning points placed where the samples say.
 
     Where the crosshead turned without a stop, the samples cannot say whether it turned at
     the sample at the extreme (a polyline of samples) or between two (a real machine): the
     model switches at the turn, so the samples next to it show which. When they are off by
     more than TURN_MISFIT_MULTIPLE times the noise and their neighbours, the other is fitted too
     and the better kept."""
-    result = _fit_prepared(fd, orders, progress)
+    result = _fit_prepared(fd, orders, select, progress, paper, rival)
     at_turns, around = _misfit_at_turns(result, fd)
     if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around):
-        other = _fit_prepared(fd.other_turns(), orders, progress)
+        # the structure the data chose, with the turns placed the other way
+        other = _fit_prepared(fd.other_turns(), result.orders, False, progress)
+        other.structure = result.structure
         where = "between samples" if other.prepared.nodes.between_samples else "at the sample at the extreme"
         if other.rmse < result.rmse:
             other.notes.append(f"turning points without a stop placed {where}: the samples next to "
@@ -96,50 +139,149 @@ def _misfit_at_turns(result: FitResult, fd: PreparedRun) -> tuple[float, float]:
     return rms(distance <= 1.0), rms((distance > 2.0) & (distance <= 6.0))
 
 
-def _fit_prepared(fd: PreparedRun, orders, progress: Progress | None) -> FitResult:
-    orders = _orders(orders)
+def _fit_prepared(fd: PreparedRun, orders: Orders, select: bool, progress: Progress | None,
+                  paper=None, rival: float = np.inf) -> FitResult:
+    """One form's fit (select: of the structure the data determine). rival: the RMSE another
+    form already reached; a first optimum further than RIVAL_RATIO from it gets no extra starts
+    (they refine a local optimum's last percent, not a model twice off the data)."""
     report = progress or (lambda stage, fraction: None)
     started = time.perf_counter()
     # The matrices here are small: BLAS threads would only contend (and on a busy
     # machine they slow the fit down many times over).
     with threadpool_limits(1, user_api="blas"):
         report("the paper's three steps", 0.1)
-        paper = paper_steps(fd, orders)
+        paper = paper if paper is not None else paper_steps(fd, orders)
         report("joint refinement", 0.3)
-        jf = joint_fit(fd, orders, paper.start, report)
-        report("polish on every sample", 0.8)
-        base = polish([fd.series], jf.params)
-        if not _at_the_noise(base, fd):
-            # the data call for another start: the search's next best optimum, polished alike
-            report("polish from a second start", 0.85)
-            for params in alternative_starts(fd, orders, paper.start, count=EXTRA_STARTS):
-                other = polish([fd.series], params)
-                if other.rss < base.rss:
-                    base = other
-        polished = _from_core(fd, jf, base)
-        if polished is not None:
-            jf = polished
+        if not select:
+            search = JointSearch(fd, orders, paper.start, report)
+            result = _fit_structure(fd, orders, paper, search, report, rival)
+            result.structure = forced(orders)
         else:
-            base = None
-        report("statistics", 0.9)
-        result = _result(fd, orders, paper, jf, started, base)
+            result = _fit_selected(fd, orders, paper, report, rival)
+        result.elapsed_s = time.perf_counter() - started
     report("done", 1.0)
     return result
 
 
+def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, rival: float = np.inf) -> FitResult:
+    """The structure the data determine (identification.structure), carried to every sample."""
+
+    def core_fit(orders: Orders, optima, given: bool):
+        found = next(optima, None)
+        if found is None:
+            return None
+        jf = unpolished(fd, orders.layout(fd.n_residual_cycles), found)
+        if given:        # with identification's other starts (the search's next, the paper's)
+            search = JointSearch(fd, orders, None, report, found=optima)
+            return jf, _polished(fd, jf, search, paper if orders == largest else None, rival)
+        return jf, polish([fd.series], jf.params)
+
+    checked: dict[int, bool] = {}         # by id of the core's fit: its evaluation costs
+
+    def reproduced(jf: JointFit, core: Fit) -> bool:
+        if id(core) not in checked:
+            checked[id(core)] = _from_core(fd, jf, core) is not None
+        return checked[id(core)]
+
+    selection = select(fd, largest, paper.start, core_fit, reproduced, report)
+    chosen = selection.chosen
+    steps = paper if chosen.orders == largest else paper_steps(fd, chosen.orders)   # its Table 5
+    jf, base = chosen.joint, _real_modes(chosen.core)
+    polished = _from_core(fd, jf, base)
+    unreproduced = polished is None and not np.isfinite(jf.residual).all()
+    if unreproduced:
+        # the model's evaluation (what the simulator runs) does not reproduce the core's fit; its
+        # terms neither cancel nor escape the data (the selection's defects): the fit is kept
+        polished = _from_core(fd, jf, base, reproduced=False)
+    elif polished is None:    # identification's own full-resolution fit is the better (as given)
+        polished, base = jf, None
+    report("statistics", 0.9)
+    result = _result(fd, chosen.orders, steps, polished, time.perf_counter(), base)
+    if unreproduced:
+        result.warnings.append("the model's own evaluation (what the simulator runs) does not reproduce this fit "
+                               "within a tenth of its residual")
+    result.structure = selection.choice()
+    first = selection.fitted[0]
+    if first is not chosen:     # the largest structure's fit: what diagnosis extends
+        own = _from_core(fd, first.joint, first.core) or _from_core(fd, first.joint, first.core, reproduced=False)
+        result.largest = _result(fd, first.orders, paper, own, time.perf_counter(), first.core)
+    return result
+
+
+def _real_modes(base: Fit) -> Fit:
+    """The core's fit with every damping mode whose oscillation the data do not support made real,
+    as the search decides it (joint._real_modes: Im alpha = 0 costs less than ln(n) noise
+    variances), the least oscillating first; the linear parameters re-solved. A structure fitted
+    from a larger one's values has not had the search's test."""
+    phi = base.model.split(base.nu)[0].copy()
+    N = base.params.layout.N
+    penalty = base.rss / base.n * np.log(base.n)
+    for i in np.argsort(phi[1:2 * N:2] / np.maximum(phi[0:2 * N:2], 1e-300)):
+        if phi[2 * i + 1] == 0.0:
+            continue
+        trial = phi.copy()
+        trial[2 * i + 1] = 0.0
+        sol = base.model.solve(trial)
+        if sol.rss() > base.rss + penalty:
+            break
+        base, phi = Fit([], base.model, trial, base.stderr, sol, status=base.status, message=base.message), trial
+    return base
+
+
+def _polished(fd: PreparedRun, jf: JointFit, search: JointSearch, paper, rival: float = np.inf) -> Fit:
+    """The core's polish of identification's fit on every sample, with identification's other
+    starts, the better kept: the data call for another start when the first leaves structure
+    above the noise (the search's next best optimum), and the decimated search can look white
+    while the full run is off the noise (the paper's three-step start, exact in the paper form).
+    Not for a first optimum further than RIVAL_RATIO from another form's RMSE (rival)."""
+    base = polish([fd.series], jf.params,
+                  lambda first: () if _at_the_noise(first, fd) or first.rmse > RIVAL_RATIO * rival
+                  else search.more(EXTRA_STARTS))
+    if paper is not None and paper.start is not None and \
+            AT_NOISE_RATIO * fd.noise_N < base.rmse <= RIVAL_RATIO * rival:
+        # the three steps are the same in either form: their start in the form fitted (polished
+        # as it came, a causal start made a paper-form fit a causal one)
+        other = polish([fd.series], replace(paper.start, residual_form=jf.params.residual_form))
+        if other.rss < base.rss:
+            base = other
+    return base
+
+
+def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, report: Progress,
+                   rival: float = np.inf) -> FitResult:
+    """One structure: the search's best optimum polished, then carried to every sample by the
+    analysis core."""
+    jf = search.fit()
+    report("polish on every sample", 0.8)
+    base = _polished(fd, jf, search, paper, rival)
+    polished = _from_core(fd, jf, base)
+    if polished is not None:
+        jf = polished
+    else:
+        base = None
+    report("statistics", 0.9)
+    return _result(fd, orders, paper, jf, time.perf_counter(), base)
+
+
 #: A polished fit further than this from the noise level, with structure left in its
 #: residuals, is polished again from the search's next best start(s).
-AT_NOISE_RATIO = 1.05
 EXTRA_STARTS = 1
+RIVAL_RATIO = 2.0
 
 
 def _at_the_noise(base: Fit, fd: PreparedRun) -> bool:
-    rmse = base.rmse
-    return rmse <= AT_NOISE_RATIO * fd.noise_N or whiteness(base.solution.residual).min_p >= WHITE_P
+    return at_the_noise(base.solution.residual, fd.noise_N)
 
 
-def _orders(orders) -> Orders:
-    if isinstance(orders, Orders):
+#: The structure the selection starts from (issue 19): the paper's orders, three cycles with terms
+#: of their own.
+LARGEST = Orders()
+#: The orders that ask for the structure the data determine.
+AUTO_ORDERS = "auto"
+
+
+def _orders(orders) -> Orders | None:
+    if orders is None or isinstance(orders, Orders):
         return orders
     if isinstance(orders, str):
         return Orders.parse(orders)
@@ -148,14 +290,12 @@ def _orders(orders) -> Orders:
 
 #: Samples this many steps from a corner of the path are not in the evaluation check.
 CORNER_STEPS = 2.0
-#: A damping mode whose Im alpha ends below this fraction of its Re alpha stays real (fixed).
-REAL_MODE_RATIO = 1e-6
 
 
-def _from_core(fd: PreparedRun, jf: JointFit, base: Fit) -> JointFit | None:
+def _from_core(fd: PreparedRun, jf: JointFit, base: Fit, reproduced: bool = True) -> JointFit | None:
     """The core's polished base in identification's terms (canonical order, the zero offset in
     k0, the Jacobian of every free parameter at the solution); None when the polish found no
-    better optimum, or one the model's own evaluation cannot reproduce (see evaluable)."""
+    better optimum, or (reproduced) one the model's own evaluation cannot reproduce (see evaluable)."""
     lay = jf.layout
     sol = base.solution
     # the rows identification reports on: the cycles' samples the path determines
@@ -167,7 +307,10 @@ def _from_core(fd: PreparedRun, jf: JointFit, base: Fit) -> JointFit | None:
     L = lay.n_linear
     fixed = np.zeros(lay.n_nonlinear, bool)
     im = np.arange(1, 2 * lay.N, 2)
-    fixed[im] = jf.fixed_nonlinear[im] & (phi[im] <= REAL_MODE_RATIO * phi[im - 1])
+    # a mode the search made real and the polish kept at Im alpha = 0, or one the polish took to
+    # that bound itself (a structure fitted from a larger one's values): real
+    at_bound = phi[im] <= AT_BOUND * nonlinear_bounds(lay.orders, lay.C, fd.loading_time_s)[1][im]
+    fixed[im] = (jf.fixed_nonlinear[im] & (phi[im] <= REAL_MODE_RATIO * phi[im - 1])) | at_bound
     phi[fixed] = 0.0
     design = sol.designs[0][0][rows]                              # k, a, r columns, then the zero
     deriv = base.model.prediction_derivatives(base.nu, sol)[rows]
@@ -196,7 +339,7 @@ def _from_core(fd: PreparedRun, jf: JointFit, base: Fit) -> JointFit | None:
         near |= np.abs(fd.t - tc) <= CORNER_STEPS * step
     checked = ~near[rows]
     polished_check = replace(polished, residual=residual[checked])
-    return polished if evaluable(fd, polished_check, rows[checked]) else None
+    return polished if not reproduced or evaluable(fd, polished_check, rows[checked]) else None
 
 
 def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float,
@@ -226,6 +369,10 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
     flat_lower[nl_idx], flat_upper[nl_idx] = lower, upper
     varied = np.ones(len(names), bool)
     varied[nl_idx[jf.fixed_nonlinear]] = False
+    # shared orders: a later cycle's beta is the first cycle's (the same parameter, its statistics)
+    for i, j in lay.tied().items():
+        stderr[i], flat_lower[i], flat_upper[i], varied[i] = stderr[j], flat_lower[j], flat_upper[j], varied[j]
+        corr[i, :], corr[:, i] = corr[j, :], corr[:, j]
     notes = [f"{names[i]} = 0 (fixed): the data do not support an oscillation of damping mode "
              f"{names[i][5:-3]} (BIC), so it is a real mode" for i in nl_idx[jf.fixed_nonlinear]]
 
@@ -238,7 +385,7 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
         force = base.model.specimen_force(base.nu, base.solution.theta)[0] + jf.contact_zero_N
     else:
         force = response.force
-    predicted = np.maximum(force, jf.contact_zero_N)
+    predicted = _placed_by_force(fd, params, np.maximum(force, jf.contact_zero_N), jf.contact_zero_N, base)
     y = fd.f[fd.observed]
     joint = GoodnessOfFit.of(y, predicted[fd.observed], jf.n_free)
     first, last = int(fd.observed[0]), int(fd.observed[-1]) + 1
@@ -269,7 +416,35 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
         lower=flat_lower, upper=flat_upper, varied=varied,
         status=jf.status, message=jf.message,
         noise_N=fd.noise_N, prepared=fd, core_fit=base,
+        tied={names[i]: names[j] for i, j in lay.tied().items()},
     )
+
+
+def _placed_by_force(fd: PreparedRun, params, predicted: np.ndarray, zero: float, base: Fit | None) -> np.ndarray:
+    """The samples next to a turn that the samples cannot place (not evidence: the fit does not
+    use them) predicted with the placement their own force supports. Where the crosshead
+    turned a fraction of a millisecond before the extreme sample, that sample reads the peak
+    within the encoder's step and only its force (tens of newtons apart: damping off, the
+    residual on) says it was already unloading; the parameters do not depend on it."""
+    unused = ~fd.series.used
+    if not unused.any():
+        return predicted
+    groups = np.split(np.flatnonzero(unused), np.flatnonzero(np.diff(np.flatnonzero(unused)) > 1) + 1)
+    misfit = lambda values, g: float(np.sqrt(np.mean((fd.f[g] - values[g]) ** 2)))
+    suspect = [g for g in groups if misfit(predicted, g) > TURN_MISFIT_MULTIPLE * fd.noise_N]
+    if not suspect:
+        return predicted
+    flipped = fd.other_turns()
+    if base is not None:        # the core's exact columns: right after a turn the force is steep in time
+        force = model_like(base, [flipped.series]).specimen_force(base.nu, base.solution.theta)[0] + zero
+    else:
+        force = model_response(params, flipped).force
+    other = np.maximum(force, zero)
+    out = predicted.copy()
+    for g in suspect:
+        if misfit(other, g) < misfit(predicted, g):
+            out[g] = other[g]
+    return out
 
 
 def _bound_warnings(names, values, lay, lower, upper) -> list[str]:
@@ -280,8 +455,8 @@ def _bound_warnings(names, values, lay, lower, upper) -> list[str]:
         span = upper[j] - lower[j]
         if names[i].endswith("_im") and v <= lower[j] + 1e-9 * span:
             continue                      # a real mode: im = 0 is the model, not a limit
-        if v <= lower[j] + 1e-6 * span or v >= upper[j] - 1e-6 * span:
-            which = "lower" if v <= lower[j] + 1e-6 * span else "upper"
+        if v <= lower[j] + AT_BOUND * span or v >= upper[j] - AT_BOUND * span:
+            which = "lower" if v <= lower[j] + AT_BOUND * span else "upper"
             hint = (" (fractional orders are limited to beta < 1, Eq. 10)"
                     if names[i].startswith("beta") and which == "upper" and upper[j] == BETA_HI else
                     " (search range of beta)" if names[i].startswith("beta") and lower[j] == BETA_LO else
@@ -292,13 +467,16 @@ def _bound_warnings(names, values, lay, lower, upper) -> list[str]:
 
 
 def _zero_warnings(names, values, stderr, lay) -> list[str]:
-    out = []
+    zero = []
     for i in lay.flat_index_of_linear():
         n = names[i]
         if n.startswith("k"):
             continue
         s = stderr[i]
         if np.isfinite(s) and abs(values[i]) < ZERO_T_VALUE * s:
-            out.append(f"{n} = {values[i]:.3g} +/- {s:.2g} is indistinguishable from zero: its term "
-                       "adds nothing the data can see (consider a lower order)")
-    return out
+            zero.append(f"{n} = {values[i]:.3g} +/- {s:.2g}")
+    if len(zero) == 1:
+        return [f"{zero[0]} is indistinguishable from zero: its term adds nothing the data can see "
+                "(consider a lower order)"]
+    return [f"{', '.join(zero)} are indistinguishable from zero: their terms add nothing the data can "
+            "see (consider a lower order)"] if zero else []

@@ -18,10 +18,10 @@ a log-spaced grid of decay rates, the fractional orders a grid over their
 range; modes/terms are added greedily (each candidate's linear coefficients
 solved exactly: variable projection), then all are refined together.
 
-These differences hold exactly only if the residual of a cycle were the same
-function of x in every later half-cycle, which the causal model (Eq. 10) does
-not satisfy (docs/model.md, inconsistency 5): the three steps give the paper's
-numbers and STARTING values; the joint refinement fits the real model.
+These differences hold exactly when the residual of a cycle is the same function of x in
+every later half-cycle: the paper form (Eqs. 20b-f as printed), not the causal one (Eq. 10;
+docs/model.md, inconsistency 5). The steps do not depend on the form fitted: they give the
+paper's numbers and STARTING values in either; the joint refinement fits the form's model.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from scipy.optimize import lsq_linear
 
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.identification.statistics import GoodnessOfFit
-from foamlab.identification.varpro import GreedyBasis, SeparableProblem
+from foamlab.identification.varpro import GreedyBasis, SeparableProblem, solve_linear
 from foamlab.model import ModelParameters, damping_closed_form, residual_eq11
 from foamlab.model.layout import (
     ALPHA_HI,
@@ -186,8 +186,14 @@ def _rate(fd: PreparedRun, half: HalfCycle) -> float:
 def paper_steps(fd: PreparedRun, orders: Orders) -> PaperResult:
     """The three steps on the run's half-cycles; start values for the joint fit."""
     cycles = fd.seg.cycles
-    C = fd.n_residual_cycles
+    C = orders.residual_cycles(fd.n_residual_cycles)
     warnings: list[str] = []
+    if len(cycles) < 2:
+        # Eq. 15 (damping) and Eq. 16 (the first residual) subtract the first unloading and
+        # loading from the second loading: a single cycle has no difference to take
+        warnings.append("the paper's three steps skipped: they take differences with a second cycle "
+                        "(Eqs. 15-16); a single cycle is fitted by the joint search alone")
+        return PaperResult(None, {}, warnings)
     used: dict[str, HalfCycle] = {"L1": cycles[0].loading, "U1": cycles[0].unloading,
                                   "L2": cycles[1].loading}
     for c in range(2, C + 1):
@@ -260,7 +266,12 @@ def paper_steps(fd: PreparedRun, orders: Orders) -> PaperResult:
         xr = xr_grid - fd.x[s]
         fam_r = _ColumnFamily(None, lambda g, xr=xr, A=A, T=T: residual_eq11([1.0], g, xr, A, T), 1,
                               len(xr))
-        if orders.M:
+        if orders.M and orders.shared and c > 1:
+            # orders shared by every cycle: the later cycles' amplitudes at the first one's orders
+            fit = solve_linear(fam_r.design(b_all[0]), vr)
+            r_all[c - 1], b_all[c - 1] = fit.coef, b_all[0]
+            res_fit.append(vr - fit.residual)
+        elif orders.M:
             fit = fit_separable(fam_r, vr, orders.M, beta_candidates(),
                                 np.full(orders.M, BETA_LO), np.full(orders.M, BETA_HI))
             r_all[c - 1], b_all[c - 1] = fit.linear, fit.nonlinear
@@ -271,9 +282,10 @@ def paper_steps(fd: PreparedRun, orders: Orders) -> PaperResult:
         res_data.append(vr)
     res_data_all = np.concatenate(res_data) if res_data else np.zeros(0)
     res_fit_all = np.concatenate(res_fit) if res_fit else np.zeros(0)
+    n_res = orders.M * len(res_data) + (orders.M if orders.shared else orders.M * len(res_data))
     steps["residual"] = StepResult("residual", np.concatenate(res_x) if res_x else np.zeros(0),
-                                   res_data_all, res_fit_all, 2 * orders.M * len(res_data),
-                                   GoodnessOfFit.of(res_data_all, res_fit_all, 2 * orders.M * len(res_data)),
+                                   res_data_all, res_fit_all, n_res,
+                                   GoodnessOfFit.of(res_data_all, res_fit_all, n_res),
                                    {"r": r_all, "beta": b_all})
 
     # Step 3: elastic, Eq. 19 data, Eq. 12 model (Eq. 28): linear least squares
@@ -287,7 +299,8 @@ def paper_steps(fd: PreparedRun, orders: Orders) -> PaperResult:
     start = ModelParameters(
         x_scale_mm=fd.x_scale_mm, elastic_k=k, damping_a=a,
         damping_alpha=alphas[:, 0] + 1j * alphas[:, 1],
-        residual_r=r_all, residual_beta=b_all,
+        residual_r=r_all, residual_beta=b_all, residual_form=orders.form,
+        shared_orders=orders.shared and C > 1,
         description="start values: the paper's three-step identification",
     )
     return PaperResult(start, steps, warnings, grid)

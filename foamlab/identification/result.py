@@ -12,8 +12,10 @@ import numpy as np
 
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import Fit
+from foamlab.identification.forms import FormChoice
 from foamlab.identification.paper import PaperResult
 from foamlab.identification.statistics import GoodnessOfFit
+from foamlab.identification.structure import StructureChoice
 from foamlab.model import ModelParameters, ModelResponse
 from foamlab.model.layout import Orders
 
@@ -42,11 +44,20 @@ class Parameter:
     upper: float
     varied: bool                      # False: held fixed (e.g. Im alpha of a real damping mode)
     unit: str
+    same_as: str | None = None        # a shared order in a later cycle: the parameter it is
 
     @property
     def determined(self) -> bool:
         """Varied, with a standard error, and its 95 % interval excludes zero."""
         return self.varied and self.stderr is not None and abs(self.value) > 1.96 * self.stderr
+
+    def to_dict(self) -> dict:
+        out = {"value": self.value, "stderr": self.stderr, "lower": _num(self.lower),
+               "upper": _num(self.upper), "varied": self.varied, "unit": self.unit,
+               "determined": self.determined}
+        if self.same_as:
+            out["same_as"] = self.same_as
+        return out
 
 
 def _num(v) -> float | None:
@@ -91,6 +102,11 @@ class FitResult:
     noise_N: float = float("nan")     # the load cell's noise level estimated from the run
     prepared: PreparedRun | None = None   # the run as prepared for every fit (foamlab.analysis)
     core_fit: Fit | None = None           # the analysis core's fit: what diagnosis extends
+    form_choice: FormChoice | None = None  # which residual form, and why (identification.forms)
+    alternatives: list["FitResult"] = field(default_factory=list)   # the other forms' fits
+    structure: StructureChoice | None = None   # the structures tried and the one chosen (or forced)
+    tied: dict[str, str] = field(default_factory=dict)   # shared orders: later cycle's beta -> first's
+    largest: "FitResult | None" = None   # the largest structure's fit when another was chosen (diagnosis' base)
 
     # -- views -----------------------------------------------------------------------
     @property
@@ -113,7 +129,8 @@ class FitResult:
         lower = self.lower if self.lower is not None else np.full(n, -np.inf)
         upper = self.upper if self.upper is not None else np.full(n, np.inf)
         varied = self.varied if self.varied is not None else np.ones(n, bool)
-        return {name: Parameter(name, float(v), _num(s), float(lo), float(hi), bool(var), unit_of(name))
+        return {name: Parameter(name, float(v), _num(s), float(lo), float(hi), bool(var), unit_of(name),
+                                self.tied.get(name))
                 for name, v, s, lo, hi, var in zip(self.names, self.values, self.stderr, lower, upper, varied)}
 
     def value(self, name: str) -> float:
@@ -126,11 +143,9 @@ class FitResult:
     def to_dict(self) -> dict:
         """The object of ``foamlab fit --json`` (DESIGN.md): parameters, statistics, rmse,
         constraints. Standard errors of parameters the data do not determine are null."""
-        parameters = {p.name: {"value": p.value, "stderr": p.stderr, "lower": _num(p.lower),
-                               "upper": _num(p.upper), "varied": p.varied, "unit": p.unit}
-                      for p in self.parameters.values()}
+        parameters = {p.name: p.to_dict() for p in self.parameters.values()}
         parameters["x_scale_mm"] = {"value": float(self.params.x_scale_mm), "stderr": None, "lower": None,
-                                    "upper": None, "varied": False, "unit": "mm"}
+                                    "upper": None, "varied": False, "unit": "mm", "determined": False}
         statistics = {}
         for step in STEPS:
             st = self.statistics.get(step)
@@ -139,7 +154,20 @@ class FitResult:
         return {"parameters": parameters, "statistics": statistics, "rmse": _num(self.rmse),
                 "constraints": {k: bool(v) for k, v in self.constraints.items()},
                 "noise": _num(self.noise_N),
-                "optimizer": {"success": self.success, "status": self.status, "message": self.message}}
+                "optimizer": {"success": self.success, "status": self.status, "message": self.message},
+                "form": self.params.residual_form, "forms": self._forms_dict(),
+                "structure": self.structure.to_dict() if self.structure is not None else None}
+
+    def _forms_dict(self) -> dict:
+        """Each form's RMSE, held-out RMSE, BIC and its BIC minus the chosen one's, and why."""
+        choice = self.form_choice
+        if choice is None:
+            return {"chosen": self.params.residual_form, "reason": "", "scores": []}
+        mine = choice.score(choice.chosen)
+        return {"chosen": choice.chosen, "reason": choice.reason(), "forced": choice.forced,
+                "scores": [{"form": s.form, "rmse": _num(s.rmse), "heldout_rmse": _num(s.heldout_rmse),
+                            "bic": _num(s.bic), "delta_bic": _num(s.bic - mine.bic) if mine else None}
+                           for s in choice.scores]}
 
     def to_json(self, indent: int | None = 2) -> str:
         return json.dumps(self.to_dict(), indent=indent)
@@ -151,7 +179,8 @@ class FitResult:
         corr = [[_num(c) for c in row] for row in self.correlation]
         out.update({
             "model": self.params.to_dict(),
-            "orders": {"N": self.orders.N, "M": self.orders.M, "P": self.orders.P},
+            "orders": {"N": self.orders.N, "M": self.orders.M, "P": self.orders.P, "C": self.orders.C,
+                       "form": self.orders.form, "shared": self.orders.shared},
             "stderr_autocorrelation_corrected": {n: _num(s) for n, s in zip(self.names, self.stderr_autocorr)},
             "autocorrelation_time": _num(self.autocorrelation_time),
             "correlation": {"names": self.names, "matrix": corr},
@@ -180,13 +209,20 @@ class FitResult:
         joint = self.statistics.get("joint")
         ratio = self.rmse / self.noise_N if self.noise_N > 0 else float("nan")
         lines = [f"fit of {self.source or 'run'}: orders {self.orders}, {self.n_obs} samples, {self.elapsed_s:.2f} s",
+                 f"  {self.form_choice.reason() if self.form_choice else self.params.residual_form + ' residual form'}",
                  f"  RMSE {self.rmse:.4g} N = {ratio:.2f} x the load cell's noise ({self.noise_N:.3g} N)"
                  + (f", R^2 {joint.r2:.6f}" if joint is not None else ""),
                  f"  optimizer: {'converged' if self.success else 'stopped'} ({self.message})"]
-        params = [p for p in self.parameters.values() if p.determined]
-        hidden = len(self.names) - len(params)
-        lines.append(f"  parameters the data determine ({len(params)} of {len(self.names)}; "
-                     f"{hidden} fixed, not determined or within 2 standard errors of zero: see --full or --json):")
+        if self.structure is not None:
+            lines.append(f"  structure: {self.structure.why}"
+                         + (f" ({len(self.structure.candidates)} tried, see --full)" if self.structure.candidates else ""))
+        own = [p for p in self.parameters.values() if not p.same_as]
+        params = [p for p in own if p.determined]
+        hidden = len(own) - len(params)
+        shared = " (each order beta1_m is every cycle's: shared orders)" if self.tied else ""
+        lines.append(f"  parameters the data determine ({len(params)} of {len(own)}; "
+                     f"{hidden} fixed, not determined or within 2 standard errors of zero: see --full or --json)"
+                     f"{shared}:")
         for p in params:
             lines.append(f"    {p.name:<11}{p.value:>13.5g} +/- {p.stderr:<10.2g} {p.unit}")
         failed = [k for k, ok in self.constraints.items() if not ok]
@@ -201,6 +237,7 @@ class FitResult:
         """A readable report: statistics per step (Table 5), parameters, checks, warnings."""
         lines = [f"[[Fit]] {self.source or 'run'}",
                  f"    orders            {self.orders}",
+                 f"    residual form     {self.form_choice.reason() if self.form_choice else self.params.residual_form}",
                  f"    samples fitted    {self.n_obs}  (parameters {self.n_params})",
                  f"    RMSE (whole run)  {self.rmse:.4g} N",
                  f"    AIC / BIC         {self.aic:.1f} / {self.bic:.1f}",
@@ -214,11 +251,14 @@ class FitResult:
             else:
                 lines.append(f"    {step:<10}{st.sse:>12.5g}{st.r2:>10.5f}{st.adj_r2:>10.5f}"
                              f"{st.rmse:>10.4g}{st.n:>7d}{st.p:>5d}")
+        lines += self._forms_lines()
         lines.append("[[Parameters]] (value, standard error, relative; 'ac' = corrected for "
                      f"residual autocorrelation, tau = {self.autocorrelation_time:.1f})")
         lines.append(f"    {'name':<11}{'value':>14}{'stderr':>12}{'rel':>9}{'stderr ac':>12}")
         for n, v, s, sa in zip(self.names, self.values, self.stderr, self.stderr_autocorr):
-            if n in self._fixed_names():
+            if n in self.tied:
+                lines.append(f"    {n:<11}{v:>14.6g}{'= ' + self.tied[n] + ' (shared orders)':>33}")
+            elif n in self._fixed_names():
                 lines.append(f"    {n:<11}{v:>14.6g}{'(fixed: real mode)':>33}")
             elif math.isfinite(s):
                 rel = f"{abs(s / v) * 100:8.1f}%" if v != 0 else f"{'-':>9}"
@@ -229,6 +269,10 @@ class FitResult:
         lines.append("[[Constraints]] (thermodynamic checks, Eqs. 23-25)")
         for k, ok in self.constraints.items():
             lines.append(f"    {k:<28}{'pass' if ok else 'FAIL'}")
+        if self.structure is not None:
+            lines.append(f"[[Structure]] {self.structure.why}")
+            if self.structure.candidates:
+                lines += self.structure.lines()
         if self.notes:
             lines.append("[[Notes]]")
             lines += [f"    - {w}" for w in self.notes]
@@ -236,6 +280,19 @@ class FitResult:
             lines.append("[[Warnings]]")
             lines += [f"    - {w}" for w in self.warnings]
         return "\n".join(lines)
+
+    def _forms_lines(self) -> list[str]:
+        """Each residual form's RMSE, held-out RMSE and BIC against the chosen one's."""
+        choice = self.form_choice
+        if choice is None or len(choice.scores) < 2:
+            return []
+        mine = choice.score(choice.chosen)
+        lines = ["[[Residual form]] (both fitted; the one predicting held-out blocks better kept)",
+                 f"    {'form':<10}{'RMSE':>10}{'held-out':>10}{'dBIC':>10}"]
+        for sc in choice.scores:
+            mark = "  (kept)" if sc.form == choice.chosen else ""
+            lines.append(f"    {sc.form:<10}{sc.rmse:>10.4g}{sc.heldout_rmse:>10.4g}{sc.bic - mine.bic:>10.1f}{mark}")
+        return lines
 
     def _fixed_names(self) -> set[str]:
         return {note.split(" ", 1)[0] for note in self.notes if "(fixed)" in note}

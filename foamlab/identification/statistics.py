@@ -161,10 +161,13 @@ def parameter_uncertainty(jac: np.ndarray, residual: np.ndarray, values: np.ndar
         with np.errstate(invalid="ignore", divide="ignore"):
             cc = cov / np.outer(se, se)
         corr[np.ix_(idx, idx)] = cc
-        for a in range(len(idx)):
-            for b in range(a + 1, len(idx)):
-                if abs(cc[a, b]) > CORRELATION_LIMIT:
-                    i, j = idx[a], idx[b]
-                    warnings.append(f"{names[i]} and {names[j]} are correlated ({cc[a, b]:+.4f}): "
-                                    "the data determine a combination of them, not each one")
+        pairs = [f"{names[idx[a]]} and {names[idx[b]]} ({cc[a, b]:+.4f})" for a in range(len(idx))
+                 for b in range(a + 1, len(idx)) if abs(cc[a, b]) > CORRELATION_LIMIT]
+        # one line for all: the adjacent coefficients of a polynomial alone make several pairs
+        if len(pairs) == 1:
+            warnings.append(f"{pairs[0].replace(' (', ' are correlated (', 1)}: the data determine a "
+                            "combination of them, not each one")
+        elif pairs:
+            warnings.append(f"{len(pairs)} pairs of parameters are correlated beyond +/-{CORRELATION_LIMIT:g}, "
+                            f"the data determine combinations of them, not each one: {', '.join(pairs)}")
     return Uncertainty(stderr, corr, determined, sigma2, warnings)

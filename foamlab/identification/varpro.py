@@ -57,7 +57,11 @@ class GreedyBasis:
     column c to the current set is (q . r)^2 / (q . q), q = c minus its projection on
     the set, r the current residual - no refactorisation per candidate."""
 
-    def __init__(self, fixed: np.ndarray, y: np.ndarray):
+    def __init__(self, fixed: np.ndarray, y: np.ndarray, orthonormal: bool = False):
+        """fixed: the columns always in (orthonormal: already an orthonormal basis, y its residual)."""
+        if orthonormal:
+            self.Q, self.r = fixed, y
+            return
         self.Q = np.linalg.qr(fixed)[0] if fixed.shape[1] else np.zeros((len(y), 0))
         self.r = y - self.Q @ (self.Q.T @ y)
 
@@ -66,6 +70,12 @@ class GreedyBasis:
         return q - self.Q @ (self.Q.T @ q)       # twice is enough (Kahan-Parlett)
 
     def gain(self, c: np.ndarray) -> float:
+        """SSE gain of adding column c, or (c of shape (rows, k)) a group of columns at once."""
+        if c.ndim == 2:
+            trial = GreedyBasis(self.Q, self.r, orthonormal=True)
+            for j in range(c.shape[1]):
+                trial.add(c[:, j])
+            return float(self.r @ self.r - trial.r @ trial.r)
         q = self._orth(c)
         qq = float(q @ q)
         if qq <= 1e-24 * max(float(c @ c), 1e-300):
@@ -73,6 +83,10 @@ class GreedyBasis:
         return float(q @ self.r) ** 2 / qq
 
     def add(self, c: np.ndarray) -> None:
+        if c.ndim == 2:
+            for j in range(c.shape[1]):
+                self.add(c[:, j])
+            return
         q = self._orth(c)
         nq = np.linalg.norm(q)
         if nq <= 1e-12 * max(np.linalg.norm(c), 1e-300):
@@ -99,16 +113,19 @@ class SeparableFit:
 class SeparableProblem:
     """min_theta || y - Phi(theta) c(theta) ||^2 with c(theta) solved exactly.
 
-    design(theta) -> (n, L); derivatives(theta) -> (n, K), column j being
-    d Phi[:, column_of[j]] / d theta_j (each theta_j moves one column).
+    design(theta) -> (n, L); derivatives(theta) -> (n, D), column d being
+    d Phi[:, column_of[d]] / d theta_(its parameter); combine (n, D) -> (n, K) sums the
+    columns of each theta_j (default: D = K, each theta_j moves one column, column_of[j]).
     """
 
     def __init__(self, design: Callable[[np.ndarray], np.ndarray],
                  derivatives: Callable[[np.ndarray], np.ndarray],
-                 column_of: np.ndarray, y: np.ndarray):
+                 column_of: np.ndarray, y: np.ndarray,
+                 combine: Callable[[np.ndarray], np.ndarray] | None = None):
         self.design = design
         self.derivatives = derivatives
         self.column_of = np.asarray(column_of, dtype=int)
+        self.combine = combine or (lambda g: g)
         self.y = np.asarray(y, float)
         self._last_key: bytes | None = None
         self._last: LinearSolve | None = None
@@ -127,7 +144,7 @@ class SeparableProblem:
 
     def jacobian(self, theta: np.ndarray) -> np.ndarray:
         sol = self.solve(theta)
-        g = self.derivatives(theta) * sol.coef[self.column_of]
+        g = self.combine(self.derivatives(theta) * sol.coef[self.column_of])
         return g - sol.basis @ (sol.basis.T @ g)   # -(I - P) g, sign matching residual()
 
     def fit(self, theta0: np.ndarray, lower: np.ndarray, upper: np.ndarray,

@@ -65,6 +65,8 @@ def parse_rows(rows: Rows, *, source: str, sep: str, decimal: str, ncols: int,
         raise FoamlabError(f"{source}: no data rows after the header")
     width = _check_field_counts(rows, source, sep, ncols)
     joined = "\n".join(rows.texts)
+    if '"' in joined:
+        _check_quotes(rows, source)
     indices = sorted(set(wanted.values()))
     read = dict(sep=sep, decimal=decimal, header=None, names=list(range(width)),
                 skip_blank_lines=False, quotechar='"', engine="c")
@@ -85,6 +87,14 @@ def parse_rows(rows: Rows, *, source: str, sep: str, decimal: str, ncols: int,
                                ends_with_newline)
         out[name] = values
     return out
+
+
+def _check_quotes(rows: Rows, source: str) -> None:
+    """A quote that never closes would swallow the following lines into one field."""
+    for text, line_no in zip(rows.texts, rows.line_nos):
+        if text.count('"') % 2:
+            raise FoamlabError(f"{source}: line {line_no}: a quote (\") opens a field that "
+                               f"does not close on this line")
 
 
 def _check_field_counts(rows: Rows, source: str, sep: str, ncols: int) -> int:
@@ -174,6 +184,60 @@ def check_samples(source: str, time_s: np.ndarray, rows: Rows) -> None:
                            f"({time_s[i]:g} s after {time_s[i - 1]:g} s)")
 
 
+def order_times(source: str, time_s: np.ndarray, line_nos, notes: list[str]) -> np.ndarray:
+    """Time as acquired, made strictly increasing where a vendor repeated a timestamp.
+
+    A repeated time (two rows at t = 0 at the start of a Bluehill file, or times
+    rounded coarser than the sampling) keeps its samples in file order, spaced
+    evenly around it (see _spread_repeats), and a note says so. Time that goes
+    backwards is an error naming the line.
+    """
+    if len(time_s) < 2:
+        raise FoamlabError(f"{source}: only {len(time_s)} sample; a run needs at least 2")
+    steps = np.diff(time_s)
+    back = np.flatnonzero(steps < 0)
+    if len(back):
+        i = int(back[0]) + 1
+        raise FoamlabError(f"{source}: line {line_nos[i]}: time goes backwards "
+                           f"({time_s[i]:g} s after {time_s[i - 1]:g} s)")
+    repeats = np.flatnonzero(steps == 0)
+    if not len(repeats):
+        return time_s
+    forward = steps[steps > 0]
+    if not len(forward):
+        raise FoamlabError(f"{source}: line {line_nos[1]}: time never advances "
+                           f"(all {len(time_s)} samples at {time_s[0]:g} s)")
+    new = _spread_repeats(time_s)
+    flat = np.flatnonzero(np.diff(new) <= 0)  # float resolution exhausted (absurd times)
+    if len(flat):
+        raise FoamlabError(f"{source}: line {line_nos[int(flat[0]) + 1]}: time repeats and "
+                           f"cannot be told apart at {time_s[int(flat[0])]:g} s")
+    first = int(repeats[0])
+    notes.append(f"time repeats at {len(repeats)} of {len(time_s)} samples (first at line "
+                 f"{line_nos[first + 1]}, {time_s[first] - time_s[0]:g} s from the start): samples "
+                 f"kept in file order, each repeated time given to the middle of its run and "
+                 f"the samples around it spaced evenly")
+    return new
+
+
+def _spread_repeats(t: np.ndarray) -> np.ndarray:
+    """Each run of equal times is placed around its own time: the time belongs to the
+    middle of the run (a rounded clock), and the samples between run middles are
+    spaced evenly. Samples away from repeats keep their times."""
+    new_run = np.r_[True, np.diff(t) != 0]
+    starts = np.flatnonzero(new_run)
+    sizes = np.diff(np.r_[starts, len(t)])
+    middles = starts + (sizes - 1) / 2.0
+    values = t[starts]
+    index = np.arange(len(t), dtype=float)
+    out = np.interp(index, middles, values)
+    # np.interp holds the end values flat: continue the first and last slopes instead
+    for ends, (a, b) in ((index < middles[0], (0, 1)), (index > middles[-1], (-2, -1))):
+        slope = (values[b] - values[a]) / (middles[b] - middles[a])
+        out[ends] = values[b] + (index[ends] - middles[b]) * slope
+    return out
+
+
 # --------------------------------------------------------------------------- channels
 
 def normalize_name(name: str) -> str:
@@ -186,29 +250,38 @@ def normalize_name(name: str) -> str:
 # exports are seen in. Matching is exact on the normalised name; a column whose
 # name is unknown is still taken when it is the only one with the right unit.
 TIME_NAMES = [
-    "time", "test time", "total time", "time_s", "running time",
-    "prüfzeit", "zeit", "testzeit", "versuchszeit", "gesamtzeit",
+    "time", "test time", "total time", "time_s", "running time", "time measurement",
+    "elapsed time", "axial time",
+    "prüfzeit", "zeit", "testzeit", "versuchszeit", "gesamtzeit", "laufzeit",
     "时间", "试验时间", "测试时间", "时间 (s)",
-    "temps", "durée", "tiempo", "tempo", "czas",
+    "temps", "durée", "tiempo", "tempo", "czas", "czas testu", "čas",
 ]
 DISPLACEMENT_NAMES = [
     "compressive extension", "extension", "standard travel", "displacement",
     "compressive displacement", "deformation", "crosshead", "crosshead position",
     "position", "crosshead travel", "travel", "grip to grip separation",
+    "digital position", "actuator position", "axial displacement", "axial position",
     "standardweg", "weg", "verformung", "druckweg", "traversenweg", "traverse",
-    "traversenposition", "verlängerung", "stauchung",
+    "traversenposition", "verlängerung", "stauchung", "position des aktuators",
+    "digitale position", "przemieszczenie", "odkształcenie", "wydłużenie",
     "压缩拉伸", "拉伸", "压缩位移", "位移", "变形", "横梁位移", "压缩变形",
     "déplacement", "allongement", "extensión", "desplazamiento", "spostamento",
 ]
 FORCE_NAMES = [
     "compressive load", "load", "standard force", "force", "compressive force",
-    "test force", "standardkraft", "kraft", "prüfkraft", "druckkraft", "last",
+    "primary load measurement", "load measurement", "axial force", "axial load",
+    "test force", "standardkraft", "kraft", "prüfkraft", "druckkraft", "last", "siła",
+    "obciążenie",
     "压缩负荷", "负荷", "载荷", "力", "试验力", "压力",
-    "charge", "fuerza", "carga", "forza", "siła",
+    "charge", "fuerza", "carga", "forza", "síla",
 ]
 
 TIME_UNITS = {"s": 1.0, "sec": 1.0, "secs": 1.0, "second": 1.0, "seconds": 1.0, "秒": 1.0,
-              "ms": 1e-3, "msec": 1e-3, "毫秒": 1e-3, "min": 60.0, "h": 3600.0, "hr": 3600.0}
+              "ms": 1e-3, "msec": 1e-3, "毫秒": 1e-3, "min": 60.0, "h": 3600.0, "hr": 3600.0,
+              "sek": 1.0, "sekunden": 1.0,
+              # Excel day numbers (MTS 793 writes a "d" column): days since 1899-12-30
+              "d": 86400.0, "day": 86400.0, "days": 86400.0, "tag": 86400.0, "tage": 86400.0}
+DAY_UNITS = {"d", "day", "days", "tag", "tage"}
 LENGTH_UNITS = {"mm": 1.0, "毫米": 1.0, "m": 1000.0, "米": 1000.0, "cm": 10.0, "厘米": 10.0,
                 "µm": 1e-3, "μm": 1e-3, "um": 1e-3, "微米": 1e-3,
                 "in": 25.4, "inch": 25.4, "inches": 25.4, "英寸": 25.4}
@@ -249,15 +322,18 @@ def pick_channels(names: list[str], units: list[str] | None, source: str) -> dic
 
         pick = None
         # 1. a known name with a unit of the right kind (or no unit at all)
-        ranked = sorted((aliases.index(n), i) for i, n in enumerate(norm_names)
-                        if n in aliases and i not in taken)
-        for _, i in ranked:
+        # a time in seconds beats an Excel-day one (whose digits round it coarser)
+        ranked = sorted((norm_units[i] in DAY_UNITS, aliases.index(n), i)
+                        for i, n in enumerate(norm_names) if n in aliases and i not in taken)
+        for *_, i in ranked:
             if norm_units[i] == "" or factor_of(i) is not None:
                 pick = i
                 break
         # 2. an unknown name, but the only column with a unit of this kind
         if pick is None:
             by_unit = [i for i in range(len(names)) if i not in taken and factor_of(i) is not None]
+            if kind == "time" and len(by_unit) > 1:  # e.g. MTS "Datum (d)" beside a time in s
+                by_unit = [i for i in by_unit if norm_units[i] not in DAY_UNITS] or by_unit
             if len(by_unit) == 1:
                 pick = by_unit[0]
         if pick is None:
@@ -317,11 +393,12 @@ _DATE = re.compile(
     r"(?:[ T,]+(上午|下午)?\s*(\d{1,2}):(\d{2})(?::(\d{2}))?\s*([AaPp][Mm]|上午|下午)?)?\s*$")
 
 
-def parse_date(text: str) -> tuple[str, bool]:
+def parse_date(text: str, day_first: bool | None = None) -> tuple[str, bool]:
     """ISO 8601 local time from a vendor date, and whether day/month was ambiguous.
 
-    Y-M-D is unambiguous; for D/M/Y vs M/D/Y a field > 12 decides, otherwise
-    day-first is assumed (Bluehill and testXpert outside the US) and flagged.
+    Y-M-D is unambiguous; for D/M/Y vs M/D/Y a field > 12 decides, then
+    ``day_first`` when the file says (MTS headers do), otherwise day-first is
+    assumed (Bluehill and testXpert outside the US) and flagged.
     Returns ("", False) for text that is not a date.
     """
     m = _DATE.match(text or "")
@@ -335,11 +412,11 @@ def parse_date(text: str) -> tuple[str, bool]:
         year = c + (2000 if c < 100 else 0)
         if a > 12:
             day, month = a, b
-        elif b > 12:
+        elif b > 12 or day_first is False:
             month, day = a, b
         else:
             day, month = a, b
-            ambiguous = a != b
+            ambiguous = a != b and day_first is None
     hour = int(m.group(5) or 0)
     minute = int(m.group(6) or 0)
     second = int(m.group(7) or 0)

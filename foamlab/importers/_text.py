@@ -8,6 +8,7 @@ from functools import cached_property
 from pathlib import Path
 
 from foamlab import FoamlabError
+from foamlab.importers._charset import best_single_byte
 
 #: Files larger than this are not data exports; refuse before reading them whole.
 MAX_BYTES = 2 * 1024 ** 3
@@ -19,10 +20,12 @@ MAX_BYTES = 2 * 1024 ** 3
 #    decodes many Latin-1 byte pairs too, so it is kept only if the result has no
 #    CJK character glued to a Latin letter ("Prüfzeit" in cp1252 would become
 #    "Pr" + a CJK character + "zeit");
-# 3. cp1252 (Western Windows: German/French testXpert and Bluehill installs);
+# 3. cp1250 (Central European Windows: Polish, Czech) against cp1252 (Western):
+#    both decode almost any bytes, so the letters decide (foamlab.importers._charset);
 # 4. Latin-1, which decodes anything, as the last resort.
 # UTF-16 is recognised by its BOM only (Windows "Unicode text" exports have one).
 _CJK = "\u3400-\u4dbf\u4e00-\u9fff\uf900-\ufaff"
+_HAS_CJK = re.compile(f"[{_CJK}]")
 _MOJIBAKE = re.compile(rf"[A-Za-z\u00c0-\u00ff][{_CJK}]|[{_CJK}][A-Za-z\u00c0-\u00ff]")
 
 
@@ -81,14 +84,17 @@ def decode(raw: bytes) -> tuple[str, str]:
             return raw.decode("utf-16"), "utf-16"
         except UnicodeDecodeError:
             pass
-    for encoding in ("utf-8-sig", "gb18030", "cp1252"):
+    for encoding in ("utf-8-sig", "gb18030"):
         try:
             text = raw.decode(encoding)
         except UnicodeDecodeError:
             continue
-        if encoding == "gb18030" and _MOJIBAKE.search(text):
-            continue
+        if encoding == "gb18030" and (_MOJIBAKE.search(text) or not _HAS_CJK.search(text)):
+            continue  # Latin bytes read as Chinese, or no Chinese at all
         if encoding == "utf-8-sig":
             encoding = "utf-8-bom" if raw.startswith(b"\xef\xbb\xbf") else "utf-8"
         return text, encoding
+    best = best_single_byte(raw)
+    if best is not None:
+        return best
     return raw.decode("latin-1"), "latin-1"

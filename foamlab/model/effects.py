@@ -166,10 +166,12 @@ class SensorStepper:
 class CycleSoftening(Effect):
     """Elastic skeleton softens from cycle to cycle (Mullins-like damage of cell struts).
 
-    E_c(x) = E(x) (1 - s)^(c - 1) for cycle c: cycle 1 is the base model, each later
-    cycle loses the fraction s of the previous cycle's elastic force. The base model's
-    elastic part is cycle-independent (paper, assumption c), so this shows up as
-    later cycles lying below the model on loading and unloading alike, growing with x.
+    E_c(x) = E(x) (1 - s)^(c - c0 + 1) for cycle c >= c0 (the setting from_cycle, 2 by
+    default): the cycles before c0 are the base model, each later cycle loses the fraction
+    s of the previous cycle's elastic force. The base model's elastic part is
+    cycle-independent (paper, assumption c), so this shows up as later cycles lying below
+    the model on loading and unloading alike, growing with x. A later onset (from_cycle 3)
+    is a specimen damaged during the test: what the live prediction must catch.
     """
 
     name = "cycle_softening"
@@ -178,10 +180,12 @@ class CycleSoftening(Effect):
     signature = "later cycles lie below the model on loading and unloading, more at large displacement"
     stage = "specimen"
     parameters = (EffectParameter("s", "1/cycle", 0.05, -0.5, 0.9,
-                                  doc="fraction of the elastic force lost per cycle"),)
+                                  doc="fraction of the elastic force lost per cycle"),
+                  EffectParameter("from_cycle", "cycle", 2.0, 2.0, 1e6, fitted=False,
+                                  doc="the first cycle that is softer"))
 
     def modify(self, c: Components) -> Components:
-        n = np.maximum(c.cycle, 1) - 1
+        n = np.maximum(c.cycle - self.values["from_cycle"] + 1, 0)
         return replace(c, elastic=c.elastic * (1.0 - self.values["s"]) ** n)
 
 

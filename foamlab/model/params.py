@@ -7,7 +7,8 @@ Units (chosen so that every component takes displacement in mm and time in s):
   (Eq. 9 kernel on the displacement; each complex alpha stands for a conjugate pair,
   see docs/model.md);
 - residual: r_ci [N s^beta mm^-1] and beta_ci [-] for cycle c = 1..C, term i = 1..M
-  (Eq. 10/11; the paper's Table 3 uses m^-1, i.e. 1000x ours).
+  (Eq. 10/11; the paper's Table 3 uses m^-1, i.e. 1000x ours), in one of two forms
+  (residual_form: 'causal' Eq. 10 or 'paper' Eq. 11 in x; docs/model.md).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from foamlab import CONFIG_DIR, FoamlabError
-from foamlab.model.layout import Layout
+from foamlab.model.layout import Layout, check_form
 
 DEFAULT_SPECIMEN = CONFIG_DIR / "specimens" / "default.toml"
 
@@ -36,8 +37,11 @@ class ModelParameters:
     residual_beta: np.ndarray                  # (C, M)
     description: str = ""
     metadata: dict = field(default_factory=dict)
+    residual_form: str = "causal"              # 'causal' or 'paper' (RESIDUAL_FORMS)
+    shared_orders: bool = False                # every cycle's terms have the same orders, fitted so
 
     def __post_init__(self) -> None:
+        check_form(self.residual_form)
         self.elastic_k = np.atleast_1d(np.asarray(self.elastic_k, dtype=float))
         self.damping_a = np.atleast_1d(np.asarray(self.damping_a, dtype=float))
         self.damping_alpha = np.atleast_1d(np.asarray(self.damping_alpha, dtype=complex))
@@ -51,6 +55,8 @@ class ModelParameters:
             raise FoamlabError("model parameters: x_scale_mm must be positive")
         if np.any(self.residual_beta >= 1.0):
             raise FoamlabError("model parameters: fractional orders beta must be < 1 (Eq. 10)")
+        if self.shared_orders and not np.all(self.residual_beta == self.residual_beta[:1]):
+            raise FoamlabError("model parameters: shared orders differ between cycles")
 
     # -- orders -----------------------------------------------------------------
     @property
@@ -72,7 +78,8 @@ class ModelParameters:
     @property
     def layout(self) -> Layout:
         """Where each entry of to_vector() goes when the model is fitted (linear / nonlinear)."""
-        return Layout(P=self.order_P, N=self.order_N, M=self.order_M, C=self.n_residual_cycles)
+        return Layout(P=self.order_P, N=self.order_N, M=self.order_M, C=self.n_residual_cycles,
+                      form=self.residual_form, shared=self.shared_orders)
 
     def residual_terms(self, cycle: int) -> tuple[np.ndarray, np.ndarray]:
         """(r, beta) of a 1-based cycle; cycles beyond those identified reuse the last."""
@@ -114,6 +121,8 @@ class ModelParameters:
             residual_beta=res[:, :, 1],
             description=self.description,
             metadata=dict(self.metadata),
+            residual_form=self.residual_form,
+            shared_orders=self.shared_orders,
         )
 
     # -- files --------------------------------------------------------------------
@@ -128,6 +137,8 @@ class ModelParameters:
                 "alpha_im": [float(a.imag) for a in self.damping_alpha],
             },
             "residual": {
+                "form": self.residual_form,
+                "shared_orders": self.shared_orders,
                 "r": [[float(x) for x in row] for row in self.residual_r],
                 "beta": [[float(x) for x in row] for row in self.residual_beta],
             },
@@ -137,7 +148,7 @@ class ModelParameters:
     def from_dict(cls, d: dict) -> "ModelParameters":
         try:
             if "model" not in d and isinstance(d.get("parameters"), dict):  # `foamlab fit --json`
-                return cls.from_fit_parameters(d["parameters"])
+                return cls.from_fit_parameters(d["parameters"], d.get("form", "causal"))
             if "model" in d and isinstance(d["model"], dict):  # a fit result file
                 d = d["model"]
             dmp, res = d["damping"], d["residual"]
@@ -149,14 +160,17 @@ class ModelParameters:
                 residual_r=res["r"],
                 residual_beta=res["beta"],
                 description=d.get("description", ""),
+                residual_form=str(res.get("form", "causal")),
+                shared_orders=bool(res.get("shared_orders", False)),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise FoamlabError(f"model parameters: missing or malformed entry ({exc})") from None
 
     @classmethod
-    def from_fit_parameters(cls, parameters: dict) -> "ModelParameters":
+    def from_fit_parameters(cls, parameters: dict, form: str = "causal") -> "ModelParameters":
         """From the "parameters" object of `foamlab fit --json` (name -> {value, stderr}):
-        the flat names of names() plus x_scale_mm; the orders follow from the names."""
+        the flat names of names() plus x_scale_mm; the orders follow from the names; `form`
+        is the JSON's "form"."""
         try:
             v = {str(k): float(e["value"] if isinstance(e, dict) else e) for k, e in parameters.items()}
             P = max(int(k[1:]) for k in v if re.fullmatch(r"k\d+", k))
@@ -171,6 +185,8 @@ class ModelParameters:
                 residual_r=np.array([[v[f"r{c}_{i}"] for i in range(1, M + 1)] for c in range(1, C + 1)]).reshape(C, M),
                 residual_beta=np.array([[v[f"beta{c}_{i}"] for i in range(1, M + 1)]
                                         for c in range(1, C + 1)]).reshape(C, M),
+                residual_form=str(form),
+                shared_orders=any(isinstance(e, dict) and e.get("same_as") for e in parameters.values()),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise FoamlabError(f"model parameters: fit result incomplete or malformed ({exc})") from None

@@ -1,7 +1,8 @@
 """Total force of the combined model (Eq. 20a-f) for any displacement history.
 
-`evaluate` is the causal time-domain model used everywhere (identification's
-joint refinement, diagnosis, the simulator through SpecimenState). `closed_form`
+`evaluate` is the time-domain model used everywhere (identification's joint refinement,
+diagnosis, the simulator through SpecimenState); its residual is the causal Eq. 10 or, for
+``residual_form = 'paper'``, each cycle's Eq. 11 in x (docs/model.md). `closed_form`
 is the same model on the ideal triangular history evaluated with the paper's
 closed forms (Eqs. 9, 11, 12 and the exact piecewise-linear RL derivative); the
 two agree within the tolerance stated in docs/model.md (tests/test_model.py).
@@ -16,6 +17,7 @@ import numpy as np
 from foamlab.model.components import (
     damping_closed_form,
     elastic_force,
+    residual_static,
     rl_derivative_piecewise_linear,
 )
 from foamlab.model.history import HistoryLabels, label_history, labels_from_extrema
@@ -96,14 +98,34 @@ def evaluate(
         hered = HereditaryOperator(params.damping_a, params.damping_alpha)
         n_load = int(np.searchsorted(tk, t[p], side="right")) + 1 if not uniform else p + 1 - s
         damping[s:p + 1] = on_samples(hered.batch(h, xk[:min(n_load, len(xk))]), s, p + 1)
-        if p + 1 >= n:
+        if p + 1 >= n or params.residual_form == "paper":
             continue
         r, beta = params.residual_terms(k + 1)
         total = np.zeros(len(xk))
         for r_i, b_i in zip(r, beta):
             total += r_i * FractionalOperator(b_i, h_min=h, t_max=t_span).batch(h, xk)
         residual[p + 1:] += on_samples(total, p + 1, n)
+    if params.residual_form == "paper":
+        residual = paper_residual(params, t, x, labels)
     return ModelResponse(t, x, elastic_force(params, x), damping, residual, labels)
+
+
+def paper_residual(params: ModelParameters, t, x, labels: HistoryLabels) -> np.ndarray:
+    """The paper form's residual force: each cycle's Eq. 11 in x after its peak. Exact on
+    any samples (no memory): its strokes and periods are those of the labels' turning points."""
+    t, x = np.asarray(t, float), np.asarray(x, float)
+    residual = np.zeros(len(t))
+    for k, (s, p) in enumerate(zip(labels.starts, labels.peaks)):
+        r, beta = params.residual_terms(k + 1)
+        residual[p + 1:] += static_residual(r, beta, x[p + 1:] - x[s], x[p] - x[s], t[p] - t[s])
+    return residual
+
+
+def static_residual(r, beta, x_rel, stroke_mm: float, loading_s: float) -> np.ndarray:
+    """The paper form's residual of one cycle (Eq. 11 in x) at displacements x_rel from the
+    cycle's start: its stroke and its period, twice its loading time (Eq. 7's triangle)."""
+    values, _ = residual_static(x_rel, stroke_mm, 2.0 * loading_s, beta)
+    return values @ np.asarray(r, float)
 
 
 def triangular_history(amplitude_mm: float, rate_mm_s: float, n_cycles: int = 3,
@@ -137,6 +159,9 @@ def closed_form(params: ModelParameters, t, amplitude_mm: float, rate_mm_s: floa
         slopes = [v] + [(-2 * v if j % 2 else 2 * v) for j in range(1, 2 * (n_cycles - k))] + [v]
         active = (t > tk + T / 2) & (np.arange(len(t)) > peaks[k])
         r, beta = params.residual_terms(k + 1)
+        if params.residual_form == "paper":       # Eq. 11 itself, in every later half-cycle
+            residual += np.where(active, static_residual(r, beta, x, A, T / 2), 0.0)
+            continue
         for r_i, b_i in zip(r, beta):
             residual += np.where(active, r_i * rl_derivative_piecewise_linear(t, tk, corners, slopes, b_i), 0.0)
     return ModelResponse(t, x, elastic_force(params, x), damping, residual, labels)

@@ -9,6 +9,7 @@ import numpy as np
 
 from foamlab.model.operators import FractionalBank, FractionalOperator, HereditaryOperator
 from foamlab.model.params import ModelParameters
+from foamlab.model.response import static_residual
 
 
 @dataclass(frozen=True)
@@ -25,7 +26,7 @@ class ComponentForces:
 
 
 class SpecimenState:
-    """Causal, O(1) per step: the same operators and switching as model.evaluate.
+    """O(1) per step: the same operators, forms and switching as model.evaluate.
 
     Turning points are detected when x leaves its running extreme by more than
     deadband_mm (exact histories: the default); the extreme sample belongs to the
@@ -53,11 +54,16 @@ class SpecimenState:
         self._rows: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._active_cycles: set[int] = set()
         self._active_weights: dict[float, np.ndarray] = {}
+        # the paper form: per unloaded cycle (r, beta, x at its start, stroke, loading time)
+        self._static: list[tuple[np.ndarray, np.ndarray, float, float, float]] = []
+        self._start_t = self._ext_t = 0.0
 
     def _start_cycle(self) -> None:
         self._cycle += 1
-        self._x_ref = self._x
+        self._x_ref, self._start_t = self._x, self._t
         self._hered = HereditaryOperator(self.params.damping_a, self.params.damping_alpha)
+        if self.params.residual_form == "paper":
+            return                         # no memory: the cycle's Eq. 11 is known at its peak
         r, beta = self.params.residual_terms(self._cycle)
         for r_i, b_i in zip(r, beta):
             b_i = float(b_i)
@@ -78,7 +84,7 @@ class SpecimenState:
 
     def step(self, t: float, x: float) -> ComponentForces:
         if self._t is None:
-            self._t, self._x, self._ext_x = t, x, x
+            self._t, self._x, self._ext_x, self._ext_t = t, x, x, t
             return ComponentForces(float(elastic_force(self.params, x)), 0.0, 0.0, 0, 0)
         h = t - self._t
         # turning-point detection (same rule as history.label_history)
@@ -87,19 +93,25 @@ class SpecimenState:
             self._state = 1
         elif self._state == 1 and x < self._ext_x - self.deadband:
             self._state = -1
+            if self.params.residual_form == "paper":
+                r, beta = self.params.residual_terms(self._cycle)
+                self._static.append((r, beta, self._x_ref, self._ext_x - self._x_ref,
+                                     self._ext_t - self._start_t))
             self._active_cycles.add(self._cycle)
             self._update_active_weights()
             self._damping = 0.0
         if (self._state == 1 and x >= self._ext_x) or (self._state != 1 and x <= self._ext_x):
-            self._ext_x = x
+            self._ext_x, self._ext_t = x, t
         elif self._state == 0 and x < self._ext_x:
-            self._ext_x = x
+            self._ext_x, self._ext_t = x, t
         if self._state == 1 and self._hered is not None:
             self._damping = self._hered.step(h, x - self._x_ref)
         residual = 0.0
         for b, bank in self._banks.items():
             values = bank.step(h, x - self._rows[b][2])
             residual += float(self._active_weights[b] @ values)
+        for r, beta, x_ref, stroke, loading_s in self._static:
+            residual += float(static_residual(r, beta, [x - x_ref], stroke, loading_s)[0])
         self._t, self._x = t, x
         damping = self._damping if self._state == 1 else 0.0
         return ComponentForces(float(elastic_force(self.params, x)), damping, residual,

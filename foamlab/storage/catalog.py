@@ -20,10 +20,11 @@ import os
 import sqlite3
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 from foamlab import FoamlabError
 from foamlab.rundata import RunData
+from foamlab.runformat import is_run_file
 
 CATALOG_NAME = "catalog.sqlite"
 SIDECAR_KINDS = ("fit", "diagnosis")
@@ -90,6 +91,63 @@ def sidecar_path(run_path: str | Path, kind: str) -> Path:
         raise ValueError(f"sidecar kind must be one of {SIDECAR_KINDS}, not {kind!r}")
     p = Path(run_path)
     return p.with_name(f"{p.stem}.{kind}.json")
+
+
+@dataclass(frozen=True)
+class SidecarTarget:
+    """Where an analysis of a run is kept: beside a foamlab run file (and catalogued), in the
+    folder the user named, or nowhere - never beside someone else's export unasked."""
+
+    path: Path | None
+    ours: bool                    # the run is a foamlab run file (catalogued)
+    note: str = ""
+
+
+def sidecar_target(run_path: str | Path, kind: str, out_dir: str | Path | None = None) -> SidecarTarget:
+    run_path = Path(run_path)
+    try:
+        with open(run_path, encoding="utf-8-sig", errors="replace") as fh:
+            ours = is_run_file(fh.readline())
+    except OSError:
+        ours = False
+    if out_dir is not None:
+        out = Path(out_dir)
+        if not out.is_dir():
+            raise FoamlabError(f"--out {out}: not a folder")
+        return SidecarTarget(out / sidecar_path(run_path, kind).name, ours)
+    if ours:
+        return SidecarTarget(sidecar_path(run_path, kind), True)
+    return SidecarTarget(None, False, f"not a foamlab run file: nothing written beside it "
+                                      f"(--out DIR keeps the {kind})")
+
+
+@dataclass
+class Stored:
+    path: Path | None             # the sidecar written (None: nothing written)
+    catalog: Path | None          # the catalog it was indexed in, if any
+    note: str = ""                # why it was not written or not indexed
+
+
+def store_sidecar(run_path: str | Path, kind: str, out_dir: str | Path | None,
+                  write: Callable[[Path], None], index: "Callable[[Catalog, Path, Path], None]") -> Stored:
+    """Keep an analysis of a run where sidecar_target says (fit and diagnosis alike): ``write``
+    puts it at the path, ``index(catalog, run, sidecar)`` records it for a foamlab run file."""
+    run_path = Path(run_path)
+    target = sidecar_target(run_path, kind, out_dir)
+    if target.path is None:
+        return Stored(None, None, target.note)
+    try:
+        write(target.path)
+    except OSError as exc:
+        raise FoamlabError(f"{target.path}: cannot write the {kind} ({exc.strerror or exc})") from None
+    if not target.ours:
+        return Stored(target.path, None, "not a foamlab run file: not catalogued")
+    catalog_path = catalog_for_run(run_path)
+    if catalog_path is None:
+        return Stored(target.path, None, "no catalog for this folder ('foamlab catalog' indexes it later)")
+    with Catalog(catalog_path) as catalog:
+        index(catalog, run_path, target.path)
+    return Stored(target.path, catalog_path)
 
 
 @dataclass

@@ -36,7 +36,13 @@ from foamlab import FoamlabError, __version__
 from foamlab.importers import plain_csv
 from foamlab.importers._text import read_text
 from foamlab.rundata import RunData, Specimen
-from foamlab.runformat import BASE_COLUMNS, MAGIC, META_PREFIX, SPECIMEN_FIELDS, is_run_file
+from foamlab.runformat import (
+    BASE_COLUMNS,
+    MAGIC,
+    META_PREFIX,
+    SPECIMEN_FIELDS,
+    is_run_file,
+)
 
 DEFAULT_COLUMNS = BASE_COLUMNS + ("rtt_ms",)
 #: Written in this order at the top of the file, when present.

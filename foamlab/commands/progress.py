@@ -1,0 +1,35 @@
+"""What a long command is doing, on a terminal: stage, elapsed time and an estimate (rich).
+
+Quiet (a no-op) when stderr is not a terminal or the command prints JSON, so pipes and
+scripts get only their result. The callback has the shape fit_run and diagnose report in:
+``(stage: str, fraction: float in 0..1)``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+from typing import Callable, Iterator
+
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+Callback = Callable[[str, float], None]
+
+
+@contextlib.contextmanager
+def terminal_progress(title: str, quiet: bool = False) -> Iterator[Callback]:
+    """A progress callback shown on stderr while the block runs (nothing if quiet or piped)."""
+    if quiet or not sys.stderr.isatty():
+        yield lambda stage, fraction: None
+        return
+    bar = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f} %"),
+                   TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn(),
+                   console=Console(stderr=True), transient=True)
+    with bar:
+        task = bar.add_task(title, total=1.0)
+
+        def report(stage: str, fraction: float) -> None:
+            bar.update(task, completed=min(max(float(fraction), 0.0), 1.0), description=f"{title}: {stage}")
+
+        yield report

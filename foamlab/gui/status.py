@@ -1,0 +1,48 @@
+"""What the window says about a run that ended: one line, its colour, and the data-quality
+flags that go with it (plain words, with what they mean for the results)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from foamlab.gui.forms import ERROR_STYLE
+
+WARNING_STYLE = "color: #9A5B00; font-weight: bold;"
+OK_STYLE = ""
+
+#: Above this share of missed sample deadlines a run's curves have gaps that matter: the
+#: acquisition target of the engine (docs/acquisition.md: <= 0.5 % missed in CI).
+MISSED_WARN_FRACTION = 0.005
+
+
+@dataclass(frozen=True)
+class Flag:
+    """A data-quality problem: a short name, and what it means for the results."""
+
+    name: str
+    meaning: str
+
+
+def missed_fraction(n_samples: int, missed: int) -> float:
+    total = n_samples + missed
+    return missed / total if total else 0.0
+
+
+def missed_flag(n_samples: int, missed: int) -> Flag | None:
+    share = missed_fraction(n_samples, missed)
+    if share <= MISSED_WARN_FRACTION:
+        return None
+    return Flag(f"{share:.1%} of the samples missed ({missed} of {n_samples + missed})",
+                "the machine did not answer in time: the curves have gaps, and the fit and the method's "
+                "results may not describe the specimen; test it again.")
+
+
+def end_message(status: str, reason: str, n_samples: int, missed: int, where: str) -> tuple[str, str]:
+    """The run's last word and its style: red when aborted, amber when finished with gaps."""
+    if status != "finished":
+        return (f"Run aborted: {reason or 'no reason given'}. {n_samples} samples kept. Data: {where}",
+                ERROR_STYLE)
+    flag = missed_flag(n_samples, missed)
+    if flag is not None:
+        return f"Run finished with gaps: {flag.name}; {flag.meaning} Data: {where}", WARNING_STYLE
+    return f"Run finished: {n_samples} samples ({missed} missed). Data: {where}", OK_STYLE

@@ -1,0 +1,94 @@
+"""The residual form the data choose (`foamlab fit --form auto`, the default).
+
+The two forms of the residual force (docs/model.md) have the same parameters and the
+same count, so neither is favoured by its size: each is fitted in full and the one that
+predicts held-out blocks of the run better is kept (foamlab.analysis.heldout, the check
+diagnosis applies to its extensions). BIC is reported beside it; with equal parameter
+counts its difference is n log(RSS ratio), the same ranking on all the samples.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from foamlab.analysis.design import ExtendedModel
+from foamlab.analysis.heldout import heldout_rmse
+from foamlab.analysis.solve import Fit, at_full_resolution, decimation
+
+if TYPE_CHECKING:
+    from foamlab.identification.result import FitResult
+
+
+@dataclass(frozen=True)
+class FormScore:
+    """One form fitted to the run: how well it fits and how well it predicts."""
+
+    form: str
+    rmse: float                  # whole run, N
+    heldout_rmse: float          # every held-out block predicted by the model refitted without it, N
+    bic: float
+
+
+@dataclass(frozen=True)
+class FormChoice:
+    """Which residual form the fit uses, and why."""
+
+    chosen: str
+    scores: tuple[FormScore, ...]
+    forced: bool                 # the user named the form (--form): no choice was made
+
+    def score(self, form: str) -> FormScore | None:
+        return next((s for s in self.scores if s.form == form), None)
+
+    @property
+    def delta_bic(self) -> float | None:
+        """BIC of the best other form minus the chosen one's (> 0: the chosen is better)."""
+        others = [s.bic for s in self.scores if s.form != self.chosen]
+        mine = self.score(self.chosen)
+        return min(others) - mine.bic if others and mine else None
+
+    def reason(self) -> str:
+        mine = self.score(self.chosen)
+        if self.forced or mine is None or len(self.scores) < 2:
+            return f"{self.chosen} residual form (asked for with --form)"
+        others = ", ".join(f"{s.heldout_rmse:.4g} N {s.form}" for s in self.scores if s.form != self.chosen)
+        return (f"{self.chosen} residual form: it predicts held-out blocks better "
+                f"({mine.heldout_rmse:.4g} N vs {others}; dBIC {self.delta_bic:.1f})")
+
+
+def core_fit_of(result: "FitResult") -> Fit:
+    """The analysis core's fit behind a result; when identification kept its own optimum, the
+    core's model at those parameters (the linear ones and the contact set solved: what the
+    held-out check refits anyway, so no search is needed)."""
+    if result.core_fit is not None:
+        return result.core_fit
+    model = ExtendedModel([result.prepared.series], result.params)
+    return Fit([], model, np.zeros(0), np.zeros(0), model.solve())
+
+
+def score(result: "FitResult") -> FormScore:
+    return FormScore(result.params.residual_form, float(result.rmse), heldout_of(core_fit_of(result)),
+                     float(result.bic))
+
+
+def heldout_of(core: Fit) -> float:
+    """Held out on the search's samples (every k-th), as diagnosis does: the same prediction
+    error at a fraction of the cost (kept with the fit: asked again, it is not recomputed)."""
+    series = core.model.series
+    coarse = at_full_resolution(core, [s.decimated(decimation(series)) for s in series])
+    return heldout_rmse(core, coarse)
+
+
+def choose(results: list["FitResult"], forced: bool) -> "FitResult":
+    """The result whose form predicts held-out blocks best, with every form's score and the
+    others' results attached (the report shows both forms' statistics)."""
+    scores = [score(r) for r in results] if len(results) > 1 else [
+        FormScore(results[0].params.residual_form, float(results[0].rmse), float("nan"), float(results[0].bic))]
+    best = min(range(len(results)), key=lambda i: scores[i].heldout_rmse) if len(results) > 1 else 0
+    chosen = results[best]
+    chosen.form_choice = FormChoice(chosen.params.residual_form, tuple(scores), forced)
+    chosen.alternatives = [r for i, r in enumerate(results) if i != best]
+    return chosen
