@@ -79,6 +79,9 @@ NEAR_NOISE, AT_NOISE = 0.1, 0.005
 JOINT_CANDIDATES = 2
 #: ...and of those, this many carried to full resolution (the others are judged on the search's samples).
 FULL_CANDIDATES = 2
+#: A candidate whose likelihood-ratio gain over the base the fair comparison improved is above
+#: this is not refitted from that base (Procedure.refit_from_new_base): no rule turns on the rest.
+DECISIVE_CHI2 = 100.0
 #: Samples per run an effect the base imitates is fitted on from several starts (Procedure._imitated).
 MULTISTART_SAMPLES = int(1.6 * SEARCH_SAMPLES)
 #: ...when the search's single joint fit shows it (Delta BIC > 0) within this fraction of the
@@ -263,17 +266,21 @@ class Procedure:
         started from): the best ones jointly, the other polished ones briefly, the rest by a
         screening (alpha/beta held)."""
         accepted = [c.cause for c in self.findings]
+        cur = self.current
         for i, c in enumerate(sorted(polished, key=lambda c: -c.delta_bic)):
+            below = c.fit.rss < cur.rss
+            if below and cur.n * np.log(cur.rss / c.fit.rss) > DECISIVE_CHI2:
+                pass    # its own gain over the new base decides already: a refit changes no rule
             # a strong candidate still below the new base is refitted too: its gain over the old
             # base may be mostly the base's (alpha/beta it found by luck), and its effect's own
             # gain is only seen from the better base (docs/analysis.md, "Effects the base model imitates")
-            if c.cause in self.shown:
+            elif c.cause in self.shown:
                 # from the new base: the screening's start and the effect value found before
                 again = self._imitated(c.cause, self.current, c.fit, sizes=())
                 if c.fit.rss >= self.current.rss or again.rss < c.fit.rss:
                     c.fit = again
                 c.coarse_fit = self._coarse(c.fit)
-            elif c.fit.rss >= self.current.rss or i < FULL_CANDIDATES:
+            elif not below or i < FULL_CANDIDATES:
                 again = fit_joint(self.coarse, screen(self.coarse, current_coarse, accepted + [c.cause]),
                                   current_coarse, None if i < FULL_CANDIDATES else PROBE_NFEV)
                 full = self._full(again)
