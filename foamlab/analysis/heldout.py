@@ -17,8 +17,6 @@ HELDOUT_FOLDS = 6
 #: short, so no block just after a turning point decides the check alone (docs/analysis.md).
 HELDOUT_BLOCK_SAMPLES = 10
 HELDOUT_BLOCKS_PER_FOLD = 8
-#: Samples after each peak kept in every fit of the held-out check.
-HELDOUT_KEEP_AFTER_TURN = 1
 #: Iterations of the refit without the held-out blocks.
 HELDOUT_NFEV = 3
 
@@ -32,8 +30,7 @@ def folds(series: list[Series], n_folds: int = HELDOUT_FOLDS,
     what was fitted. Samples measured off the specimen stay in every fit: their force is
     the unloaded reading whatever the model, so they carry no information on its
     parameters, only where the plate leaves the specimen - a fit without them is free to
-    put contact there; so do the samples just after each peak (_just_after_turns)
-    (docs/analysis.md, "Held-out blocks")."""
+    put contact there (docs/analysis.md, "Held-out blocks")."""
     out = []
     for k in range(n_folds):
         masks = []
@@ -46,28 +43,9 @@ def folds(series: list[Series], n_folds: int = HELDOUT_FOLDS,
                 m[edges[b]:edges[b + 1]] = False
             if s.no_contact is not None:
                 m |= s.no_contact
-            m |= _just_after_turns(s)
             masks.append(m)
         out.append(masks)
     return out
-
-
-def _just_after_turns(s: Series) -> np.ndarray:
-    """The peaks and the HELDOUT_KEEP_AFTER_TURN samples after each (of the full series).
-
-    The residual terms switch on at a peak with a near-derivative response that only these
-    samples determine: a fit without them puts the force there anywhere (20-27 N off on a 2 Hz
-    run, for every model alike), and that one block decided the check (docs/analysis.md,
-    "Held-out blocks")."""
-    full = s.source
-    turns = np.asarray(full.labels.peaks, int)
-    turns = turns[(turns >= 0) & (turns < len(full.t))]
-    if not len(turns):
-        return np.zeros(len(s), dtype=bool)
-    near = np.zeros(len(full.t), dtype=bool)
-    for k in range(HELDOUT_KEEP_AFTER_TURN + 1):
-        near[np.clip(turns + k, 0, len(full.t) - 1)] = True
-    return near[s.samples]
 
 
 def heldout_rmse(fit: Fit, on: Fit | None = None, n_folds: int = HELDOUT_FOLDS) -> float:
