@@ -196,11 +196,11 @@ def hard_pairs(seeds: int, hz: float = 16.0, regimes: str = "AB") -> list[str]:
             print(f"  {regime} {size}: {dict(verdicts)} (left {shown})", file=sys.stderr, flush=True)
             rows.append(f"| {regime} | {name or '-'} | {size} | {shown} | {right}/{seeds} | "
                         f"{'; '.join(f'{v} {n}' for v, n in verdicts.most_common())} |")
-    return ([f"Runs of tests/independent_model.py (regimes A: ~285 N peak, B: ~445 N; three cycles at {hz:g} Hz, "
-             f"noise {im.NOISE_N} N) with an effect applied by hand (`independent_run`), seeds 300..{299 + seeds}. "
-             "'left' = what the base model does not absorb of the effect: (RSS of identification's fit with "
-             "it - without it, same noise) / sigma^2, mean over the seeds; about 18 is needed to name a "
-             "one-parameter cause (Delta BIC > 10).", "",
+    return ([(f"Runs of tests/independent_model.py (regimes A: ~285 N peak, B: ~445 N; three cycles at {hz:g} Hz, "
+              f"noise {im.NOISE_N} N) with an effect applied by hand (`independent_run`), seeds 300..{299 + seeds}. "
+              "'left' = what the base model does not absorb of the effect: (RSS of identification's fit with "
+              "it - without it, same noise) / sigma^2, mean over the seeds; about 18 is needed to name a "
+              "one-parameter cause (Delta BIC > 10)."), "",
              "| regime | hidden | size | left (chi2) | named | verdicts |", "|---|---|---|---:|---:|---|"] + rows)
 
 
@@ -222,8 +222,8 @@ def two_causes(seeds: int, hz: float) -> list[str]:
             print(f"  {combo} seed {700 + s}: {found[-1]}", file=sys.stderr, flush=True)
         hidden = " + ".join(f"{k} {physical(k, v)}" for k, v in combo.items())
         rows.append(f"| {hidden} | {both}/{seeds} | {'; '.join(found)} |")
-    return ([f"Two causes hidden together, the paper's three cycles at {hz:g} Hz, seeds 700..{699 + seeds}: "
-             "runs whose findings name both (the verdict is the first finding).", "",
+    return ([(f"Two causes hidden together, the paper's three cycles at {hz:g} Hz, seeds 700..{699 + seeds}: "
+              "runs whose findings name both (the verdict is the first finding)."), "",
              "| hidden | both named | findings per seed |", "|---|---:|---|"] + rows)
 
 

@@ -19,7 +19,7 @@ from foamlab.methods import load_method, method_toml, parse_method
 #: The default specimen's height: the paper's protocol compresses it to 80 % (58 mm).
 HEIGHT = 72.5
 #: The test protocol of tests/test_diagnosis.py: the paper's three cycles at 2 Hz.
-FAST = dict(sampling_hz=2.0)
+FAST = {"sampling_hz": 2.0}
 
 
 def _settles(effects: dict[str, float], seed: int, tmp_path, pair: set[str] | None = None):
@@ -65,7 +65,7 @@ def test_memory_lag_named_channel_lag_is_a_close_call_the_next_test_settles(tmp_
     """A memory_lag of 0.12 s at 2 Hz is named channel_lag, memory_lag 4 Delta BIC behind
     (docs/analysis.md, "Open"): the suggestion says it is a close call, and with the suggested
     run the two runs name memory_lag."""
-    d, s, both = _settles({"memory_lag": 0.12}, 15, tmp_path, {"channel_lag", "memory_lag"})
+    d, _, both = _settles({"memory_lag": 0.12}, 15, tmp_path, {"channel_lag", "memory_lag"})
     assert d.verdict == "channel_lag"
     assert both.verdict == "memory_lag", [(c.name, c.delta_bic, c.reason) for c in both.tested[0]]
 

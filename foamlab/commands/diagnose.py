@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _suggest(result, runs, where: str):
     """The next test (foamlab.diagnosis.suggest), its method written to `where` ('' = the default)."""
-    from foamlab.diagnosis.suggest import default_path, suggest  # noqa: PLC0415
+    from foamlab.diagnosis.suggest import default_path, suggest
 
     s = suggest(result, runs[0].specimen.height_mm)
     if s.made:

@@ -226,7 +226,7 @@ class Procedure:
         """An effect the base imitates, fitted from several starts (extend.multistart) on the runs
         decimated to about MULTISTART_SAMPLES (the search's decimation loses part of its handle,
         the samples at high force), then polished on every sample."""
-        k = max(1, int(round(max(len(s) for s in self.series) / MULTISTART_SAMPLES)))
+        k = max(1, round(max(len(s) for s in self.series) / MULTISTART_SAMPLES))
         fine = [s.decimated(k) for s in self.series] if k > 1 else self.series
         on = current if k == 1 else at_full_resolution(current, fine)
         found = multistart(fine, on, [c.cause for c in self.findings] + [cause], start, sizes)
