@@ -191,8 +191,72 @@ class Method:
     def describe(self) -> str:
         return f"{self.title} ({self.n_cycles} cycles, {self.sampling_hz:g} Hz)"
 
+    def history(self, height_mm: float, sampling_hz: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The nominal displacement history of the steps (t in s from the first step, x in mm
+        from contact), sampled at `sampling_hz` (default the method's): what the crosshead
+        is told to do, without the contact search and the park."""
+        plan = self.plan(height_mm)
+        corners_t = np.cumsum([0.0] + [p.duration_s for p in plan])
+        corners_x = np.array([plan[0].start_mm] + [p.end_mm for p in plan])
+        hz = sampling_hz or self.sampling_hz
+        t = np.arange(0.0, corners_t[-1] + 0.5 / hz, 1.0 / hz)
+        return t, np.interp(t, corners_t, corners_x)
+
     def compute_results(self, run: RunData) -> MethodResults:
         return compute_results(self, run)
+
+
+# --------------------------------------------------------------------------- writing
+
+def method_toml(method: Method, comment: str = "") -> str:
+    """The method as a TOML file load_method reads back (steps, contact, park, per-cycle results).
+
+    Consecutive identical cycles become one `[[sequence]]` with `repeat`; named result values
+    are not written (a suggested method has none)."""
+    lines = [f"# {line}".rstrip() for line in comment.splitlines()]
+    lines += [f"name = {_toml_str(method.name)}", f"title = {_toml_str(method.title)}"]
+    if method.reference:
+        lines.append(f"reference = {_toml_str(method.reference)}")
+    c = method.contact
+    lines += [f"sampling_hz = {method.sampling_hz:g}", "", "[contact]", f"preload_N = {c.preload_N:g}",
+              f"search_speed_mm_min = {c.search_speed_mm_min:g}", f"max_search_mm = {c.max_search_mm:g}",
+              "", "[park]", f"speed_mm_min = {method.park_speed_mm_min:g}"]
+    for label, repeat, steps in _sequences(method.steps):
+        lines += ["", "[[sequence]]", f"label = {_toml_str(label)}"] + ([f"repeat = {repeat}"] if repeat > 1 else [])
+        lines += ["steps = ["] + [f"  {_step_toml(s)}," for s in steps] + ["]"]
+    lines += ["", "[results]", "per_cycle = [" + ", ".join(_toml_str(q) for q in method.per_cycle) + "]"]
+    return "\n".join(lines) + "\n"
+
+
+def _sequences(steps: tuple[Step, ...]) -> list[tuple[str, int, list[Step]]]:
+    """Steps grouped by cycle and label (a leading dwell with the first), consecutive equal
+    groups counted."""
+    cycles: list[list[Step]] = []
+    for s in steps:
+        if s.action == "compress" or not cycles or s.label != cycles[-1][0].label:
+            cycles.append([])
+        cycles[-1].append(s)
+    out: list[tuple[str, int, list[Step]]] = []
+    for cyc in cycles:
+        key = [(s.action, s.strain, s.speed_mm_min, s.duration_s) for s in cyc]
+        if out and out[-1][0] == cyc[0].label and \
+                [(s.action, s.strain, s.speed_mm_min, s.duration_s) for s in out[-1][2]] == key:
+            out[-1] = (out[-1][0], out[-1][1] + 1, out[-1][2])
+        else:
+            out.append((cyc[0].label or "cycle", 1, cyc))
+    return out
+
+
+def _step_toml(s: Step) -> str:
+    if s.action == "compress":
+        return f'{{ action = "compress", strain = {s.strain:.4g}, speed_mm_min = {s.speed_mm_min:.4g} }}'
+    if s.action == "return":
+        return f'{{ action = "return", speed_mm_min = {s.speed_mm_min:.4g} }}'
+    return f'{{ action = "dwell", duration_s = {s.duration_s:.4g} }}'
+
+
+def _toml_str(text: str) -> str:
+    return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
 # --------------------------------------------------------------------------- loading

@@ -130,6 +130,32 @@ def test_damping_cycle_change_is_fitted_at_its_size():
     assert d.findings[0].values["values"]["d"] == pytest.approx(1.0, rel=0.1)
 
 
+#: Two causes hidden together (issue 16), one seed each: both must be findings in >= 3 of the 4.
+TWO_CAUSES = [
+    ({"cycle_softening": 0.03, "force_zero_drift": 0.003}, 21),
+    ({"channel_lag": 0.3, "direction_friction": 4.0}, 22),
+    ({"machine_compliance": 0.005, "cycle_softening": 0.03}, 23),
+    ({"damping_cycle_change": 1.0, "force_zero_drift": 0.003}, 24),
+]
+
+
+def test_two_causes_hidden_together_are_both_findings_each_with_its_own_gain():
+    both = []
+    for effects, seed in TWO_CAUSES:
+        d = diagnose([hidden_effect_run(effects, seed=seed, **FAST)])
+        names = [f.name for f in d.findings]
+        if set(effects) <= set(names):
+            both.append(names)
+        assert d.verdict == names[0] and names[0] in effects, _summary(d)
+        removed = [f.before.rss - f.fit.rss for f in d.findings]
+        assert removed == sorted(removed, reverse=True)        # best first: the verdict is the larger
+        for f in d.findings:                                   # each its own gain, on the model before it
+            gain = f.gain()
+            assert gain["rmse_after"] < gain["rmse_before"] and gain["delta_bic"] > 10
+            assert gain["heldout_rmse_after"] < gain["heldout_rmse_before"]
+    assert len(both) >= 3, both
+
+
 RECORDED_SOFTENING = Path(__file__).parent / "data" / "recorded" / "serial_cycle_softening_10pct.csv"
 
 

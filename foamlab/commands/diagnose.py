@@ -17,6 +17,8 @@ examples:
   foamlab diagnose Specimen_RawData_6.csv --json    # {"verdict": ..., "findings": [{"effect", "gain": {...}}, ...]}
   foamlab diagnose slow.csv fast.csv                # runs of one specimen at two speeds (rate_dependence)
   foamlab diagnose run.csv --report out/            # out/index.html with the figures
+  foamlab diagnose run.csv --suggest                # a close call? the next test, as ./suggested-run.toml
+  foamlab diagnose run.csv --suggest next.toml      # ...written to next.toml; then: foamlab run --method next.toml
 
 verdict: a cause of the catalogue (cycle_softening, damping_cycle_change, channel_lag,
 force_zero_drift, machine_compliance, direction_friction, rate_dependence), 'none' (the
@@ -53,6 +55,11 @@ def register(subparsers) -> None:
     p.add_argument("--out", metavar="DIR",
                    help="keep <run>.diagnosis.json in this folder (for an imported export nothing is "
                         "written unless --out is given)")
+    p.add_argument("--suggest", nargs="?", const="", metavar="FILE",
+                   help="when two causes are close (Delta BIC within 10, or both partial) or one needs another "
+                        "run (rate_dependence), rank the tests that would tell them apart and write the best "
+                        "as a method file for `foamlab run --method` (default ./suggested-<run>.toml, never "
+                        "overwriting: numbered instead)")
     p.set_defaults(func=run)
 
 
@@ -75,11 +82,19 @@ def run(args: argparse.Namespace) -> int:
     from foamlab.importers import load_run  # noqa: PLC0415
 
     causes = _causes(args.causes)
+    if args.suggest and not args.suggest.endswith(".toml"):
+        # `--suggest data.csv` would overwrite the data: a method file is a .toml
+        raise FoamlabError(f"--suggest {args.suggest}: the method file must end in .toml "
+                           "(put --suggest after the data paths)")
     runs = [load_run(p) for p in args.paths]
     with terminal_progress("diagnose", quiet=args.json) as report:
         result = diagnose(runs, causes=causes, progress=report, form=args.form)
     obj = result.to_dict()
     notes: list[str] = []
+    suggestion = None
+    if args.suggest is not None:
+        suggestion = _suggest(result, runs, args.suggest)
+        obj["suggestion"] = suggestion.to_dict()
     if args.report:
         from foamlab.diagnosis.report import write_report  # noqa: PLC0415
         page = write_report(result, args.report, title=", ".join(args.paths))
@@ -99,9 +114,25 @@ def run(args: argparse.Namespace) -> int:
             print(f"foamlab diagnose: {note}", file=sys.stderr)
     else:
         print(summary(result))
+        if suggestion is not None:
+            print("\n".join(suggestion.lines()))
         for note in notes:
             print(note)
     return 0
+
+
+def _suggest(result, runs, where: str):
+    """The next test (foamlab.diagnosis.suggest), its method written to `where` ('' = the default)."""
+    from foamlab.diagnosis.suggest import default_path, suggest
+
+    s = suggest(result, runs[0].specimen.height_mm)
+    if s.made:
+        path = where or default_path(result.series[0].name)
+        try:
+            s.write(path)
+        except OSError as exc:
+            raise FoamlabError(f"--suggest: cannot write {path}: {exc.strerror or exc}") from None
+    return s
 
 
 def summary(d) -> str:

@@ -44,6 +44,10 @@ class Cause:
     #: model's own terms, so an extension fitted from that base stays near zero: its fit is
     #: also restarted from identification on the data with the effect taken out.
     absorbed_by_identification: ClassVar[bool] = False
+    #: The base model imitates this effect by bending several of its own parameters at once
+    #: (alpha/beta with the linear ones), so a short joint probe from the base stays near zero:
+    #: it is always fitted jointly to convergence in the search, however its probe ranked.
+    imitated_by_base: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
@@ -193,6 +197,8 @@ class ForceZeroDrift(Cause):
 @register
 class MachineCompliance(Cause):
     effect = fx.MachineCompliance
+    # the elastic polynomial and the unloading's residual terms reshape to the specimen's curve
+    imitated_by_base = True
 
     @classmethod
     def scale(cls, series):
@@ -209,6 +215,9 @@ class MachineCompliance(Cause):
 @register
 class DirectionFriction(Cause):
     effect = fx.DirectionFriction
+    # a constant force in contact is the elastic k0, and a constant loading-only force is two
+    # damping modes of opposite sign: the base holds friction but for the loading's first 1/alpha
+    imitated_by_base = True
 
     @classmethod
     def scale(cls, series):

@@ -30,6 +30,8 @@ from foamlab.identification.paper import paper_steps
 SCREEN_NFEV, PROBE_NFEV, JOINT_NFEV = 10, 4, 20
 #: Iterations of the joint fit restarted from identification on corrected data.
 RESTART_NFEV = 12
+#: Multiples of its scale an effect the base imitates is started from in the search (multistart).
+MULTISTART_SIZES = (0.1, 1.0)
 
 
 def _settings(causes: list[type[Cause]], series: list[Series]) -> dict:
@@ -82,6 +84,35 @@ def fit_joint(series: list[Series], start: Fit, current: Fit, max_nfev: int | No
         # (a lag of seconds): the screening's fit is the extension's best, keep it
         return start
     return Fit.of(list(start.causes), model, best)
+
+
+def multistart(series: list[Series], current: Fit, causes: list[type[Cause]], start: Fit | None = None,
+               sizes: tuple[float, ...] = (), max_nfev: int = JOINT_NFEV) -> Fit:
+    """The joint fit of an effect the base imitates (Cause.imitated_by_base), from several starts.
+
+    The base bends alpha/beta and its linear terms to hold such an effect, so the joint
+    objective has a valley of local minima along the effect's size (compliance against the
+    elastic curve's shape): one start, from the screening, stops in the base's own basin.
+    Started also from ``sizes`` (multiples of the effect's scale) and from ``start``'s effect
+    value (a fit found from another base), the best is kept.
+    """
+    cause = causes[-1]
+    screened = screen(series, current, causes)
+    # the screening's own start: the search's joint probe has tried it already (start given there)
+    best = fit_joint(series, screened, current, max_nfev) if sizes == () or start is None else screened
+    model = model_like(screened, series, free_base=True)
+    lo, hi = cause.bounds()
+    scale = abs(cause.scale(series))
+    values = [side * m * scale for m in sizes for side in ((1.0, -1.0) if lo[0] < 0 < hi[0] else (1.0,))]
+    if start is not None:
+        values.append(float(start.eta[-1]))
+    for value in values:
+        eta0 = screened.eta.copy()
+        eta0[-1] = float(np.clip(value, lo[0], hi[0]))
+        fit = Fit.of(list(causes), model, varpro(model, model.start(eta0), max_nfev=max_nfev))
+        if fit.rss < best.rss:
+            best = fit
+    return best
 
 
 def without_last(series: list[Series], fit: Fit) -> Fit:
