@@ -14,9 +14,11 @@ Esc) is at hand in every state (foamlab.gui.dialogs).
 
 from __future__ import annotations
 
+import gc
 import logging
 from pathlib import Path
 
+from pyqtgraph.util.garbage_collector import GarbageCollector
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from foamlab import FoamlabError
@@ -122,6 +124,10 @@ class MainWindow(QtWidgets.QMainWindow):
         main.setStretchFactor(1, 1)
         self.setCentralWidget(main)
 
+        # Garbage is collected in the GUI thread only, on a timer (pyqtgraph's collector): a Qt
+        # object collected in the engine's or an analysis thread is destroyed through the GUI
+        # thread and can deadlock it (seen: a plot menu while a run started).
+        self.collector = GarbageCollector(interval=1.0)
         self.frame_timer = QtCore.QTimer(self)
         self.frame_timer.setInterval(int(1000 / FRAME_HZ))
         self.resize(1400, 900)
@@ -260,6 +266,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.display.predict(engine, method, self.predict_action.isChecked())
         self._status(f"{self._run_title} started")      # replaces any earlier e-stop or refusal
         self.tabs.setCurrentIndex(0)
+        # The engine collects garbage in its own thread as it starts (acquisition.engine): Qt
+        # objects the reset plots left in reference cycles (pyqtgraph's menus) must go here, in
+        # the GUI thread - destroyed from the engine's collection they deadlocked the window.
+        gc.collect()
         # Queued behind any idle poll still on its way, so the engine gets the machine to itself.
         self.link.submit(engine.start, None, self._on_start_failed)
         self.frame_timer.start()
@@ -468,6 +478,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.browser.queue.shutdown(wait=False)
         self.series_view.queue.shutdown(wait=False)
         self.link.shutdown()
+        self.collector.timer.stop()
+        gc.enable()                       # the process goes on without this window's collector
         event.accept()
 
     def _close_timeout(self) -> None:
