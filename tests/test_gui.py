@@ -115,7 +115,11 @@ def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
         assert w.results.statistics.rowCount() > 0
         assert w.plots.fit_fd is not None
         x_fit, _ = w.plots.fit_fd.getData()
-        assert len(x_fit) == len(analysis.fit.predicted_force_N) >= 0.99 * result.n_samples
+        # samples stamped off the schedule are left out of the fit (analysis.prepared.on_schedule):
+        # with the window drawing at speedup 8 on 2 cores, up to 1.7 % of them (27 of 1 566), on
+        # session 6's code as on this one
+        assert len(x_fit) == len(analysis.fit.predicted_force_N) >= 0.97 * result.n_samples
+        assert analysis.fit.prepared.off_schedule <= 0.03 * result.n_samples
         rows = list(csv.reader(w.export_csv(tmp_path / "results.csv").open(encoding="utf-8")))
         assert {"parameter", "statistic"} <= {r[0] for r in rows[1:]}
         # Then the diagnosis verdict (foamlab.diagnosis), computed off the GUI thread. A run

@@ -61,15 +61,6 @@ def test_friction_or_damping_change_settled(tmp_path):
     assert both.verdict == "direction_friction", [(c.name, c.delta_bic, c.reason) for c in both.tested[0]]
 
 
-def test_memory_lag_named_channel_lag_is_a_close_call_the_next_test_settles(tmp_path):
-    """A memory_lag of 0.12 s at 2 Hz is named channel_lag, memory_lag 4 Delta BIC behind
-    (docs/analysis.md, "Open"): the suggestion says it is a close call, and with the suggested
-    run the two runs name memory_lag."""
-    d, _, both = _settles({"memory_lag": 0.12}, 15, tmp_path, {"channel_lag", "memory_lag"})
-    assert d.verdict == "channel_lag"
-    assert both.verdict == "memory_lag", [(c.name, c.delta_bic, c.reason) for c in both.tested[0]]
-
-
 def test_method_file_round_trip_and_cli(tmp_path, capsys):
     """`--suggest FILE --json`: the JSON carries the suggestion, FILE is a method that loads."""
     run = hidden_effect_run({"rate_dependence": 0.5}, seed=62, height_mm=HEIGHT, sampling_hz=1.0)
