@@ -237,15 +237,13 @@ def _near_sources(src_t: np.ndarray, src_ds: np.ndarray, t: np.ndarray, b: np.nd
     smooth over a grid step, as the grid's own beyond NEAR_STEPS; taking every turning point for
     every sample made a 20-cycle run's columns grow with the square of its cycles. Padding sits
     after b (every lag negative: no term) with no slope change."""
-    lo = np.searchsorted(src_t, t - reach, side="left")
-    hi = np.searchsorted(src_t, b, side="left")
-    count = np.maximum(hi - lo, 0)
-    width = int(count.max()) if len(count) else 0
-    idx = lo[:, None] + np.arange(width)[None, :]
-    valid = np.arange(width)[None, :] < count[:, None]
-    idx = np.clip(idx, 0, max(len(src_t) - 1, 0))
     if not len(src_t):
         return np.zeros((len(t), 0)), np.zeros((len(t), 0))
+    lo = np.searchsorted(src_t, t - reach, side="left")
+    count = np.maximum(np.searchsorted(src_t, b, side="left") - lo, 0)
+    width = int(count.max()) if len(count) else 0
+    valid = np.arange(width)[None, :] < count[:, None]
+    idx = np.clip(lo[:, None] + np.arange(width)[None, :], 0, len(src_t) - 1)
     tau = np.where(valid, src_t[idx], (b + 1.0)[:, None])
     return tau, np.where(valid, src_ds[idx], 0.0)
 
