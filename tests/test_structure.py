@@ -10,7 +10,7 @@ import pytest
 from foamlab import FoamlabError
 from foamlab.analysis.basis import ModelBasis
 from foamlab.identification import fit_run
-from foamlab.identification.structure import CANCEL_RATIO, _cancelling
+from foamlab.identification.structure import CANCEL_RATIO, cancelling
 from foamlab.model import ModelParameters, evaluate, triangular_history
 from foamlab.model.layout import Layout, Orders
 from foamlab.rundata import RunData
@@ -77,16 +77,16 @@ def test_columns_of_a_long_run_on_a_coarse_grid_between_its_nodes(cycles):
     assert np.abs(coarse.force(lin, nl) - ref.force[rows]).max() <= 1e-4 * peak
 
 
-def test_cancelling_amplitudes_are_found_by_their_contributions():
+def testcancelling_amplitudes_are_found_by_their_contributions():
     """Two terms whose contributions cancel (a derivative in their order, not two terms), each
     larger than what both do, are a defect; the default specimen's terms of opposite sign (beta
     -0.1 and 0.4) are not."""
     t = np.linspace(0.01, 60.0, 400)
     lay = Layout(P=1, N=0, M=2, C=1)
     near = np.column_stack([np.ones_like(t), t, 200.0 * t ** 0.80, -200.0 * t ** 0.81])
-    assert _cancelling(lay, near) == [(2, 3, True)]
+    assert cancelling(lay, near) == [(2, 3, True)]
     default = np.column_stack([np.ones_like(t), t, -0.305 * t ** 1.1, 0.458 * t ** 0.6])
-    assert _cancelling(lay, default) == []
+    assert cancelling(lay, default) == []
     assert 0.0 < CANCEL_RATIO < 0.7          # 0.7: the default specimen's pair (docs)
 
 

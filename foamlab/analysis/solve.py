@@ -165,8 +165,14 @@ def model_like(fit: Fit, series: list[Series], free_base: bool | None = None) ->
     free = m.free_base if free_base is None else free_base
     return ExtendedModel(series, fit.params, m.effect_types, m.settings, effect_bounds=m.effect_bounds,
                          free_base=free,
-                         base_bounds=base_bounds(series, fit.params) if free else None,
+                         base_bounds=bounds_like(m, series, fit.params) if free else None,
                          masks=contact_of(fit, series))
+
+
+def bounds_like(m: ExtendedModel, series: list[Series], params: ModelParameters):
+    """A model's own bounds of alpha and beta where it has them (orders held there stay held:
+    identification.apart), else identification's."""
+    return m.base_bounds if m.base_bounds is not None else base_bounds(series, params)
 
 
 def at_full_resolution(fit: Fit, full: list[Series], polish_nfev: int = 0) -> Fit:
@@ -188,26 +194,30 @@ def solved_at(series: list[Series], params: ModelParameters) -> Fit:
     return Fit([], model, nu, np.zeros(0), model.solve(nu))
 
 
-def fit_base(series: list[Series], params: ModelParameters) -> Fit:
-    """The base model on all runs: identification's alpha/beta polished with the rest."""
-    model = ExtendedModel(series, params, [], free_base=True, base_bounds=base_bounds(series, params))
+def fit_base(series: list[Series], params: ModelParameters, bounds: tuple[np.ndarray, np.ndarray] | None = None
+             ) -> Fit:
+    """The base model on all runs: identification's alpha/beta polished with the rest (within
+    ``bounds``, default identification's)."""
+    model = ExtendedModel(series, params, [], free_base=True, base_bounds=bounds or base_bounds(series, params))
     return Fit.of([], model, varpro(model, model.start(), max_nfev=BASE_NFEV))
 
 
 def polish(series: list[Series], params: ModelParameters,
-           other_starts: Callable[[Fit], Iterable[ModelParameters]] | None = None) -> Fit:
+           other_starts: Callable[[Fit], Iterable[ModelParameters]] | None = None,
+           bounds: tuple[np.ndarray, np.ndarray] | None = None) -> Fit:
     """The base model on every sample of the runs, from ``params``: all of alpha and beta
     searched with the linear parameters, the contact set and the load cell's zero (on the
     decimated series, then polished on every sample). Identification's last step, and the
     base of a diagnosis of several runs.
 
     other_starts: given the first decimated fit, more starts to try (none when it needs
-    none); the best decimated fit is the one carried to every sample."""
+    none); the best decimated fit is the one carried to every sample. bounds: of alpha and
+    beta (default identification's; identification.apart holds orders with them)."""
     k = decimation(series)
     coarse = [s.decimated(k) for s in series]
-    best = fit_base(coarse, params)
+    best = fit_base(coarse, params, bounds)
     for start in (other_starts(best) if other_starts is not None else ()):
-        other = fit_base(coarse, start)
+        other = fit_base(coarse, start, bounds)
         if other.rss < best.rss:
             best = other
     return at_full_resolution(best, series, POLISH_NFEV if k > 1 else 0)

@@ -18,6 +18,7 @@ from foamlab.analysis.solve import (
     POLISH_NFEV,
     Fit,
     base_bounds,
+    bounds_like,
     contact_of,
     model_like,
     varpro,
@@ -43,6 +44,7 @@ def screen(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit
     then the effect parameters refined (cheap: only the linear parameters move with them)."""
     model = ExtendedModel(series, current.params, [c.effect for c in causes], _settings(causes, series),
                           effect_bounds={c.effect.name: c.bounds() for c in causes},
+                          base_bounds=current.model.base_bounds,     # orders held stay held when freed
                           masks=contact_of(current, series))
     prev = current.eta
     trials = [np.concatenate([prev, row]) for row in causes[-1].starts(series)]
@@ -120,7 +122,7 @@ def without_last(series: list[Series], fit: Fit) -> Fit:
     m = fit.model
     model = ExtendedModel(series, fit.params, m.effect_types[:-1], m.settings, effect_bounds=m.effect_bounds,
                           free_base=True,
-                          base_bounds=base_bounds(series, fit.params), masks=contact_of(fit, series))
+                          base_bounds=bounds_like(m, series, fit.params), masks=contact_of(fit, series))
     k = len(m.effect_types[-1].fitted_parameters())
     eta = fit.eta[:len(fit.eta) - k]
     return Fit.of(list(fit.causes[:-1]), model, varpro(model, model.start(eta), max_nfev=POLISH_NFEV))

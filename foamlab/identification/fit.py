@@ -38,6 +38,7 @@ from foamlab.identification.statistics import (
     parameter_uncertainty,
 )
 from foamlab.model import thermodynamic_checks
+from foamlab.identification.apart import hold_apart
 from foamlab.identification.forms import choose as forms_choose
 from foamlab.model.layout import BETA_HI, BETA_LO, RESIDUAL_FORMS, Orders, check_form, nonlinear_bounds
 from foamlab.rundata import RunData
@@ -254,13 +255,23 @@ def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, 
     jf = search.fit()
     report("polish on every sample", 0.8)
     base = _polished(fd, jf, search, paper, rival)
-    polished = _from_core(fd, jf, base)
+    # a form far off its rival's RMSE is not kept (forms.choose): its terms are not held apart
+    apart = hold_apart(fd, base) if base.rmse <= RIVAL_RATIO * rival else None
+    polished = _from_core(fd, jf, apart.fit, held=apart.held) if apart is not None else None
+    if polished is not None:
+        base = apart.fit
+    else:
+        apart, polished = None, _from_core(fd, jf, base)
     if polished is not None:
         jf = polished
     else:
         base = None
     report("statistics", 0.9)
-    return _result(fd, orders, paper, jf, time.perf_counter(), base)
+    result = _result(fd, orders, paper, jf, time.perf_counter(), base)
+    if apart is not None:      # the held orders by their names in the result (canonical order)
+        result.notes.append(apart.note({n: float(v) for n, v, free in zip(result.names, result.values, result.varied)
+                                        if not free and n.startswith("beta")}))
+    return result
 
 
 #: A polished fit further than this from the noise level, with structure left in its
@@ -292,16 +303,19 @@ def _orders(orders) -> Orders | None:
 CORNER_STEPS = 2.0
 
 
-def _from_core(fd: PreparedRun, jf: JointFit, base: Fit, reproduced: bool = True) -> JointFit | None:
+def _from_core(fd: PreparedRun, jf: JointFit, base: Fit, reproduced: bool = True,
+               held: np.ndarray | None = None) -> JointFit | None:
     """The core's polished base in identification's terms (canonical order, the zero offset in
     k0, the Jacobian of every free parameter at the solution); None when the polish found no
-    better optimum, or (reproduced) one the model's own evaluation cannot reproduce (see evaluable)."""
+    better optimum, or (reproduced) one the model's own evaluation cannot reproduce (see evaluable).
+    held: orders the base was fitted with held (identification.apart; fixed, and kept even
+    where the search's own fit had a lower residual: its terms cancel)."""
     lay = jf.layout
     sol = base.solution
     # the rows identification reports on: the cycles' samples the path determines
     rows = np.intersect1d(fd.observed, np.flatnonzero(fd.series.used))
     residual = sol.residuals[0][rows]
-    if not np.mean(residual ** 2) < np.mean(jf.residual ** 2):
+    if held is None and not np.mean(residual ** 2) < np.mean(jf.residual ** 2):
         return None
     theta, phi = sol.theta, base.model.split(base.nu)[0].copy()
     L = lay.n_linear
@@ -312,6 +326,8 @@ def _from_core(fd: PreparedRun, jf: JointFit, base: Fit, reproduced: bool = True
     at_bound = phi[im] <= AT_BOUND * nonlinear_bounds(lay.orders, lay.C, fd.loading_time_s)[1][im]
     fixed[im] = (jf.fixed_nonlinear[im] & (phi[im] <= REAL_MODE_RATIO * phi[im - 1])) | at_bound
     phi[fixed] = 0.0
+    if held is not None:
+        fixed |= held
     design = sol.designs[0][0][rows]                              # k, a, r columns, then the zero
     deriv = base.model.prediction_derivatives(base.nu, sol)[rows]
     out_of_contact = int(np.count_nonzero(~sol.masks[0][rows]))
@@ -374,7 +390,8 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
         stderr[i], flat_lower[i], flat_upper[i], varied[i] = stderr[j], flat_lower[j], flat_upper[j], varied[j]
         corr[i, :], corr[:, i] = corr[j, :], corr[:, j]
     notes = [f"{names[i]} = 0 (fixed): the data do not support an oscillation of damping mode "
-             f"{names[i][5:-3]} (BIC), so it is a real mode" for i in nl_idx[jf.fixed_nonlinear]]
+             f"{names[i][5:-3]} (BIC), so it is a real mode" for i in nl_idx[jf.fixed_nonlinear]
+             if names[i].startswith("alpha")]
 
     # what a load cell would read at every sample: the model's force, the unloaded reading
     # where the plate is off; exact (the core's columns: the Riemann-Liouville derivative of the

@@ -281,7 +281,8 @@ class FitResult:
             if n in self.tied:
                 lines.append(f"    {n:<11}{v:>14.6g}{'= ' + self.tied[n] + ' (shared orders)':>33}")
             elif n in self._fixed_names():
-                lines.append(f"    {n:<11}{v:>14.6g}{'(fixed: real mode)':>33}")
+                why = "(fixed: real mode)" if n.startswith("alpha") else "(held apart: see notes)"
+                lines.append(f"    {n:<11}{v:>14.6g}{why:>33}")
             elif math.isfinite(s):
                 rel = f"{abs(s / v) * 100:8.1f}%" if v != 0 else f"{'-':>9}"
                 lines.append(f"    {n:<11}{v:>14.6g}{s:>12.3g}{rel}{sa:>12.3g}")
@@ -317,6 +318,8 @@ class FitResult:
         return lines
 
     def _fixed_names(self) -> set[str]:
+        if self.varied is not None:
+            return {n for n, v in zip(self.names, self.varied) if not v}
         return {note.split(" ", 1)[0] for note in self.notes if "(fixed)" in note}
 
     def __str__(self) -> str:

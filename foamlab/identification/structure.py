@@ -415,7 +415,7 @@ def core_defects(core: Fit) -> tuple[list[str], list[int]]:
     theta = core.solution.theta
     phi = core.model.split(core.nu)[0]
     L = lay.n_linear
-    names = np.array(_design_names(lay) + _nonlinear_names(lay) + ["zero"])
+    names = np.array(_design_names(lay) + nonlinear_names(lay) + ["zero"])
     lo, hi = core.model.bounds()
     keep = np.concatenate([np.ones(L, bool), ~_real(lay, phi), [True]])
     values = np.concatenate([theta[:L], phi, theta[L:L + 1]])
@@ -436,7 +436,7 @@ def core_defects(core: Fit) -> tuple[list[str], list[int]]:
     bad = {_column_of_name(lay, str(n)) for n in undetermined} - {-1}
     rows = np.flatnonzero(core.solution.used[0])
     parts = core.solution.designs[0][0][rows, :L] * theta[None, :L]
-    for i, j, large in _cancelling(lay, parts):
+    for i, j, large in cancelling(lay, parts):
         defects.append(f"{names[i]} = {theta[i]:.4g} and {names[j]} = {theta[j]:.4g} "
                        + ("cancel" if large else "offset each other (each weaker than their component)"))
         bad.update((i, j))
@@ -503,7 +503,7 @@ def _moves(lay: Layout, nonlinear: np.ndarray, fixed: np.ndarray, weak: list[int
     return out
 
 
-def _cancelling(lay: Layout, parts: np.ndarray) -> list[tuple[int, int, bool]]:
+def cancelling(lay: Layout, parts: np.ndarray) -> list[tuple[int, int, bool]]:
     """Amplitude columns (damping with damping, residual with residual) whose contributions cancel,
     and whether they are large: each larger than what their whole component does (two weak terms
     offsetting each other are terms the data barely see, not a derivative held up by two large
@@ -542,7 +542,7 @@ def _column_of_name(lay: Layout, name: str) -> int:
     return -1
 
 
-def _nonlinear_names(lay: Layout) -> list[str]:
+def nonlinear_names(lay: Layout) -> list[str]:
     """As FitResult names them (a shared order by its first cycle's name)."""
     names = [f"alpha{i + 1}_{part}" for i in range(lay.N) for part in ("re", "im")]
     cycles = 1 if lay.shared else lay.C
