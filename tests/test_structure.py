@@ -77,7 +77,7 @@ def test_columns_of_a_long_run_on_a_coarse_grid_between_its_nodes(cycles):
     assert np.abs(coarse.force(lin, nl) - ref.force[rows]).max() <= 1e-4 * peak
 
 
-def testcancelling_amplitudes_are_found_by_their_contributions():
+def test_cancelling_amplitudes_are_found_by_their_contributions():
     """Two terms whose contributions cancel (a derivative in their order, not two terms), each
     larger than what both do, are a defect; the default specimen's terms of opposite sign (beta
     -0.1 and 0.4) are not."""
