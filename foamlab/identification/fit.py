@@ -256,6 +256,7 @@ def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, 
     report("polish on every sample", 0.8)
     base = _polished(fd, jf, search, paper, rival)
     # a form far off its rival's RMSE is not kept (forms.choose): its terms are not held apart
+    report("orders that coalesce held apart", 0.85)
     apart = hold_apart(fd, base) if base.rmse <= RIVAL_RATIO * rival else None
     polished = _from_core(fd, jf, apart.fit, held=apart.held) if apart is not None else None
     if polished is not None:
