@@ -73,11 +73,12 @@ def _diagnose_on(fit: FitResult, rest: list, causes: list[str] | None, progress:
     structure's fit where identification chose a smaller one: a smaller structure drops what its
     data do not determine, and where an effect the model lacks bends the larger one's terms into
     cancelling pairs it is the coarser fit (measured: memory_lag 0.3 s hidden, 2.6 N left against
-    0.53 N), on which the causes are not found; diagnosis judges them against all the model's terms."""
+    0.53 N), on which the causes are not found; diagnosis judges them against all the model's terms.
+    For the same reason it is the fit with every order free where identification held some apart."""
     fit = fit.largest or fit
     prepared = [fit.prepared] + rest
     if not rest and fit.core_fit is not None:
-        base = fit.core_fit
+        base = fit.free_core or fit.core_fit
     else:
         base = polish([p.series for p in prepared], fit.params)
     return diagnose_prepared(prepared, base, causes, progress=progress)

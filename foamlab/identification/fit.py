@@ -259,6 +259,7 @@ def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, 
     report("orders that coalesce held apart", 0.85)
     apart = hold_apart(fd, base) if base.rmse <= RIVAL_RATIO * rival else None
     polished = _from_core(fd, jf, apart.fit, held=apart.held) if apart is not None else None
+    free = base
     if polished is not None:
         base = apart.fit
     else:
@@ -270,6 +271,7 @@ def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, 
     report("statistics", 0.9)
     result = _result(fd, orders, paper, jf, time.perf_counter(), base)
     if apart is not None:      # the held orders by their names in the result (canonical order)
+        result.free_core = free
         result.notes.append(apart.note({n: float(v) for n, v, free in zip(result.names, result.values, result.varied)
                                         if not free and n.startswith("beta")}))
     return result

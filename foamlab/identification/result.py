@@ -117,6 +117,8 @@ class FitResult:
     noise_N: float = float("nan")     # the load cell's noise level estimated from the run
     prepared: PreparedRun | None = None   # the run as prepared for every fit (foamlab.analysis)
     core_fit: Fit | None = None           # the analysis core's fit: what diagnosis extends
+    free_core: Fit | None = None          # where orders were held apart (identification.apart): the
+                                          # fit with them free, diagnosis' base (all terms free)
     form_choice: FormChoice | None = None  # which residual form, and why (identification.forms)
     alternatives: list["FitResult"] = field(default_factory=list)   # the other forms' fits
     structure: StructureChoice | None = None   # the structures tried and the one chosen (or forced)
