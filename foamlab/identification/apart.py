@@ -19,8 +19,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from foamlab.analysis.design import Series
 from foamlab.analysis.prepared import PreparedRun
-from foamlab.analysis.solve import Fit, decimation, polish, solved_at
+from foamlab.analysis.solve import (
+    POLISH_NFEV,
+    Fit,
+    at_full_resolution,
+    decimation,
+    fit_base,
+    solved_at,
+)
 from foamlab.identification.statistics import information_criteria
 from foamlab.identification.structure import BIC_TIE, cancelling
 from foamlab.model.layout import BETA_HI, BETA_LO, Layout
@@ -56,26 +64,37 @@ class HeldApart:
 
 def hold_apart(fd: PreparedRun, free: Fit) -> HeldApart | None:
     """The free fit's coalesced residual pairs held apart (module docstring); None when it has
-    none or holding them costs more than BIC_TIE."""
+    none or holding them costs more than BIC_TIE. The rounds run on the decimated run (as the
+    search does), the last one is carried to every sample and judged there."""
+    if not coalesced(free):
+        return None
     lay = free.params.layout
+    coarse = [fd.series.decimated(decimation([fd.series]))]
     held = np.zeros(lay.n_nonlinear, bool)
-    fit = free
+    fit, reference = free, _bic(solved_at(coarse, free.params), held)
     for _ in range(ROUNDS):
         pairs = [p for p in coalesced(fit) if not held[list(p)].any()]
         if not pairs:
             break
         trial_held = held.copy()
-        phi = _placed(fd, fit, pairs, trial_held)
-        lo, hi = (b.copy() for b in free.model.base_bounds)
-        lo[trial_held], hi[trial_held] = phi[trial_held] - HOLD, phi[trial_held] + HOLD
-        lo, hi = np.minimum(lo, phi), np.maximum(hi, phi)
-        trial = polish([fd.series], fit.model.parameters(phi, fit.solution.theta), bounds=(lo, hi))
-        if _bic(trial, trial_held) > _bic(free, np.zeros_like(held)) + BIC_TIE:
+        phi = _placed(coarse, fit, pairs, trial_held)
+        trial = fit_base(coarse, fit.model.parameters(phi, fit.solution.theta), _holding(free, phi, trial_held))
+        if _bic(trial, trial_held) > reference + BIC_TIE:
             break
         fit, held = trial, trial_held
     if not held.any():
         return None
+    fit = at_full_resolution(fit, [fd.series], POLISH_NFEV)
+    if _bic(fit, held) > _bic(free, np.zeros_like(held)) + BIC_TIE:
+        return None
     return HeldApart(fit, held, (fit.rss - free.rss) / fd.noise_N ** 2)
+
+
+def _holding(free: Fit, phi: np.ndarray, held: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Identification's bounds of alpha and beta with the held ones pinned at phi."""
+    lo, hi = (b.copy() for b in free.model.base_bounds)
+    lo[held], hi[held] = phi[held] - HOLD, phi[held] + HOLD
+    return np.minimum(lo, phi), np.maximum(hi, phi)
 
 
 def coalesced(fit: Fit) -> list[tuple[int, int]]:
@@ -98,11 +117,10 @@ def coalesced(fit: Fit) -> list[tuple[int, int]]:
     return sorted(p for p in pairs if p[0] != p[1])
 
 
-def _placed(fd: PreparedRun, fit: Fit, pairs: list[tuple[int, int]], held: np.ndarray) -> np.ndarray:
+def _placed(coarse: list[Series], fit: Fit, pairs: list[tuple[int, int]], held: np.ndarray) -> np.ndarray:
     """The fit's alpha and beta with each pair's orders SPREAD apart about the centre where the
     decimated run fits best (linear parameters re-solved, the rest as fitted); marks them held."""
     phi = fit.model.split(fit.nu)[0].copy()
-    coarse = [fd.series.decimated(decimation([fd.series]))]
     half = SPREAD / 2
     for i, j in pairs:
         if held[i] or held[j]:
