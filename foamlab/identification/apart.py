@@ -27,6 +27,7 @@ from foamlab.analysis.solve import (
     at_full_resolution,
     decimation,
     fit_base,
+    polish,
     solved_at,
 )
 from foamlab.identification.statistics import information_criteria
@@ -85,6 +86,14 @@ def hold_apart(fd: PreparedRun, free: Fit) -> HeldApart | None:
     if not held.any():
         return None
     fit = at_full_resolution(fit, [fd.series], POLISH_NFEV)
+    # the polish on every sample can take another cycle's pair together: held too, once
+    extra = [p for p in coalesced(fit) if not held[list(p)].any()]
+    if extra:
+        more = held.copy()
+        phi = _placed(coarse, fit, extra, more)
+        trial = polish([fd.series], fit.model.parameters(phi, fit.solution.theta), bounds=_holding(free, phi, more))
+        if _bic(trial, more) <= _bic(fit, held):
+            fit, held = trial, more
     if _bic(fit, held) > _bic(free, np.zeros_like(held)) + BIC_TIE:
         return None
     return HeldApart(fit, held, (fit.rss - free.rss) / fd.noise_N ** 2)
