@@ -17,7 +17,7 @@ import pytest
 from PySide6 import QtCore
 
 from foamlab.gui.window import MainWindow
-from foamlab.model.effects import EffectChain, CycleSoftening
+from foamlab.model.effects import CycleSoftening, EffectChain
 from tests.gui_support import shut_window
 from tests.hil_support import assert_keeps_the_schedule, short_method
 
