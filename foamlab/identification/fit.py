@@ -10,8 +10,8 @@ evaluation at every sample -> statistics, uncertainty, checks.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import replace
-from typing import Callable
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -19,6 +19,8 @@ from threadpoolctl import threadpool_limits
 from foamlab.analysis.noise import AT_NOISE_RATIO, at_the_noise
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
 from foamlab.analysis.solve import Fit, model_like, polish
+from foamlab.identification.apart import HeldApart, hold_apart
+from foamlab.identification.forms import choose as forms_choose
 from foamlab.identification.joint import (
     AT_BOUND,
     MIN_CENSORED,
@@ -30,17 +32,22 @@ from foamlab.identification.joint import (
 )
 from foamlab.identification.paper import paper_steps
 from foamlab.identification.result import FitResult, TurnSamples
-from foamlab.identification.structure import forced, select
 from foamlab.identification.statistics import (
     GoodnessOfFit,
     autocorrelation_time,
     information_criteria,
     parameter_uncertainty,
 )
+from foamlab.identification.structure import forced, select
 from foamlab.model import thermodynamic_checks
-from foamlab.identification.apart import hold_apart
-from foamlab.identification.forms import choose as forms_choose
-from foamlab.model.layout import BETA_HI, BETA_LO, RESIDUAL_FORMS, Orders, check_form, nonlinear_bounds
+from foamlab.model.layout import (
+    BETA_HI,
+    BETA_LO,
+    RESIDUAL_FORMS,
+    Orders,
+    check_form,
+    nonlinear_bounds,
+)
 from foamlab.rundata import RunData
 
 Progress = Callable[[str, float], None]
@@ -188,9 +195,13 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, riv
     chosen = selection.chosen
     steps = paper if chosen.orders == largest else paper_steps(fd, chosen.orders)   # its Table 5
     jf, base = chosen.joint, _real_modes(chosen.core)
-    polished = _from_core(fd, jf, base)
+    held, apart = _held_apart(fd, jf, base, report)
+    free = base
+    polished = held if apart is not None else _from_core(fd, jf, base)
     unreproduced = polished is None and not np.isfinite(jf.residual).all()
-    if unreproduced:
+    if apart is not None:
+        base = apart.fit
+    elif unreproduced:
         # the model's evaluation (what the simulator runs) does not reproduce the core's fit; its
         # terms neither cancel nor escape the data (the selection's defects): the fit is kept
         polished = _from_core(fd, jf, base, reproduced=False)
@@ -198,6 +209,8 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, riv
         polished, base = jf, None
     report("statistics", 0.9)
     result = _result(fd, chosen.orders, steps, polished, time.perf_counter(), base)
+    if apart is not None:
+        _note_held(result, apart, free)
     if unreproduced:
         result.warnings.append("the model's own evaluation (what the simulator runs) does not reproduce this fit "
                                "within a tenth of its residual")
@@ -256,25 +269,38 @@ def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, 
     report("polish on every sample", 0.8)
     base = _polished(fd, jf, search, paper, rival)
     # a form far off its rival's RMSE is not kept (forms.choose): its terms are not held apart
-    report("orders that coalesce held apart", 0.85)
-    apart = hold_apart(fd, base) if base.rmse <= RIVAL_RATIO * rival else None
-    polished = _from_core(fd, jf, apart.fit, held=apart.held) if apart is not None else None
+    held, apart = _held_apart(fd, jf, base, report) if base.rmse <= RIVAL_RATIO * rival else (None, None)
     free = base
-    if polished is not None:
-        base = apart.fit
+    if apart is not None:
+        jf, base = held, apart.fit
     else:
-        apart, polished = None, _from_core(fd, jf, base)
-    if polished is not None:
-        jf = polished
-    else:
-        base = None
+        polished = _from_core(fd, jf, base)
+        if polished is not None:
+            jf = polished
+        else:
+            base = None
     report("statistics", 0.9)
     result = _result(fd, orders, paper, jf, time.perf_counter(), base)
-    if apart is not None:      # the held orders by their names in the result (canonical order)
-        result.free_core = free
-        result.notes.append(apart.note({n: float(v) for n, v, free in zip(result.names, result.values, result.varied)
-                                        if not free and n.startswith("beta")}))
+    if apart is not None:
+        _note_held(result, apart, free)
     return result
+
+
+def _held_apart(fd: PreparedRun, jf: JointFit, base: Fit, report: Progress) -> tuple[JointFit | None, HeldApart | None]:
+    """The core's fit with the orders that coalesce held apart (identification.apart), in
+    identification's terms; (None, None) when none are held."""
+    report("orders that coalesce held apart", 0.85)
+    apart = hold_apart(fd, base)
+    held = _from_core(fd, jf, apart.fit, held=apart.held) if apart is not None else None
+    return (held, apart) if held is not None else (None, None)
+
+
+def _note_held(result: FitResult, apart: HeldApart, free: Fit) -> None:
+    """The held orders said (by their names in the result: canonical order); the free fit kept
+    as diagnosis' base."""
+    result.free_core = free
+    result.notes.append(apart.note({n: float(v) for n, v, varied in zip(result.names, result.values, result.varied)
+                                    if not varied and n.startswith("beta") and n not in result.tied}))
 
 
 #: A polished fit further than this from the noise level, with structure left in its
@@ -444,7 +470,7 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
 def _turn_samples(evidence: np.ndarray, residual: np.ndarray) -> TurnSamples:
     at_turns = residual[~evidence]
     kept = residual[evidence] if evidence.any() else residual
-    return TurnSamples(int(len(at_turns)), float(np.sqrt(np.mean(kept ** 2))),
+    return TurnSamples(len(at_turns), float(np.sqrt(np.mean(kept ** 2))),
                        float(np.abs(at_turns).max()) if len(at_turns) else 0.0)
 
 
