@@ -249,6 +249,10 @@ class FitResult:
                      f"{shared}:")
         for p in params:
             lines.append(f"    {p.name:<11}{p.value:>13.5g} +/- {p.stderr:<10.2g} {p.unit}")
+        held = [p for p in own if not p.varied and p.name.startswith("beta")]
+        if held:       # identification.apart
+            lines.append("  orders held apart, not fitted (their terms coalesce; the data determine their sum): "
+                         + ", ".join(f"{p.name} {p.value:.3g}" for p in held))
         failed = [k for k, ok in self.constraints.items() if not ok]
         if failed:
             lines.append("  thermodynamic checks failed: " + ", ".join(failed))
