@@ -48,6 +48,12 @@ class Cause:
     #: (alpha/beta with the linear ones), so a short joint probe from the base stays near zero:
     #: it is always fitted jointly to convergence in the search, however its probe ranked.
     imitated_by_base: ClassVar[bool] = False
+    #: Multiples of its scale such an effect is started from (extend.multistart); None: MULTISTART_SIZES.
+    multistart_sizes: ClassVar[tuple[float, ...] | None] = None
+    #: The effect lives within about one step of the search's decimated samples (a lag of tens
+    #: of ms at 16 Hz), where the search cannot see it: it is always fitted from several starts
+    #: on the finer samples (Procedure._imitated) when the search decimates.
+    finer_than_search: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
@@ -159,6 +165,10 @@ class DampingCycleChange(Cause):
 @register
 class ChannelLag(Cause):
     effect = fx.ChannelLag
+    # a 50 ms lag at 16 Hz (0.8 of a sample) gave Delta BIC 36-72 from the true value on every
+    # sample of regime A, and < 0 in the search's decimated joint fit (docs/analysis.md)
+    finer_than_search = True
+    multistart_sizes = (0.025, 0.1)          # x 20 steps: half a step and two steps, both signs
 
     @classmethod
     def scale(cls, series):
