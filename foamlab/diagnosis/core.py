@@ -207,7 +207,7 @@ class Procedure:
         self.shown = set()
         reach = MULTISTART_REACH * max((c.delta_bic for c in coarse_cands), default=0.0)
         for i, c in enumerate(coarse_cands):
-            if (c.cause.finer_than_search and self.k > 1) or (
+            if c.cause.always_multistart or (
                     c.cause.imitated_by_base and 0 < c.delta_bic and (c.delta_bic >= reach or i == 0)):
                 # one joint fit from the base stays in the base's basin: several starts (_imitated),
                 # where the search's joint fit shows the effect and it could lead this round
