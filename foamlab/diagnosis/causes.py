@@ -130,6 +130,13 @@ class CycleSoftening(Cause):
         return None
 
     @classmethod
+    def bounds(cls):
+        # softening only (Mullins damage does not heal within a test): a 0.1 %/cycle hardening is
+        # how a 1 000 N/mm frame reads (later, lower peaks stretch the frame less; regime A)
+        lo, hi = cls.effect.bounds()
+        return np.maximum(lo, 0.0), hi
+
+    @classmethod
     def scale(cls, series):
         return 0.1
 
