@@ -51,8 +51,9 @@ class Cause:
     #: Multiples of its scale such an effect is started from (extend.multistart); None: MULTISTART_SIZES.
     multistart_sizes: ClassVar[tuple[float, ...] | None] = None
     #: The base holds this effect in its own terms from the base's start at any size the search
-    #: gives it (a lag of under one sample: the damping modes take it): it is always fitted from
-    #: several starts on the finer samples (Procedure._imitated), whatever the search's fit showed.
+    #: gives it (a lag of under one sample: the damping modes take it): in the first round it is
+    #: always fitted from several starts on the finer samples (Procedure._imitated), whatever the
+    #: search's fit showed.
     always_multistart: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs) -> None:
