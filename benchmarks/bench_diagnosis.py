@@ -132,31 +132,12 @@ def physical(name: str, magnitude: float) -> str:
 
 # ----------------------------------------------------------------------------- the hard pairs
 
-def independent_run(regime: str, seed: int, hz: float = 16.0, *, compliance: float = 0.0,
-                    friction: float = 0.0, lag_s: float = 0.0, noise_scale: float = 1.0):
-    """A run of tests/independent_model.py with an effect applied by hand (its own arithmetic,
-    not foamlab.model.effects): friction +f while loading and -f while unloading where the
-    specimen pushes; lag: the force read lag_s late (linear interpolation); compliance: the
-    specimen follows the generator's triangle and the crosshead travels the frame's deflection
-    C F on top (measured displacement = specimen's + C F, to the encoder's 1 um)."""
+def independent_run(regime: str, seed: int, hz: float = 16.0, **effect):
+    """A run of tests/independent_model.py with an effect applied by hand, in its own arithmetic
+    (independent_model.run_with_effect: compliance, friction, lag_s)."""
     import independent_model as im
 
-    from foamlab.rundata import RunData
-
-    reg = im.REGIMES[regime].with_(sampling_hz=hz)
-    run = im.generate(reg, seed)
-    t, x = run.time_s.copy(), run.displacement_mm.copy()
-    total = run.model.force
-    force = np.maximum(total, 0.0)
-    if friction:
-        direction = np.where(run.model.hist.loading, 1.0, -1.0)
-        force = np.where(total > 0, np.maximum(force + friction * direction, 0.0), 0.0)
-    if lag_s:
-        force = np.interp(t - lag_s, t, force)
-    noise = (run.force_N - run.true_force_N) * noise_scale
-    if compliance:
-        x = np.round((x + compliance * force) / reg.quantum_mm) * reg.quantum_mm
-    return RunData(t, x, force + reg.zero_offset_N + noise, source=f"independent {regime} seed {seed}")
+    return im.run_with_effect(regime, seed, hz, **effect)
 
 
 HARD = [(None, {}), ("machine_compliance", {"compliance": 1e-3}), ("machine_compliance", {"compliance": 5e-4}),

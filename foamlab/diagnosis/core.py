@@ -207,12 +207,14 @@ class Procedure:
         self.shown = set()
         reach = MULTISTART_REACH * max((c.delta_bic for c in coarse_cands), default=0.0)
         for i, c in enumerate(coarse_cands):
-            if c.cause.imitated_by_base and 0 < c.delta_bic and (c.delta_bic >= reach or i == 0):
+            if (c.cause.always_multistart and not self.findings) or (
+                    c.cause.imitated_by_base and 0 < c.delta_bic and (c.delta_bic >= reach or i == 0)):
                 # one joint fit from the base stays in the base's basin: several starts (_imitated),
                 # where the search's joint fit shows the effect and it could lead this round
-                # (a weaker one is retried on top of the finding; docs/analysis.md, "Cost")
+                # (a weaker one is retried on top of the finding; docs/analysis.md, "Cost"); one the
+                # base holds at any size always in the first round (on top of a finding: its cost)
                 self.shown.add(c.cause)
-                fit = self._imitated(c.cause, self.current, c.fit)
+                fit = self._imitated(c.cause, self.current, c.fit, c.cause.multistart_sizes or MULTISTART_SIZES)
                 cands.append(Candidate(c.cause, fit, self.current, coarse_fit=self._coarse(fit)))
             elif (i < FULL_CANDIDATES and c.delta_bic > 0) or c.delta_bic > DELTA_BIC_MIN:
                 cands.append(Candidate(c.cause, self._full(c.fit), self.current, coarse_fit=c.fit))
