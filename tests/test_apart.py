@@ -27,13 +27,13 @@ def _held(result) -> dict[str, float]:
 
 def test_coalesced_orders_are_held_apart_where_the_run_fits_best():
     """The default specimen at 8 Hz, 0.1 N, polished from orders that coalesce (two terms of each
-    cycle at -0.24): it stays there, amplitudes cancelling; held apart, no pair coalesces but the
+    cycle at -0.3): it stays there, amplitudes cancelling; held apart, no pair coalesces but the
     held ones, each held pair SPREAD apart, at a BIC within BIC_TIE of the free fit's."""
     p = ModelParameters.default()
     t, x = triangular_history(A, RATE, 3, 8.0)
     run = RunData(t, x, evaluate(p, t, x).measured_force + np.random.default_rng(11).normal(0.0, 0.1, len(t)))
     fd = prepare(run, A)
-    free = polish([fd.series], replace(p, residual_beta=np.array([[-0.24, -0.239, 0.786]] * 3)))
+    free = polish([fd.series], replace(p, residual_beta=np.array([[-0.3, -0.299, 0.786]] * 3)))
     assert coalesced(free), "the premise: polished from there, the orders stay together"
     apart = hold_apart(fd, free)
     assert apart is not None

@@ -53,6 +53,9 @@ NEAR_STEPS = 16
 #: large, and what the line misses of it decays slowly for orders near 1 (the kernel's
 #: curvature as lag^(nu - 2)); few turns lie within this reach, so it costs little.
 TURN_REACH_STEPS = 256
+#: Turning points x grid nodes up to which every turning point's term is exact at every node
+#: (a 3-cycle run with turns between samples: 6 x 14 000; 20 cycles: 40 x 23 000).
+EXACT_SOURCE_NODES = 200_000
 #: Cached operator outputs are cleared beyond this many entries or bytes (a long run's
 #: full-resolution columns are ~1 MB each: a count alone let a 20-cycle fit hold ~0.5 GB).
 CACHE_LIMIT = 512
@@ -172,7 +175,7 @@ class _Fractional:
         # it the nodes get the exact term instead (_NearNodes). Every turning point at every node
         # grew with cycles x samples (a 50-cycle run: 3.6 of its fit's 18 s)
         split, self.near_nodes = _NearNodes.of(grid_t, self.src_t, self.src_ds, TURN_REACH_STEPS)
-        self.d_hat = sfft.rfft((self.d_grid + split)[:-1], self.nfft)
+        self.d_hat_split = sfft.rfft((self.d_grid + split)[:-1], self.nfft)
         # where each observed sample's value comes from: a grid node, or between two nodes their
         # line, corrected by what it misses of the sources near before the sample (all the
         # turning points, the last NEAR_STEPS grid nodes): after a corner the memory has a cusp,
@@ -200,6 +203,16 @@ class _Fractional:
         # grid nodes whose value is used, and the turning points' terms there
         used = np.union1d(self.at_grid_idx, np.concatenate([i0, i0 + 1]))
         self.used = np.clip(used, 0, n - 1).astype(int)
+        # exact at every node after each turning point where that is affordable (every run of a
+        # few cycles: what the identification and diagnosis tests were tuned on; their edge cases
+        # moved with the split's 1e-5 N), the split (_NearNodes) beyond
+        self.exact = len(self.src_t) * len(self.used) <= EXACT_SOURCE_NODES
+        if self.exact:
+            self.lag_src_grid = _Lags(grid_t[None, self.used] - self.src_t[:, None])
+            self.d_hat = sfft.rfft(self.d_grid[:-1], self.nfft)
+        else:
+            self.d_hat = self.d_hat_split
+        del self.d_hat_split
 
     def columns(self, betas: np.ndarray, derivative: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """D^beta on the observed rows for each beta (rows x M) and, with derivative,
@@ -214,7 +227,13 @@ class _Fractional:
             psi = digamma(nu + 1.0)
             kern = np.vstack([kern, -kern * (self.log_m_h[None, :] - psi[:, None])])
         missed = self.missed.values(nu, lg, psi)
-        out = self._assemble(kern, self.near_nodes.values(nu, lg, psi), missed)
+        if self.exact:
+            near = self.lag_src_grid.power(nu, lg)
+            if derivative:
+                near = np.concatenate([near, self.lag_src_grid.dbeta(near, psi)])
+        else:
+            near = self.near_nodes.values(nu, lg, psi)
+        out = self._assemble(kern, near, missed)
         return (out[:, :m], out[:, m:]) if derivative else (out, None)
 
     def _assemble(self, kern, near, missed) -> np.ndarray:
@@ -222,8 +241,12 @@ class _Fractional:
         y = np.zeros((K, self.n))
         spec = self.d_hat[None, :] * sfft.rfft(kern, self.nfft, axis=1)
         y[:, 1:] = sfft.irfft(spec, self.nfft, axis=1)[:, :self.n - 1]
-        for k in range(K):
-            y[k] += self.near_nodes.at_nodes(near[k], self.n)
+        if self.exact:
+            if len(self.src_t):
+                y[:, self.used] += np.einsum("ksu,s->ku", near, self.src_ds)
+        else:
+            for k in range(K):
+                y[k] += self.near_nodes.at_nodes(near[k], self.n)
         out = np.empty((len(self.rows), K))
         out[self.at_grid] = y[:, self.at_grid_idx].T
         if len(self.between):
