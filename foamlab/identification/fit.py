@@ -57,7 +57,7 @@ ZERO_T_VALUE = 1.96
 
 
 def fit_run(run: RunData, orders: Orders | str | tuple | None = None, progress: Progress | None = None,
-            x_scale_mm: float | None = None, form: str = "auto") -> FitResult:
+            x_scale_mm: float | None = None, form: str = "auto", hold: bool = True) -> FitResult:
     """Identify the model's parameters from one run (any importer's RunData).
 
     orders: Orders(N, M, P[, C]), 'N,M,P' or a tuple; None (default): LARGEST (3,3,7,3); 'auto':
@@ -67,15 +67,17 @@ def fit_run(run: RunData, orders: Orders | str | tuple | None = None, progress: 
     x_scale_mm: the elastic polynomial's scale (default: the run's largest compression).
     form: the residual form, 'causal' or 'paper', or 'auto': both fitted, the one that
     predicts held-out blocks better kept (identification.forms).
+    hold: orders that coalesce held apart (identification.apart: what the report says); a
+    forecast, which needs only the force, skips it (it costs a polish on every sample).
     Raises FoamlabError (one line, what is missing) for runs that cannot be identified.
     """
     report = progress or (lambda stage, fraction: None)
     report("segmenting the run", 0.0)
-    return fit_prepared(prepare(run, x_scale_mm=x_scale_mm), orders, progress, form)
+    return fit_prepared(prepare(run, x_scale_mm=x_scale_mm), orders, progress, form, hold)
 
 
 def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
-                 progress: Progress | None = None, form: str = "auto") -> FitResult:
+                 progress: Progress | None = None, form: str = "auto", hold: bool = True) -> FitResult:
     """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run."""
     select = isinstance(orders, str) and orders.strip().lower() == AUTO_ORDERS
     given = None if select else (_orders(orders) or LARGEST)
@@ -94,20 +96,21 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
         def scaled(stage: str, fraction: float, i=i, f=f) -> None:
             report(f"{f} form: {stage}" if len(forms) > 1 else stage, (i + fraction) / steps)
         rival = min((r.rmse for r in results), default=np.inf)
-        results.append(_fit_placed(fd, replace(orders, form=f), select and len(forms) == 1, scaled, paper, rival))
+        results.append(_fit_placed(fd, replace(orders, form=f), select and len(forms) == 1, scaled, paper, rival,
+                                   hold))
     chosen = forms_choose(results, forced=form != "auto")
     if select and len(forms) > 1:
         choice, alternatives = chosen.form_choice, chosen.alternatives
         chosen = _fit_placed(fd, replace(orders, form=choice.chosen), True,
                              lambda stage, fraction: report(f"structure: {stage}", (steps - 1 + fraction) / steps),
-                             paper)
+                             paper, hold=hold)
         chosen.form_choice, chosen.alternatives = choice, alternatives
     chosen.elapsed_s = time.perf_counter() - started
     return chosen
 
 
 def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progress, paper,
-                rival: float = np.inf) -> FitResult:
+                rival: float = np.inf, hold: bool = True) -> FitResult:
     """One form's fit (select: of the structure the data determine, from orders down), with its
     turning points placed where the samples say.
 
@@ -116,11 +119,11 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
     model switches at the turn, so the samples next to it show which. When they are off by
     more than TURN_MISFIT_MULTIPLE times the noise and their neighbours, the other is fitted too
     and the better kept."""
-    result = _fit_prepared(fd, orders, select, progress, paper, rival)
+    result = _fit_prepared(fd, orders, select, progress, paper, rival, hold)
     at_turns, around = _misfit_at_turns(result, fd)
     if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around):
         # the structure the data chose, with the turns placed the other way
-        other = _fit_prepared(fd.other_turns(), result.orders, False, progress)
+        other = _fit_prepared(fd.other_turns(), result.orders, False, progress, hold=hold)
         other.structure = result.structure
         where = "between samples" if other.prepared.nodes.between_samples else "at the sample at the extreme"
         if other.rmse < result.rmse:
@@ -148,7 +151,7 @@ def _misfit_at_turns(result: FitResult, fd: PreparedRun) -> tuple[float, float]:
 
 
 def _fit_prepared(fd: PreparedRun, orders: Orders, select: bool, progress: Progress | None,
-                  paper=None, rival: float = np.inf) -> FitResult:
+                  paper=None, rival: float = np.inf, hold: bool = True) -> FitResult:
     """One form's fit (select: of the structure the data determine). rival: the RMSE another
     form already reached; a first optimum further than RIVAL_RATIO from it gets no extra starts
     (they refine a local optimum's last percent, not a model twice off the data)."""
@@ -162,16 +165,17 @@ def _fit_prepared(fd: PreparedRun, orders: Orders, select: bool, progress: Progr
         report("joint refinement", 0.3)
         if not select:
             search = JointSearch(fd, orders, paper.start, report)
-            result = _fit_structure(fd, orders, paper, search, report, rival)
+            result = _fit_structure(fd, orders, paper, search, report, rival, hold)
             result.structure = forced(orders)
         else:
-            result = _fit_selected(fd, orders, paper, report, rival)
+            result = _fit_selected(fd, orders, paper, report, rival, hold)
         result.elapsed_s = time.perf_counter() - started
     report("done", 1.0)
     return result
 
 
-def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, rival: float = np.inf) -> FitResult:
+def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, rival: float = np.inf,
+                  hold: bool = True) -> FitResult:
     """The structure the data determine (identification.structure), carried to every sample."""
 
     def core_fit(orders: Orders, optima, given: bool):
@@ -195,7 +199,7 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, riv
     chosen = selection.chosen
     steps = paper if chosen.orders == largest else paper_steps(fd, chosen.orders)   # its Table 5
     jf, base = chosen.joint, _real_modes(chosen.core)
-    held, apart = _held_apart(fd, jf, base, report)
+    held, apart = _held_apart(fd, jf, base, report) if hold else (None, None)
     free = base
     polished = held if apart is not None else _from_core(fd, jf, base)
     unreproduced = polished is None and not np.isfinite(jf.residual).all()
@@ -262,14 +266,14 @@ def _polished(fd: PreparedRun, jf: JointFit, search: JointSearch, paper, rival: 
 
 
 def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, report: Progress,
-                   rival: float = np.inf) -> FitResult:
+                   rival: float = np.inf, hold: bool = True) -> FitResult:
     """One structure: the search's best optimum polished, then carried to every sample by the
     analysis core."""
     jf = search.fit()
     report("polish on every sample", 0.8)
     base = _polished(fd, jf, search, paper, rival)
     # a form far off its rival's RMSE is not kept (forms.choose): its terms are not held apart
-    held, apart = _held_apart(fd, jf, base, report) if base.rmse <= RIVAL_RATIO * rival else (None, None)
+    held, apart = _held_apart(fd, jf, base, report) if hold and base.rmse <= RIVAL_RATIO * rival else (None, None)
     free = base
     if apart is not None:
         jf, base = held, apart.fit

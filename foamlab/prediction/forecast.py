@@ -168,7 +168,7 @@ def make_forecast(prefix: RunData, plan: list[PlannedStep], after_cycle: int, sa
     """Identify the model on `prefix` (the run's cycles 1..after_cycle) and predict the rest
     of the plan. Raises FoamlabError (one line) when the prefix cannot be identified."""
     started = time.perf_counter()
-    fit = fit_run(prefix)
+    fit = fit_run(prefix, hold=False)       # the force is all a forecast needs
     check_fit(fit, after_cycle)
     t_f, x_f, steps_f = planned_future(plan, after_cycle, float(prefix.time_s[-1]), sampling_hz)
     t = np.concatenate([prefix.time_s, t_f])
@@ -198,7 +198,7 @@ def neighbours_spread(prefix: RunData, force: np.ndarray, t: np.ndarray, x: np.n
     spread = np.zeros(len(t))
     for orders in NEIGHBOURS:
         try:
-            fit = fit_run(prefix, orders=orders)
+            fit = fit_run(prefix, orders=orders, hold=False)
             check_fit(fit, 0)
         except FoamlabError:
             continue
@@ -339,7 +339,7 @@ def forecast_scores(run: RunData, method=None) -> ForecastScores:
 
 def _fit_only(prefix: RunData, after_cycle: int, sampling_hz: float) -> Forecast:
     started = time.perf_counter()
-    fit = fit_run(prefix)
+    fit = fit_run(prefix, hold=False)       # the force is all a forecast needs
     check_fit(fit, after_cycle)
     return Forecast(after_cycle, fit.params, fit.contact_zero_N, float(fit.noise_N), float(fit.rmse),
                     time.perf_counter() - started, float(sampling_hz))
