@@ -170,12 +170,6 @@ class _Fractional:
         self.src_t, self.src_ds = node_t[~is_grid], ds[~is_grid]
         self.log_m_h = np.log(h * np.arange(1, n))
         self.nfft = sfft.next_fast_len(2 * n - 1, real=True)
-        # a turning point's term far after it is smooth over a grid step: there it is its two
-        # neighbouring nodes' (shares 1 - w, w), in the convolution; within TURN_REACH_STEPS after
-        # it the nodes get the exact term instead (_NearNodes). Every turning point at every node
-        # grew with cycles x samples (a 50-cycle run: 3.6 of its fit's 18 s)
-        split, self.near_nodes = _NearNodes.of(grid_t, self.src_t, self.src_ds, TURN_REACH_STEPS)
-        self.d_hat_split = sfft.rfft((self.d_grid + split)[:-1], self.nfft)
         # where each observed sample's value comes from: a grid node, or between two nodes their
         # line, corrected by what it misses of the sources near before the sample (all the
         # turning points, the last NEAR_STEPS grid nodes): after a corner the memory has a cusp,
@@ -203,16 +197,19 @@ class _Fractional:
         # grid nodes whose value is used, and the turning points' terms there
         used = np.union1d(self.at_grid_idx, np.concatenate([i0, i0 + 1]))
         self.used = np.clip(used, 0, n - 1).astype(int)
-        # exact at every node after each turning point where that is affordable (every run of a
-        # few cycles: what the identification and diagnosis tests were tuned on; their edge cases
-        # moved with the split's 1e-5 N), the split (_NearNodes) beyond
+        # each turning point's term exact at every node after it where that is affordable (every
+        # run of a few cycles: what the identification and diagnosis tests were tuned on; their edge
+        # cases moved with the split's 1e-5 N). Beyond, a turning point's term far after it is
+        # smooth over a grid step: there it is its two neighbouring nodes' (shares 1 - w, w), in the
+        # convolution; within TURN_REACH_STEPS after it the nodes get the exact term (_NearNodes).
+        # Every turning point at every node grew with cycles x samples (50 cycles: 3.6 of 18 s)
         self.exact = len(self.src_t) * len(self.used) <= EXACT_SOURCE_NODES
+        split = 0.0
         if self.exact:
             self.lag_src_grid = _Lags(grid_t[None, self.used] - self.src_t[:, None])
-            self.d_hat = sfft.rfft(self.d_grid[:-1], self.nfft)
         else:
-            self.d_hat = self.d_hat_split
-        del self.d_hat_split
+            split, self.near_nodes = _NearNodes.of(grid_t, self.src_t, self.src_ds, TURN_REACH_STEPS)
+        self.d_hat = sfft.rfft((self.d_grid + split)[:-1], self.nfft)
 
     def columns(self, betas: np.ndarray, derivative: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """D^beta on the observed rows for each beta (rows x M) and, with derivative,

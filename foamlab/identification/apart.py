@@ -15,6 +15,7 @@ reported as held, not fitted: the data do not determine them.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,7 +33,7 @@ from foamlab.analysis.solve import (
 )
 from foamlab.identification.statistics import information_criteria
 from foamlab.identification.structure import BIC_TIE, cancelling
-from foamlab.model.layout import BETA_HI, BETA_LO, Layout
+from foamlab.model.layout import BETA_HI, BETA_LO
 
 #: How far apart a coalesced pair's orders are held (0.2-0.5 fit the main job alike, within 1.3
 #: chi2; closer pairs' amplitudes still cancel).
@@ -115,14 +116,13 @@ def coalesced(fit: Fit) -> list[tuple[int, int]]:
     rows = np.flatnonzero(fit.solution.used[0])
     parts = fit.solution.designs[0][0][rows, :lay.n_linear] * theta[None, :lay.n_linear]
     first = lay.P + 1 + lay.N
-    cols = {(i, j) for i, j, _ in cancelling(lay, parts) if i >= first}
+    order = lay.derivative_pairs[0][2 * lay.N:]       # the beta of each residual amplitude column
+    cols = {(i - first, j - first) for i, j, _ in cancelling(lay, parts) if i >= first}
     for c in range(lay.C):
-        for m1 in range(lay.M):
-            for m2 in range(m1 + 1, lay.M):
-                i, j = first + c * lay.M + m1, first + c * lay.M + m2
-                if abs(phi[_order_of(lay, i)] - phi[_order_of(lay, j)]) < COALESCED:
-                    cols.add((i, j))
-    pairs = {tuple(sorted((_order_of(lay, i), _order_of(lay, j)))) for i, j in cols}
+        for m1, m2 in itertools.combinations(range(c * lay.M, (c + 1) * lay.M), 2):
+            if abs(phi[order[m1]] - phi[order[m2]]) < COALESCED:
+                cols.add((m1, m2))
+    pairs = {tuple(sorted((int(order[i]), int(order[j])))) for i, j in cols}
     return sorted(p for p in pairs if p[0] != p[1])
 
 
@@ -151,8 +151,3 @@ def _bic(fit: Fit, held: np.ndarray) -> float:
     free = lay.n_linear + lay.n_nonlinear - int(held.sum()) + 1
     return information_criteria(fit.rss, fit.n, free)[1]
 
-
-def _order_of(lay: Layout, column: int) -> int:
-    """The nonlinear parameter (beta) of a residual amplitude column."""
-    k = column - (lay.P + 1 + lay.N)
-    return 2 * lay.N + (k % lay.M if lay.shared else k)
