@@ -415,7 +415,7 @@ def core_defects(core: Fit) -> tuple[list[str], list[int]]:
     theta = core.solution.theta
     phi = core.model.split(core.nu)[0]
     L = lay.n_linear
-    names = np.array(_design_names(lay) + nonlinear_names(lay) + ["zero"])
+    names = np.array(_design_names(lay) + _nonlinear_names(lay) + ["zero"])
     lo, hi = core.model.bounds()
     keep = np.concatenate([np.ones(L, bool), ~_real(lay, phi), [True]])
     values = np.concatenate([theta[:L], phi, theta[L:L + 1]])
@@ -542,7 +542,7 @@ def _column_of_name(lay: Layout, name: str) -> int:
     return -1
 
 
-def nonlinear_names(lay: Layout) -> list[str]:
+def _nonlinear_names(lay: Layout) -> list[str]:
     """As FitResult names them (a shared order by its first cycle's name)."""
     names = [f"alpha{i + 1}_{part}" for i in range(lay.N) for part in ("re", "im")]
     cycles = 1 if lay.shared else lay.C
