@@ -64,7 +64,7 @@ from foamlab.diagnosis.extend import (
     probe,
     reidentify,
     screen,
-    without_last,
+    without,
 )
 from foamlab.diagnosis.residuals import analyse
 from foamlab.diagnosis.result import Candidate, Diagnosis
@@ -172,7 +172,36 @@ class Procedure:
             # every other cause is tried again on top: one the first hid (a friction under a lag)
             # had no evidence of its own in this round
             self.remaining = [c.cause for c in cands if c is not chosen]
+        self.drop_redundant_provisional()
         return self.verdict()
+
+    def drop_redundant_provisional(self) -> None:
+        """A provisional first finding (partial) that the finding on top of it made redundant - the
+        final model without it is as good - is dropped, and that finding judged alone against the
+        base (a damping change fitted at a local optimum first lost to softening, then took its
+        place: softening 2e-7 per cycle in the final model)."""
+        if len(self.findings) != 2 or not self.first_partial:
+            return
+        first, second = self.findings
+        alone = without(self.series, self.current, 0)
+        on_top = Candidate(first.cause, self.current, alone)
+        compare([on_top], alone)
+        if on_top.delta_bic > DELTA_BIC_MIN:
+            return
+        c = Candidate(second.cause, alone, self.base)
+        compare([c], self.base)
+        c.share = explained_share(c, self.base, self.sigma)
+        c.coarse_fit = self._coarse(alone)
+        c.reason = (rule_evidence(c) or rule_not_pinned(c) or rule_effect_determined(c)
+                    or rule_heldout(c, self.base, self._coarse(self.base)))
+        if c.reason or not explains(c):
+            return
+        c.passed = True
+        first.passed = False
+        first.reason = (f"partial, made redundant by {second.name}: without it the final model is as good "
+                        f"(delta BIC {on_top.delta_bic:.1f} <= {DELTA_BIC_MIN:g})")
+        self.findings, self.current, self.first_partial = [c], alone, []
+        self.tested.append([c])
 
     def round(self) -> tuple[list[Candidate], Fit]:
         """Stages 1-5 for every remaining cause on top of the current model."""
@@ -255,7 +284,7 @@ class Procedure:
         improved = False
         for c in polished:
             if c.delta_bic > DELTA_BIC_MIN:
-                alt = without_last(self.series, c.fit)
+                alt = without(self.series, c.fit)
                 if alt.rss < self.current.rss:
                     self.current, improved = alt, True
         if improved and not self.findings:
@@ -321,6 +350,9 @@ class Procedure:
                 continue
             checked += 1
             self._progress(f"held-out check of {c.name}", 0.95)
+            # judged from the optimum it reports, as the model it extends is (current_coarse): from
+            # the search's unpolished optimum a few refit steps can fall short of it by 2x
+            c.coarse_fit = self._coarse(c.fit)
             c.reason = rule_heldout(c, self.current, current_coarse)
             if c.reason:
                 continue

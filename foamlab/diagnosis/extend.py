@@ -3,7 +3,7 @@
 screen: the effect's parameter scanned and refined with the base's alpha/beta held (cheap);
 fit_joint: everything free (the base may have bent its alpha/beta to mimic the effect);
 reidentify: a restart from identification's search on the data with the effect taken out;
-probe: the three, short, for one cause; without_last: the model a finding extends, refitted.
+probe: the three, short, for one cause; without: the model without one of its effects, refitted.
 All fits are the analysis core's (foamlab.analysis.solve.varpro).
 """
 
@@ -117,15 +117,19 @@ def multistart(series: list[Series], current: Fit, causes: list[type[Cause]], st
     return best
 
 
-def without_last(series: list[Series], fit: Fit) -> Fit:
-    """The fit's model without its last effect, refitted from the fit's alpha/beta."""
+def without(series: list[Series], fit: Fit, index: int = -1) -> Fit:
+    """The fit's model without one of its effects (default: the last), refitted from the fit's
+    alpha/beta and the other effects' values."""
     m = fit.model
-    model = ExtendedModel(series, fit.params, m.effect_types[:-1], m.settings, effect_bounds=m.effect_bounds,
-                          free_base=True,
+    index %= len(m.effect_types)
+    sizes = [len(e.fitted_parameters()) for e in m.effect_types]
+    first = sum(sizes[:index])
+    model = ExtendedModel(series, fit.params, m.effect_types[:index] + m.effect_types[index + 1:], m.settings,
+                          effect_bounds=m.effect_bounds, free_base=True,
                           base_bounds=bounds_like(m, series, fit.params), masks=contact_of(fit, series))
-    k = len(m.effect_types[-1].fitted_parameters())
-    eta = fit.eta[:len(fit.eta) - k]
-    return Fit.of(list(fit.causes[:-1]), model, varpro(model, model.start(eta), max_nfev=POLISH_NFEV))
+    eta = np.delete(fit.eta, np.arange(first, first + sizes[index]))
+    causes = list(fit.causes[:index]) + list(fit.causes[index + 1:])
+    return Fit.of(causes, model, varpro(model, model.start(eta), max_nfev=POLISH_NFEV))
 
 
 def reidentify(ref: PreparedRun, series: list[Series], fit: Fit, eta: np.ndarray | None = None,
