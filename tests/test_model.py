@@ -84,6 +84,19 @@ def test_online_state_equals_batch_on_any_history(params):
     assert np.abs(online - batch).max() <= 1e-6 * np.abs(batch).max()
 
 
+def test_cycles_sharing_terms_equal_the_online_state_one_memory_each(params):
+    """Cycles beyond the identified ones share the last one's terms: evaluate sums their memories
+    in one operator (time linear in the run); the simulator's online state keeps one per cycle."""
+    t = np.arange(0, 520, 1 / 16)
+    stroke = 20.0 + 8.0 * np.sin(0.05 * t)        # seven cycles, each to its own depth
+    x = stroke * (1 - np.abs(((t / 37.0) % 2.0) - 1.0))
+    assert len(label_history(x).starts) >= params.n_residual_cycles + 3
+    state = SpecimenState(params, h_min=1 / 16)
+    online = np.array([state.step(ti, xi).total for ti, xi in zip(t, x)])
+    batch = evaluate(params, t, x).force
+    assert np.abs(online - batch).max() <= 1e-6 * np.abs(batch).max()
+
+
 def test_irregular_clock_is_resampled_within_half_a_percent(params):
     # a really irregular clock (+-33 % steps) is evaluated on a uniform grid and
     # interpolated back; the online stepper takes every true step

@@ -81,6 +81,7 @@ def evaluate(
     t_span = max(float(t[-1] - t[0]), h) if n > 1 else 1.0
     damping = np.zeros(n)
     residual = np.zeros(n)
+    shared_from = params.n_residual_cycles - 1 if uniform and params.residual_form != "paper" else None
     for k, (s, p) in enumerate(zip(labels.starts, labels.peaks)):
         # the memory operators are continuous in time; on an irregular clock they run
         # on a uniform grid from the cycle's start and are interpolated back, and the
@@ -98,16 +99,46 @@ def evaluate(
         hered = HereditaryOperator(params.damping_a, params.damping_alpha)
         n_load = int(np.searchsorted(tk, t[p], side="right")) + 1 if not uniform else p + 1 - s
         damping[s:p + 1] = on_samples(hered.batch(h, xk[:min(n_load, len(xk))]), s, p + 1)
-        if p + 1 >= n or params.residual_form == "paper":
+        if p + 1 >= n or params.residual_form == "paper" or (shared_from is not None and k >= shared_from):
             continue
-        r, beta = params.residual_terms(k + 1)
-        total = np.zeros(len(xk))
-        for r_i, b_i in zip(r, beta):
-            total += r_i * FractionalOperator(b_i, h_min=h, t_max=t_span).batch(h, xk)
-        residual[p + 1:] += on_samples(total, p + 1, n)
+        residual[p + 1:] += on_samples(_memory(params, k + 1, h, t_span, xk), p + 1, n)
+    if shared_from is not None and len(labels.starts) > shared_from:
+        residual += _shared_memories(params, h, t_span, x, labels, shared_from)
     if params.residual_form == "paper":
         residual = paper_residual(params, t, x, labels)
     return ModelResponse(t, x, elastic_force(params, x), damping, residual, labels)
+
+
+def _memory(params: ModelParameters, cycle: int, h: float, t_span: float, u: np.ndarray) -> np.ndarray:
+    """The residual memory of a 1-based cycle (Eq. 10) for the input u on a uniform step h."""
+    r, beta = params.residual_terms(cycle)
+    total = np.zeros(len(u))
+    for r_i, b_i in zip(r, beta):
+        total += r_i * FractionalOperator(b_i, h_min=h, t_max=t_span).batch(h, u)
+    return total
+
+
+def _shared_memories(params: ModelParameters, h: float, t_span: float, x: np.ndarray,
+                     labels: HistoryLabels, first: int) -> np.ndarray:
+    """The memories of the cycles from index ``first`` on, which share the last identified
+    cycle's terms, on a uniform clock, in time linear in the run: the operator is linear and
+    causal, so the sum of the memories, each switched on after its cycle's peak, is the
+    operator on the summed inputs (x - x(t_k) from each start t_k) less each memory over its
+    own loading. One memory per cycle run to the end grew with cycles x samples."""
+    n = len(x)
+    starts = np.asarray(labels.starts[first:], int)
+    peaks = np.asarray(labels.peaks[first:], int)
+    s0 = int(starts[0])
+    begun = np.zeros(n - s0)
+    offset = np.zeros(n - s0)
+    np.add.at(begun, starts - s0, 1.0)
+    np.add.at(offset, starts - s0, x[starts])
+    summed = np.cumsum(begun) * x[s0:] - np.cumsum(offset)
+    out = np.zeros(n)
+    out[s0:] = _memory(params, first + 1, h, t_span, summed)
+    for s, p in zip(starts, peaks):
+        out[s:p + 1] -= _memory(params, first + 1, h, t_span, x[s:p + 1] - x[s])
+    return out
 
 
 def paper_residual(params: ModelParameters, t, x, labels: HistoryLabels) -> np.ndarray:
