@@ -411,16 +411,18 @@ def generate(regime: Regime, seed: int, cycles: int | None = None, start_s: floa
 
 
 def run_with_effect(regime: str, seed: int, hz: float = SAMPLING_HZ, *, compliance: float = 0.0,
-                    friction: float = 0.0, lag_s: float = 0.0, noise_scale: float = 1.0):
+                    friction: float = 0.0, lag_s: float = 0.0, noise_scale: float = 1.0,
+                    cycles: int | None = None):
     """A run of the regime (by name) with a catalogue effect applied by hand, in this module's own
     arithmetic (not foamlab.model.effects): friction +f while loading and -f while unloading where
     the specimen pushes; lag: the force read lag_s late (linear interpolation); compliance (mm/N):
     the specimen follows the triangle and the crosshead travels the frame's deflection C F on top
-    (measured displacement = specimen's + C F, to the encoder's quantum). Returns a RunData."""
+    (measured displacement = specimen's + C F, to the encoder's quantum); cycles: the regime's
+    unless given. Returns a RunData."""
     from foamlab.rundata import RunData
 
     reg = REGIMES[regime].with_(sampling_hz=hz)
-    run = generate(reg, seed)
+    run = generate(reg, seed, cycles=cycles)
     t, x = run.time_s.copy(), run.displacement_mm.copy()
     total = run.model.force
     force = np.maximum(total, 0.0)

@@ -129,7 +129,8 @@ class Diagnosis:
                 "explained_share": c.share,
             })
         return {"verdict": self.verdict, "findings": _jsonable(findings),
-                "base": {"form": self.params.residual_form, "why": self.base_form_reason}}
+                "base": {"form": self.params.residual_form, "why": self.base_form_reason},
+                "skipped": dict(self.skipped)}
 
 
 def _jsonable(obj):

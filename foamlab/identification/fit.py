@@ -60,7 +60,8 @@ def fit_run(run: RunData, orders: Orders | str | tuple | None = None, progress: 
             x_scale_mm: float | None = None, form: str = "auto", hold: bool = True) -> FitResult:
     """Identify the model's parameters from one run (any importer's RunData).
 
-    orders: Orders(N, M, P[, C]), 'N,M,P' or a tuple; None (default): LARGEST (3,3,7,3); 'auto':
+    orders: Orders(N, M, P[, C]), 'N,M,P' or a tuple; None (default): LARGEST (3,3,7,3), or 'auto'
+    for a run of one load-unload cycle; 'auto':
     the structure the data determine, chosen from LARGEST down (identification.structure: no
     cancelling terms, every parameter determined; it fits 3-12 structures, 3-10 x the time).
     progress: called with (stage, fraction 0..1) as the fit advances.
@@ -80,6 +81,9 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
                  progress: Progress | None = None, form: str = "auto", hold: bool = True) -> FitResult:
     """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run."""
     select = isinstance(orders, str) and orders.strip().lower() == AUTO_ORDERS
+    # one load-unload cycle: the largest structure (23 parameters on one loading and unloading)
+    # found damping pairs of +-1.1e5 N cancelling, and the selection costs under a second there
+    select = select or (orders is None and len(fd.labels.starts) == 1)
     given = None if select else (_orders(orders) or LARGEST)
     orders = given or LARGEST
     forms = RESIDUAL_FORMS if form == "auto" else (check_form(form),)

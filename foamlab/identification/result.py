@@ -175,7 +175,8 @@ class FitResult:
                 "optimizer": {"success": self.success, "status": self.status, "message": self.message},
                 "turn_samples": self.turns.to_dict() if self.turns is not None else None,
                 "form": self.params.residual_form, "forms": self._forms_dict(),
-                "structure": self.structure.to_dict() if self.structure is not None else None}
+                "structure": self.structure.to_dict() if self.structure is not None else None,
+                "warnings": list(self.warnings), "notes": list(self.notes)}
 
     def _forms_dict(self) -> dict:
         """Each form's RMSE, held-out RMSE, BIC and its BIC minus the chosen one's, and why."""
