@@ -27,7 +27,8 @@ def softened(tmp_path_factory):
 def test_json_is_the_design_object_and_the_report_has_its_figures(softened, tmp_path, capsys):
     assert cli.main(["diagnose", str(softened), "--json", "--report", str(tmp_path / "rep")]) == 0
     obj = json.loads(capsys.readouterr().out)
-    assert set(obj) == {"verdict", "findings", "base"}          # base: the residual form and why
+    assert set(obj) == {"verdict", "findings", "base", "skipped"}  # base: the residual form and why
+    assert all(isinstance(why, str) and why for why in obj["skipped"].values())   # cause -> why not tested
     assert obj["base"]["form"] in ("causal", "paper") and "held-out" in obj["base"]["why"]
     assert obj["verdict"] == "cycle_softening"
     first = obj["findings"][0]

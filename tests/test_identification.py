@@ -107,9 +107,10 @@ def test_fit_reports_table5_statistics_checks_and_json(default_fit, default_para
     d = result.to_dict()
     # DESIGN.md's four keys, then the noise level, the optimizer's end (as lmfit reports it) and
     # the samples at turns the samples cannot place, the residual form with every form's scores
-    # (identification.forms) and the structure (given here)
+    # (identification.forms), the structure (given here), and the fit's warnings and notes as printed
     assert list(d) == ["parameters", "statistics", "rmse", "constraints", "noise", "optimizer", "turn_samples",
-                       "form", "forms", "structure"]
+                       "form", "forms", "structure", "warnings", "notes"]
+    assert d["warnings"] == result.warnings and all(isinstance(w, str) for w in d["warnings"])
     assert d["turn_samples"] == {"count": 0, "rmse_without": d["rmse"], "max_abs": 0.0}   # an exact history
     assert d["structure"]["forced"] and d["structure"]["chosen"] == str(result.orders)
     assert d["form"] == d["forms"]["chosen"] and {s["form"] for s in d["forms"]["scores"]} == {"causal", "paper"}
