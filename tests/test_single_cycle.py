@@ -2,8 +2,8 @@
 file foamlab did not write: a Bluehill export with Chinese headers in GBK, a tensile test (load
 and extension stored positive), made by the independent generator (tests/independent_model.py).
 Fitted in the structure the data determine (the largest, 23 parameters on one loading and one
-unloading, found damping amplitudes of +-1.1e5 N cancelling at 2.8 x the noise), and diagnosed
-with the causes that apply to one cycle."""
+unloading, found damping amplitudes of +-1.1e5 N cancelling at 2.8 x the noise), with a turn that
+the samples cannot place fitted both ways, and diagnosed with the causes that apply to one cycle."""
 
 from __future__ import annotations
 
@@ -24,16 +24,15 @@ def _bluehill_gbk_tensile(path, run) -> None:
     path.write_bytes(("\r\n".join(lines) + "\r\n").encode("gbk"))
 
 
-@pytest.mark.parametrize("regime,seed", [("A", 3), ("B", 5)])
-def test_one_cycle_export_is_fitted_at_the_noise_and_diagnosed_with_the_one_cycle_causes(tmp_path, capsys, regime,
-                                                                                           seed):
+@pytest.mark.parametrize("regime,seed", [("A", 3), ("B", 5), ("B", 9)])   # B 9: its turn 1.7 ms before a sample
+def test_one_cycle_export_is_fitted_at_the_noise_and_diagnosed_none(tmp_path, capsys, regime, seed):
     run = generate(REGIMES[regime].with_(sampling_hz=10.0), seed, cycles=1)
     path = tmp_path / "Specimen_RawData_1.csv"
     _bluehill_gbk_tensile(path, run)
 
     assert cli.main(["fit", str(path), "--json"]) == 0
     fit = json.loads(capsys.readouterr().out)
-    assert fit["rmse"] <= 1.15 * run.sigma, fit["rmse"]      # 40 runs of one cycle: median 1.00, max 1.11 (docs)
+    assert fit["rmse"] <= 1.05 * run.sigma, fit["rmse"]      # 40 runs of one cycle: median 1.00, max 1.03 (docs)
     assert not [w for w in fit["warnings"] if "cancel" in w], fit["warnings"]
     assert all(abs(p["value"]) < 1e4 for name, p in fit["parameters"].items() if name[0] in "ar"), fit["parameters"]
     assert any("a single cycle" in w for w in fit["warnings"])
@@ -42,9 +41,6 @@ def test_one_cycle_export_is_fitted_at_the_noise_and_diagnosed_with_the_one_cycl
 
     assert cli.main(["diagnose", str(path), "--json", "--no-store"]) == 0
     d = json.loads(capsys.readouterr().out)
-    # (the verdict is not asserted: on B seed 5 the structure chosen fits at 1.06 x the noise and
-    # a friction of 0.8 N takes the gap, a false finding - docs/identification.md, "One cycle")
+    assert d["verdict"] == "none", d
     assert {"cycle_softening", "damping_cycle_change"} <= set(d["skipped"]), d["skipped"]
-    assert d["verdict"] not in d["skipped"]
-    assert all(f["gain"]["rmse_after"] <= f["gain"]["rmse_before"] for f in d["findings"])
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]

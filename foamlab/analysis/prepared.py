@@ -108,10 +108,12 @@ class PreparedRun:
 
     def other_turns(self) -> "PreparedRun":
         """The same run with its turns without a stop at the other place: between samples where
-        this one has them at a sample, or the other way round (path.path_nodes)."""
+        this one has them at a sample, or the other way round (path.path_nodes); a turn whose
+        lines meet at its extreme sample is at that sample in either, so in the other it is
+        just before it."""
         between = self.nodes.between_samples
         nodes = path_nodes(self.t, self.path_mm, self.extremes, self.corner_tol,
-                           between_samples=not between, before_extreme=between)
+                           between_samples=not between, before_extreme=True)
         return replace(self, nodes=nodes, series=_series(self.run, self.series.name, self.labels, nodes,
                                                          self.seg.contact_lost))
 
