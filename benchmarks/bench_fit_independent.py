@@ -1,9 +1,9 @@
 """`foamlab fit` and `foamlab diagnose` on runs of the independent generator (tests/independent_model.py).
 
-    python benchmarks/bench_fit_independent.py [--seeds N] [--grid] [--no-diagnose]
+    python benchmarks/bench_fit_independent.py [--seeds N] [--grid] [--no-diagnose] [--cycles C] [--hz F]
 
 For each regime (A, B; with --grid also A-grid, B-grid, turning points on samples) and
-seed 1..N: the run is written as a plain CSV into a temporary directory, then
+seed 1..N (C cycles, default the regime's three; sampled at F Hz, default 16): the run is written as a plain CSV into a temporary directory, then
 `python -m foamlab.cli fit PATH --json --no-store` and `python -m foamlab.cli diagnose
 PATH --no-store` run on it (subprocesses of this checkout). One line per run:
 
@@ -56,10 +56,10 @@ def near_turns(run: im.SyntheticRun, steps: int = TURN_STEPS) -> np.ndarray:
     return np.any([np.abs(run.time_s - c) <= steps * dt for c in turns], axis=0)
 
 
-def measure(regime: im.Regime, seed: int, folder: Path, diagnose: bool) -> dict:
+def measure(regime: im.Regime, seed: int, folder: Path, diagnose: bool, cycles: int | None = None) -> dict:
     from foamlab.identification import fit_run
 
-    run = im.generate(regime, seed)
+    run = im.generate(regime, seed, cycles=cycles)
     path = folder / f"{regime.name}_{seed}.csv"
     run.write_csv(path)
     sigma = regime.noise_N
@@ -94,13 +94,17 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=5, help="seeds per regime (default 5: 10 runs)")
     ap.add_argument("--grid", action="store_true", help="also the regimes with turning points on samples")
     ap.add_argument("--no-diagnose", action="store_true", help="fit only")
+    ap.add_argument("--cycles", type=int, default=None, help="cycles per run (default: the regime's, 3)")
+    ap.add_argument("--hz", type=float, default=None, help="sampling rate (default: the regime's, 16 Hz)")
     args = ap.parse_args(argv)
     regimes = list(im.REGIMES.values()) + (list(im.GRID_REGIMES.values()) if args.grid else [])
+    if args.hz:
+        regimes = [r.with_(sampling_hz=args.hz) for r in regimes]
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_fit_independent_") as tmp:
         for regime in regimes:
             for seed in range(1, args.seeds + 1):
-                rows.append(measure(regime, seed, Path(tmp), not args.no_diagnose))
+                rows.append(measure(regime, seed, Path(tmp), not args.no_diagnose, args.cycles))
                 print(line(rows[-1]), flush=True)
     for name in dict.fromkeys(r["regime"] for r in rows):
         sel = [r for r in rows if r["regime"] == name]
