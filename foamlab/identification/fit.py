@@ -125,7 +125,10 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
     and the better kept."""
     result = _fit_prepared(fd, orders, select, progress, paper, rival, hold)
     at_turns, around = _misfit_at_turns(result, fd)
-    if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around):
+    # a structure chosen with a turn misplaced can misfit everywhere, the turn's neighbours no more
+    # than the rest (one cycle at 10 Hz: every structure 3-4 x the noise, 0.99 x placed the other way)
+    lost = select and len(fd.nodes.turns_between) and result.rmse > FAR_FROM_NOISE * fd.noise_N
+    if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around) or lost:
         # the turns placed the other way: the structure the data chose, or chosen again (with the
         # turn misplaced, a 28 N miss at one peak sample chose (0, 2): 4 x the noise placed right)
         other = _fit_prepared(fd.other_turns(), orders if select else result.orders, select, progress, hold=hold)
@@ -142,6 +145,8 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
 #: The samples next to turns without a stop misfit by more than this many times the noise
 #: and the samples around them: the turn is at the other place.
 TURN_MISFIT_MULTIPLE = 3.0
+#: ...or, where the structure is chosen, the whole fit is further than this from the noise.
+FAR_FROM_NOISE = 1.5
 
 
 def _misfit_at_turns(result: FitResult, fd: PreparedRun) -> tuple[float, float]:
