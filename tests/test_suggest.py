@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import tomllib
 
-import numpy as np
 import pytest
 
 from foamlab import cli
@@ -28,8 +27,8 @@ def _settles(effects: dict[str, float], seeds, tmp_path, pair: set[str] | None =
     the same specimen (true cause hidden), both runs diagnosed together. seeds: the first run's
     seed, or several: the first whose suggestion is between ``pair`` (a close call is a matter
     of a few units of Delta BIC, which one CPU's rounding moves: seed 5 here is 31.8 vs 9.1)."""
-    for seed in np.atleast_1d(seeds):
-        first = hidden_effect_run(effects, seed=int(seed), height_mm=HEIGHT, **FAST)
+    for seed in (seeds if isinstance(seeds, tuple) else (seeds,)):
+        first = hidden_effect_run(effects, seed=seed, height_mm=HEIGHT, **FAST)
         d = diagnose([first])
         s = suggest(d, HEIGHT)
         assert s.made, s.why
@@ -43,7 +42,7 @@ def _settles(effects: dict[str, float], seeds, tmp_path, pair: set[str] | None =
     method = load_method(path)                              # what `foamlab run --method FILE` loads
     assert method.steps == s.best.protocol.method.steps
     assert s.best.over_noise > 1.0, s.lines()
-    second = hidden_effect_run(effects, seed=int(seed) + 1, method=method, height_mm=HEIGHT)
+    second = hidden_effect_run(effects, seed=seed + 1, method=method, height_mm=HEIGHT)
     both = diagnose([first, second])
     return d, s, both
 

@@ -127,7 +127,7 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
     at_turns, around = _misfit_at_turns(result, fd)
     # a structure chosen with a turn misplaced can misfit everywhere, the turn's neighbours no more
     # than the rest (one cycle at 10 Hz: every structure 3-4 x the noise, 0.99 x placed the other way)
-    lost = select and len(fd.nodes.turns_between) and result.rmse > FAR_FROM_NOISE * fd.noise_N
+    lost = select and len(fd.nodes.turns_between) > 0 and result.rmse > FAR_FROM_NOISE * fd.noise_N
     if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around) or lost:
         # the turns placed the other way: the structure the data chose, or chosen again (with the
         # turn misplaced, a 28 N miss at one peak sample chose (0, 2): 4 x the noise placed right)

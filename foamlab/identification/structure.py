@@ -357,12 +357,10 @@ def _conclude(judged: list[Candidate]) -> tuple[int, str]:
     low = min(judged[i].bic for i in pool)
     tied = [i for i in pool if judged[i].bic <= low + BIC_TIE]
     best = min(tied, key=lambda i: (judged[i].undetermined, judged[i].n_params, judged[i].bic))
-    why = (f"no terms cancel; of those, within {BIC_TIE:g} of the lowest BIC, the fewest parameters "
+    why = (f"no terms cancel, every parameter determined, held-out RMSE within {HELDOUT_DETERMINED - 1:.0%} "
+           f"of the best; of those, within {BIC_TIE:g} of the lowest BIC, the fewest parameters" if determined else
+           f"no terms cancel; of those, within {BIC_TIE:g} of the lowest BIC, the fewest parameters "
            "the data do not determine, then the fewest parameters")
-    if determined:
-        why = (f"no terms cancel, every parameter determined, held-out RMSE within "
-               f"{HELDOUT_DETERMINED - 1:.0%} of the best; of those, within {BIC_TIE:g} of the lowest BIC, "
-               "the fewest parameters")
     if judged[best].undetermined:
         why += f" ({'; '.join(judged[best].defects)})"
     return best, why
