@@ -16,9 +16,14 @@ pytestmark = [pytest.mark.realtime, pytest.mark.hil, pytest.mark.timeout(60)]
 P99_TARGET_MS = 2.0
 
 
+#: Deadlines in the run: at least MIN_DEADLINES for the p99 to be a percentile (with 59, as
+#: before, np.percentile's p99 was 58 % the largest lateness: one VM stall of ~4 ms failed CI).
+MIN_DEADLINES = 105
+
+
 def test_16_hz_schedule_in_real_time(tmp_path):
-    # one cycle to 4 % (2.9 mm) at 100 mm/min: ~3.5 s of sampling, ~56 samples
-    method = load_method(short_method(tmp_path, strain=0.04, speed=100.0, cycles=1))
+    # one cycle to 8 % (5.8 mm) at 100 mm/min: ~7 s of sampling, ~111 samples
+    method = load_method(short_method(tmp_path, strain=0.08, speed=100.0, cycles=1))
     with simulated("modbus-tcp", speedup=1.0) as sim:
         approach(machine_for(sim))
         engine = make_engine(sim, method, tmp_path, speedup=1.0)
@@ -29,6 +34,7 @@ def test_16_hz_schedule_in_real_time(tmp_path):
     timing = result.timing
     expected = method.expected_samples(72.5)
     assert expected <= result.n_samples + result.missed <= expected + 4
+    assert result.n_samples + result.missed >= MIN_DEADLINES
     assert_keeps_the_schedule(result)
     assert timing.period_s == pytest.approx(1 / 16)
     # without a real-time slot the OS may wake us late on a busy machine: the run then still
