@@ -241,6 +241,14 @@ class _SerialClient(ModbusSerialClient):
             raise ConnectionException(str(self)) from None
 
 
+def _is_other_transaction(got: bytes, sent: bytes) -> bool:
+    """A whole, well-formed MBAP frame from the request's unit whose transaction id is another."""
+    if len(got) < 8 or len(sent) < 8:
+        return False
+    _, protocol, length, unit = struct.unpack(">HHHB", got[:7])
+    return protocol == 0 and length == len(got) - 6 and unit == sent[6] and got[:2] != sent[:2]
+
+
 class ModbusLink:
     """One Modbus connection (TCP socket or RTU serial line) shared by several unit ids."""
 
@@ -252,6 +260,7 @@ class ModbusLink:
         self.retries = int(connection["retries"])
         self.lock = threading.RLock()
         self._received = b""
+        self._sent = b""
         if connection["transport"] == "tcp":
             self.where = f"Modbus TCP {connection['host']}:{connection['port']}"
             self._client: ModbusTcpClient | ModbusSerialClient = ModbusTcpClient(
@@ -270,7 +279,22 @@ class ModbusLink:
         # "nothing came back" (timeout) from "bytes came back but no valid frame" (bad CRC).
         if not sending and data:
             self._received = bytes(data)
+        elif sending:
+            self._sent = bytes(data)
         return data
+
+    def _invalid_reply(self, what: str) -> str:
+        """Why bytes came back but no reply to this request: a late answer to an earlier one
+        (Modbus TCP: a well-formed frame whose transaction id is not the request's) or a frame
+        that does not check (a bad RTU CRC, a TCP header that does not add up, garbage)."""
+        got, sent = self._received, self._sent
+        if isinstance(self._client, ModbusTcpClient):
+            if _is_other_transaction(got, sent):
+                return (f"{self.where}: stale reply to {what}: transaction {int.from_bytes(got[:2], 'big')} "
+                        f"answers an earlier request, not {int.from_bytes(sent[:2], 'big')} "
+                        f"(a reply that came after its timeout)")
+            return f"{self.where}: invalid reply (bad framing) to {what}: {got[:32].hex(' ')}"
+        return f"{self.where}: invalid reply (bad CRC or framing) to {what}: {got[:32].hex(' ')}"
 
     def connect(self) -> None:
         with self.lock:
@@ -332,9 +356,7 @@ class ModbusLink:
                 raise DeviceConnectionLost(f"{self.where}: connection lost during {what}") from None
             except ModbusIOException:
                 if self._received:
-                    raise DeviceProtocolError(
-                        f"{self.where}: invalid reply (bad CRC or framing) to {what}: "
-                        f"{self._received[:32].hex(' ')}") from None
+                    raise DeviceProtocolError(self._invalid_reply(what)) from None
                 attempts = self.retries + 1
                 raise DeviceTimeout(
                     f"{self.where}: no reply to {what} ({attempts} attempt{'s' * (attempts > 1)} "

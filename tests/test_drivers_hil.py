@@ -132,7 +132,7 @@ def test_ascii_by_pty_device_path():
 
 FAULTS = [
     ("timeout:p=1", DeviceTimeout, r"no reply"),
-    ("crc:p=1", DeviceProtocolError, r"(bad CRC|garbage|unexpected)"),
+    ("crc:p=1", DeviceProtocolError, r"(bad CRC|bad framing|garbage|unexpected)"),
     ("exception:p=1", DeviceProtocolError, r"(Modbus exception 0x04|\*10)"),
 ]
 

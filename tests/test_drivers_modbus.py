@@ -319,3 +319,29 @@ def test_requests_from_two_threads_never_interleave():
             for t in threads:
                 t.join(timeout=10)
     assert results == [1.5] * (2 * n)
+
+
+def test_a_late_answer_to_an_earlier_request_is_called_stale_not_corrupt():
+    # The device answers request 2 with the reply it owed request 1 (which had timed out):
+    # a well-formed frame whose MBAP transaction id is not the request's.
+    frame = Frames("tcp")
+    block = read_reply(*words_of("f", 0.0, "big"), *words_of("f", 1.5, "big"), 0)
+    request, _ = frame(LOAD_CELL, read_request(0x3500, 5), block)
+    late = mbap(frame.tid - 1, LOAD_CELL, block)
+    with peer_for("tcp", [(request, late)]) as peer:
+        with machine_on(peer, "tcp") as machine:
+            with pytest.raises(DeviceProtocolError, match=r"stale reply to read of block.*transaction 0 answers "
+                                                          r"an earlier request, not 1") as info:
+                machine.load_cell.read()
+    assert "\n" not in str(info.value)
+
+
+def test_a_tcp_reply_whose_header_does_not_add_up_is_bad_framing():
+    frame = Frames("tcp")
+    block = read_reply(*words_of("f", 0.0, "big"), *words_of("f", 1.5, "big"), 0)
+    request, reply = frame(LOAD_CELL, read_request(0x3500, 5), block)
+    broken = reply[:2] + b"\x00\x07" + reply[4:]          # protocol id 7: not Modbus
+    with peer_for("tcp", [(request, broken), (request, broken)]) as peer:
+        with machine_on(peer, "tcp") as machine:
+            with pytest.raises(DeviceProtocolError, match=r"invalid reply \(bad framing\) to read of block"):
+                machine.load_cell.read()

@@ -57,7 +57,10 @@ def _forecast_shown(qtbot, w: MainWindow):
     """Waits for the first forecast on the plots; fails at once if the run ends first."""
     live = w.display.live
     qtbot.waitUntil(lambda: live.view.forecast is not None or w.last_result is not None, timeout=RUN_TIMEOUT_MS)
-    assert w.last_result is None, f"the run ended before any prediction: {w.last_result.reason}"
+    if w.last_result is not None:
+        predictor = live.predictor
+        raise AssertionError(f"the run ended before any prediction ({w.last_result.status}): "
+                             f"{live.status.text()!r}; notes {predictor.notes if predictor else None}")
     forecast = live.view.forecast
     # identified on cycles 1-2 and drawn for cycle 3, the one in progress
     assert forecast.from_cycles == 2 and live.view.cycle == 3
