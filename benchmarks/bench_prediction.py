@@ -92,8 +92,8 @@ def main() -> None:
     args = parser.parse_args()
     lines = [f"Three cycles to 80 % of the 72.5 mm block, 16 Hz, load-cell noise {NOISE_N} N; cycles 1-2 "
              "identify, cycle 3 goes through the departure rule; one seed per run. Flagged: runs with a "
-             "departure (a false alarm on a clean run). The forecast: four fits (the paper's orders and "
-             "three neighbours) and the Jacobian, one core.", ""]
+             "departure (a false alarm on a clean run). The forecast: both residual forms at the largest "
+             "orders, three neighbours in the form chosen (one prepared run) and the Jacobian, one core.", ""]
     lines += table(args.clean, args.softened)
     lines += ["", f"Load average at the end: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (other jobs share them)."]
     publish(SECTION, lines)
