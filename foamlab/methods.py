@@ -293,6 +293,33 @@ def load_method(name_or_path: str | Path = DEFAULT_METHOD, methods_dir: str | Pa
     return parse_method(data, source=str(path))
 
 
+#: Header key of a foamlab run file: the method file the run was made with (acquisition.engine).
+METHOD_FILE_KEY = "method_file"
+
+
+def method_of_run(run: RunData) -> Method:
+    """The method a run was made with: the file recorded with it while that file still holds a
+    method of the run's name, else the built-in method of that name. A run made with a method
+    file that is not built in had no method results after the run (the name alone found nothing)."""
+    if not run.method:
+        raise FoamlabError("no test method recorded with the run")
+    recorded = str(run.metadata.get(METHOD_FILE_KEY) or "")
+    if recorded and Path(recorded).is_file():
+        try:
+            method = load_method(recorded)
+        except FoamlabError:
+            method = None
+        if method is not None and method.name == run.method:
+            return method
+    try:
+        return load_method(run.method)
+    except FoamlabError as exc:
+        if not recorded:
+            raise
+        raise FoamlabError(f"{exc}; the method file recorded with the run ({recorded}) is gone or now holds "
+                           "another method: give the method file") from None
+
+
 class _Reader:
     """Typed access to one TOML table; every error names the file and the place."""
 

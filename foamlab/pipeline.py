@@ -27,7 +27,7 @@ from foamlab.diagnosis import Diagnosis, diagnose
 from foamlab.diagnosis.store import store_diagnosis
 from foamlab.identification import FitResult, fit_run
 from foamlab.identification.store import store_fit
-from foamlab.methods import Method, MethodResults, load_method
+from foamlab.methods import Method, MethodResults, method_of_run
 from foamlab.prediction.forecast import ForecastScores, forecast_scores
 from foamlab.rundata import RunData
 from foamlab.storage.catalog import CATALOG_NAME, Catalog
@@ -91,9 +91,7 @@ def method_stage(a: Analysis, method: Method | None = None, progress: Progress =
     progress("method results", 0.0)
 
     def results() -> MethodResults | None:
-        chosen = method or (load_method(a.run.method) if a.run.method else None)
-        if chosen is None:
-            raise FoamlabError("no test method recorded with the run")
+        chosen = method or method_of_run(a.run)
         return chosen.compute_results(a.run) if len(a.run) else None
 
     a.method_results, a.method_error = _attempt("method results", results)

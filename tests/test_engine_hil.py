@@ -123,3 +123,26 @@ def test_a_broken_listener_does_not_stop_the_run(tmp_path, caplog):
     assert result.status == "finished" and finished == [result]
     assert sum("display bug" in str(r.exc_info) or "Broken" in r.getMessage() for r in caplog.records) == 1
     _assert_file_matches(result)
+
+
+def test_a_run_made_with_a_method_file_finds_its_method_again(tmp_path):
+    """A method file that is not built in: the run file records it, so the method's results
+    are computed after the run from the file alone (the window, `foamlab report`, a series)."""
+    methods = tmp_path / "methods"
+    methods.mkdir()
+    method_file = short_method(methods, strain=0.05, speed=100.0, cycles=2, name="lab-own")
+    with simulated(speedup=SPEEDUP) as sim:
+        approach(machine_for(sim))
+        result = make_engine(sim, method_file, tmp_path, speedup=SPEEDUP).run()
+        wait_at_rest(sim)
+    assert result.status == "finished", result.reason
+    on_disk = _assert_file_matches(result)
+    assert on_disk.method == "lab-own" and on_disk.metadata["method_file"] == str(method_file.resolve())
+    analysis = pipeline.method_stage(pipeline.Analysis(on_disk, result.path))
+    assert analysis.method_error == "" and analysis.method_results is not None
+    assert {v.cycle for v in analysis.method_results.values if v.cycle} == {1, 2}
+    method_file.rename(methods / "elsewhere.toml")
+    gone = pipeline.method_stage(pipeline.Analysis(on_disk, result.path))
+    assert gone.method_results is None
+    assert "unknown method 'lab-own'" in gone.method_error and str(method_file.resolve()) in gone.method_error
+    assert "\n" not in gone.method_error

@@ -40,7 +40,7 @@ from foamlab.acquisition.safety import (AT_TARGET_MM, STOP_CONFIRM_S, Limits, St
                                         check_crosshead_status, check_safe_to_tare, fault_name, park)
 from foamlab.acquisition.sampling import Sampler
 from foamlab.acquisition.schedule import CpuWakeupLatency, raise_thread_priority
-from foamlab.methods import Method, PlannedStep
+from foamlab.methods import METHOD_FILE_KEY, Method, PlannedStep
 from foamlab.rundata import Specimen
 from foamlab.storage.recorder import Recorder, RecordingFailed
 from foamlab.storage.runfile import now_iso
@@ -290,7 +290,7 @@ class RunEngine:
         raise RunAborted(END_FAULT, "the crosshead did not come to rest after a stop")
 
     def _header(self) -> dict:
-        return {
+        header = {
             "method": self.method.name, "method_title": self.method.title, "machine": self.machine_name,
             "specimen": self.specimen, "started_at": now_iso(), "software": f"foamlab {__version__}",
             "sampling_hz": self.method.sampling_hz, "speedup": self.speedup,
@@ -298,6 +298,9 @@ class RunEngine:
             "start_position_mm": round(self._start_position, 4), "limits": self.limits.describe(),
             "nominal_duration_s": round(self.nominal_s, 3), "scheduling": self.scheduling,
         }
+        if self.method.source:      # a method file that is not built in is found again by it
+            header[METHOD_FILE_KEY] = str(Path(self.method.source).resolve())
+        return header
 
     def _run_step(self, planned: PlannedStep) -> None:
         self._sampler.step = planned

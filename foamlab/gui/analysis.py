@@ -19,7 +19,7 @@ from foamlab.gui.plots import labels_from_segmentation
 from foamlab.gui.report import headline_names
 from foamlab.identification import FitResult
 from foamlab.importers import load_run
-from foamlab.methods import load_method
+from foamlab.methods import method_of_run
 from foamlab.rundata import RunData
 from foamlab.storage.catalog import sidecar_path
 
@@ -84,7 +84,7 @@ def load_for_display(path: str | Path) -> Loaded:
     headline: list[str] = []
     if run.method:
         try:
-            method = load_method(run.method)
+            method = method_of_run(run)
             headline = headline_names(method)
             pipeline.method_stage(analysis, method)
         except FoamlabError as exc:

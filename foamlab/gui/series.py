@@ -69,7 +69,9 @@ def find_series(out_dir: Path, path: Path, label: str, method: str) -> Found:
             runs.append((p, load_run(p)))
         except Exception as exc:  # noqa: BLE001 (an importer bug costs this file, not the series)
             left_out.append(f"{p.name}: {describe_error(exc)}")
-    return Found(series_name(label, path), series_from_runs(runs, method), left_out)
+    # the runs' own method (all of this name): a method file that is not built in is found by the
+    # file recorded with the runs (foamlab.methods.method_of_run), not by the name
+    return Found(series_name(label, path), series_from_runs(runs), left_out)
 
 
 def column_title(column) -> str:

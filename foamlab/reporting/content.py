@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from foamlab import FoamlabError, __version__, pipeline
-from foamlab.methods import Method, load_method
+from foamlab.methods import Method, load_method, method_of_run
 from foamlab.rundata import RunData
 from foamlab.storage.catalog import sidecar_path
 from foamlab.storage.runfile import is_run_file
@@ -190,7 +190,7 @@ def gather(path: str | Path, analysis: pipeline.Analysis | None = None, *, metho
         method = load_method(method)
     if method is None and run.method:
         try:
-            method = load_method(run.method)
+            method = method_of_run(run)
         except FoamlabError as exc:
             analysis.method_error = analysis.method_error or str(exc)
     if analysis.method_results is None and method is not None:

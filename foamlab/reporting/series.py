@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from foamlab import FoamlabError
-from foamlab.methods import Method, MethodResults, ResultValue, load_method
+from foamlab.methods import Method, MethodResults, ResultValue, load_method, method_of_run
 from foamlab.rundata import RunData
 
 _RUN_NUMBER = re.compile(r"^(.*?)[\s_\-#./]*\d+$")
@@ -174,7 +174,7 @@ def series_from_runs(runs: list[tuple[Path, RunData]], method: Method | str | No
             each = ", ".join(f"{p.name}: {r.method or '(none)'}" for p, r in runs)
             raise FoamlabError(f"a series is one method; these files were tested with several ({each}); "
                                "choose one with --method")
-        method = load_method(names.pop())
+        method = method_of_run(runs[0][1])
     specimens = []
     for path, run in runs:
         a = pipeline.method_stage(pipeline.Analysis(run, path), method)
