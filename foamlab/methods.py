@@ -307,10 +307,10 @@ def method_of_run(run: RunData) -> Method:
     if recorded and Path(recorded).is_file():
         try:
             method = load_method(recorded)
+            if method.name == run.method:
+                return method
         except FoamlabError:
-            method = None
-        if method is not None and method.name == run.method:
-            return method
+            pass            # an unreadable file: the built-in method of the name, else the error below
     try:
         return load_method(run.method)
     except FoamlabError as exc:

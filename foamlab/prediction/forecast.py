@@ -5,7 +5,7 @@
     score = score_cycle(previous.params, previous.contact_zero_N, noise, run_to_end_of_k, rows, ...)
     scores = forecast_scores(run)            # offline: each cycle predicted from the ones before it
 
-make_forecast identifies the model (foamlab.identification.fit_run) on the cycles measured so
+make_forecast identifies the model (foamlab.identification.fit_prepared) on the cycles measured so
 far and evaluates it (foamlab.model.evaluate, causal) on the measured history followed by the
 method's planned displacement for the rest of the run. With the force comes its uncertainty:
 sigma (1 sigma, without the load cell's noise) - the fit's parameter uncertainty carried to the
@@ -26,7 +26,7 @@ import numpy as np
 
 from foamlab import FoamlabError
 from foamlab.analysis.prepared import PreparedRun, prepare
-from foamlab.identification import FitResult, fit_run
+from foamlab.identification import FitResult
 from foamlab.identification.fit import fit_prepared
 from foamlab.methods import PlannedStep
 from foamlab.model import HistoryLabels, ModelParameters, evaluate, label_history
@@ -170,9 +170,7 @@ def make_forecast(prefix: RunData, plan: list[PlannedStep], after_cycle: int, sa
     """Identify the model on `prefix` (the run's cycles 1..after_cycle) and predict the rest
     of the plan. Raises FoamlabError (one line) when the prefix cannot be identified."""
     started = time.perf_counter()
-    fd = prepare(prefix)                     # once: the neighbours fit the same prepared run
-    fit = fit_prepared(fd, hold=False)       # the force is all a forecast needs
-    check_fit(fit, after_cycle)
+    fd, fit = _identified(prefix, after_cycle)
     t_f, x_f, steps_f = planned_future(plan, after_cycle, float(prefix.time_s[-1]), sampling_hz)
     t = np.concatenate([prefix.time_s, t_f])
     x = np.concatenate([prefix.displacement_mm, x_f])
@@ -342,9 +340,17 @@ def forecast_scores(run: RunData, method=None) -> ForecastScores:
     return out
 
 
+def _identified(prefix: RunData, after_cycle: int) -> tuple[PreparedRun, FitResult]:
+    """The model identified on `prefix`, checked to describe its cycles, and the prepared run
+    (once: a forecast's neighbours fit the same one)."""
+    fd = prepare(prefix)
+    fit = fit_prepared(fd, hold=False)       # the force is all a forecast needs
+    check_fit(fit, after_cycle)
+    return fd, fit
+
+
 def _fit_only(prefix: RunData, after_cycle: int, sampling_hz: float) -> Forecast:
     started = time.perf_counter()
-    fit = fit_run(prefix, hold=False)       # the force is all a forecast needs
-    check_fit(fit, after_cycle)
+    _, fit = _identified(prefix, after_cycle)
     return Forecast(after_cycle, fit.params, fit.contact_zero_N, float(fit.noise_N), float(fit.rmse),
                     time.perf_counter() - started, float(sampling_hz))
