@@ -29,6 +29,7 @@ from .base import (
     DeviceConnectionLost,
     DeviceError,
     DeviceProtocolError,
+    DeviceRefused,
     DeviceTimeout,
     ForceReading,
     LoadCell,
@@ -61,7 +62,7 @@ REPLIES: dict[str, re.Pattern | None] = {
 AT_TARGET_MM = 0.0005
 
 
-class DeviceErrorReply(DeviceProtocolError):
+class DeviceErrorReply(DeviceRefused):
     """The device answered `*NN`: it understood and refused (code, name as in the command set)."""
 
     def __init__(self, message: str, code: str, name: str):

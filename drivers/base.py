@@ -32,6 +32,11 @@ class DeviceProtocolError(DeviceError):
     """Garbled reply, bad CRC, Modbus exception reply, `*10`-style error reply."""
 
 
+class DeviceRefused(DeviceProtocolError):
+    """The device understood and answered with its own error (a Modbus exception, a `*22`):
+    repeating the request will not help, and the run stops at once."""
+
+
 @dataclass(frozen=True)
 class LoadCellStatus:
     under_range: bool = False

@@ -37,6 +37,7 @@ from .base import (
     DeviceConnectionLost,
     DeviceError,
     DeviceProtocolError,
+    DeviceRefused,
     DeviceTimeout,
     ForceReading,
     LoadCell,
@@ -369,7 +370,7 @@ class ModbusLink:
             if response.isError():
                 code = getattr(response, "exception_code", None)
                 meaning = MODBUS_EXCEPTIONS.get(code, "unknown exception")
-                raise DeviceProtocolError(
+                raise DeviceRefused(
                     f"{self.where}: unit {unit} refused {action}: Modbus exception "
                     f"0x{code or 0:02X} ({meaning})")
             return response

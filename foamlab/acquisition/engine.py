@@ -372,13 +372,15 @@ class RunEngine:
             self._set_state(STOPPING)
             # nothing to stop when the link never came up: no command ever reached the machine
             stop_note = self._stopper.stop() if self._connected_once else "never connected"
+            rest_note = ""
             if self._connected_once and "failed (" not in stop_note:
-                self._stopper.confirm_at_rest()
+                rest_note = self._stopper.confirm_at_rest()
+            safety = safety_note(stop_note, rest_note, self._sampler.watch.note())
             status = FINISHED if end == END_FINISHED else ABORTED
             if status == ABORTED:
                 log.info("run aborted: %s (%s)", reason, stop_note)
             finished_at = now_iso()
-            self.recorder.finish(status, reason)
+            self.recorder.finish(status, reason, safety=safety)
             park_note = "not parked"
             if self._stopper.link_alive and end in PARK_AFTER and self._start_position is not None:
                 park_note = self._park()
@@ -391,7 +393,7 @@ class RunEngine:
                           "contact_position_mm": self._contact, "preload_N": self.method.contact.preload_N})
             timing = self._sampler.stats()
             result = RunResult(self.recorder.path, status, reason, len(self.recorder), timing.missed, end,
-                               park_note, self._contact, timing, run)
+                               park_note, self._contact, timing, run, safety)
             if status == FINISHED:
                 last = self.recorder.last or (0.0, 0.0, 0.0)
                 self._report_progress(last[1], last[2], 1.0, immediate=True)
@@ -410,6 +412,13 @@ class RunEngine:
             self._set_state(result.status if result else ABORTED)
             self._listeners.emit("on_finished", result)
             self._done.set()
+
+
+def safety_note(stop_note: str, rest_note: str, status_note: str) -> str:
+    """What went wrong bringing the machine to rest, in one line ("" when nothing did)."""
+    plain = stop_note in ("stopped", "emergency stopped", "never connected")
+    parts = ["" if plain else stop_note, rest_note, status_note]
+    return "; ".join(p for p in parts if p)
 
 
 def command(action: Callable, *args) -> None:

@@ -77,6 +77,7 @@ class RunResult:
     contact_position_mm: float | None = None
     timing: ScheduleStats | None = None
     run: RunData | None = None
+    safety: str = ""          # a stop not acknowledged, a crosshead not confirmed at rest, failed status polls
 
     @property
     def ok(self) -> bool:

@@ -31,7 +31,7 @@ import weakref
 from dataclasses import dataclass
 from typing import Callable
 
-from drivers.base import CrossheadStatus, DeviceConnectionLost, DeviceError, Machine
+from drivers.base import CrossheadStatus, DeviceConnectionLost, DeviceError, DeviceRefused, Machine
 from foamlab import FoamlabError
 from foamlab.acquisition.events import END_ESTOP, END_FAULT, END_LIMIT, END_OVERLOAD, RunAborted
 
@@ -51,6 +51,9 @@ STALL_FRACTION = 0.2
 STOP_CONFIRM_S = 2.0
 #: How long cleanup keeps trying to send stop / emergency stop over a failing link (wall s).
 STOP_RETRY_S = 3.0
+#: Status polls that may fail in a row (each already retried by the driver) before the run stops:
+#: a device without a host watchdog relies on the engine noticing a dead link (docs/devices.md).
+MAX_FAILED_STATUS_POLLS = 2
 
 
 @dataclass(frozen=True)
@@ -162,6 +165,8 @@ class CrossheadWatch:
         self.machine = machine
         self._last = 0.0
         self._rtt = 0.0
+        self._in_a_row = 0
+        self.failed: list[str] = []        # every failed poll, said in the run's safety note
 
     def maybe_read(self, schedule) -> None:
         since = time.monotonic() - self._last
@@ -172,22 +177,38 @@ class CrossheadWatch:
         self.read(schedule)
 
     def read(self, schedule=None) -> CrossheadStatus | None:
-        """The drive's status (None when the request failed: the next one may succeed)."""
+        """The drive's status; None when this poll failed (counted and said: the device's own
+        error reply, or MAX_FAILED_STATUS_POLLS failures in a row, end the run)."""
         t = time.monotonic()
         try:
             status = self.machine.crosshead.status()
         except DeviceConnectionLost:
             raise
+        except DeviceRefused as exc:
+            raise RunAborted(END_FAULT, f"crosshead status refused: {exc}") from None
         except DeviceError as exc:
-            log.warning("crosshead status failed: %s", exc)
+            self._last = time.monotonic()
+            self._in_a_row += 1
+            self.failed.append(str(exc))
+            log.warning("crosshead status failed (%d in a row): %s", self._in_a_row, exc)
+            if self._in_a_row >= MAX_FAILED_STATUS_POLLS:
+                raise RunAborted(END_FAULT, f"crosshead status unreadable ({self._in_a_row} polls in a row): "
+                                            f"{exc}") from None
             return None
         done = time.monotonic()
+        self._in_a_row = 0
         if schedule is not None:
             schedule.waited_for_device(done - t)
         self._rtt = 0.8 * self._rtt + 0.2 * (done - t) if self._rtt else done - t
         self._last = done
         check_crosshead_status(status, self.machine)
         return status
+
+    def note(self) -> str:
+        """The failed polls of the run in one line ("" when none failed)."""
+        if not self.failed:
+            return ""
+        return f"{len(self.failed)} crosshead status poll(s) failed, first: {self.failed[0]}"
 
 
 class Stopper:
@@ -236,24 +257,35 @@ class Stopper:
                     errors.append(str(exc))
             time.sleep(0.02)
 
-    def confirm_at_rest(self) -> bool:
-        """Wait until the drive reports no motion; e-stop it if it does not within STOP_CONFIRM_S."""
+    def confirm_at_rest(self) -> str:
+        """Wait until the drive reports no motion: "" when it does, else why not, in one line.
+
+        Not confirmed within STOP_CONFIRM_S (or the status unreadable): an emergency stop is
+        sent and the reason is returned, never swallowed - the run's trailer and the screen say it.
+        """
         deadline = time.monotonic() + STOP_CONFIRM_S
+        last_error = ""
         while time.monotonic() < deadline:
             try:
                 if not self.machine.crosshead.status().moving:
-                    return True
-            except DeviceConnectionLost:
+                    return ""
+                last_error = "the drive still reports motion"
+            except DeviceConnectionLost as exc:
                 self.link_alive = False
-                return False
-            except Exception:
-                pass
+                note = f"crosshead not confirmed at rest: link lost ({exc})"
+                log.error(note)
+                return note
+            except DeviceError as exc:
+                last_error = f"status unreadable: {exc}"
             time.sleep(0.005)
+        note = f"crosshead not confirmed at rest within {STOP_CONFIRM_S:g} s ({last_error})"
         try:
             self.machine.crosshead.emergency_stop()
-        except Exception:
-            pass
-        return False
+            note += "; emergency stop sent"
+        except DeviceError as exc:
+            note += f"; emergency stop failed: {exc}"
+        log.error(note)
+        return note
 
 
 def park(machine: Machine, stopper: Stopper, limits: Limits, target: float, speed: float, *,

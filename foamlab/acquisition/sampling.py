@@ -8,7 +8,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from drivers.base import DeviceConnectionLost, DeviceError, Machine
+from drivers.base import DeviceConnectionLost, DeviceError, DeviceRefused, Machine
 from foamlab.acquisition.events import END_FAULT, Listeners, RunAborted, Sample
 from foamlab.acquisition.safety import CrossheadWatch, Limits
 from foamlab.acquisition.schedule import SampleSchedule, ScheduleStats
@@ -83,6 +83,8 @@ class Sampler:
             reading = self.machine.read_sample()
         except DeviceConnectionLost:
             raise
+        except DeviceRefused as exc:     # the device said no: asking again will not change that
+            raise RunAborted(END_FAULT, f"device refused a sample: {exc}") from None
         except DeviceError as exc:
             schedule.waited_for_device(time.monotonic() - t_request)
             self.failed_reads += 1

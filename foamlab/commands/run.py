@@ -333,6 +333,8 @@ def _report(result, method, out_dir: Path, fit: bool = True, diagnose: bool = Tr
     analysis = pipeline.Analysis(result.run, result.path) if result.run is not None else None
     if analysis is not None:
         analysis.forecast = forecast
+    if result.safety:
+        print(f"foamlab run: SAFETY: {result.safety}", file=sys.stderr)
     if result.status != "finished":
         kept = f"; {result.n_samples} samples kept in {result.path}" if result.path else ""
         print(f"foamlab run: aborted: {result.reason}{kept}", file=sys.stderr)

@@ -43,6 +43,8 @@ def run_rows(result) -> list[tuple[str, str]]:
             ("samples", f"{result.n_samples} ({result.missed} missed)")]
     if result.park:
         rows.append(("crosshead", result.park))
+    if getattr(result, "safety", ""):
+        rows.append(("safety", "⚠ " + result.safety))
     timing = result.timing
     if timing is not None and timing.samples:
         rows.append(("schedule", f"lateness p50 {timing.lateness_p50_ms:.2f} ms, p99 {timing.lateness_p99_ms:.2f} ms"))

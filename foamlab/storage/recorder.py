@@ -187,7 +187,7 @@ class Recorder:
         return np.asarray(self._step, int), np.asarray(self._cycle, int)
 
     # -- after the run -------------------------------------------------------------------
-    def finish(self, status: str, reason: str) -> None:
+    def finish(self, status: str, reason: str, safety: str = "") -> None:
         """Write the status trailer and close. Never raises (the run's end must go on)."""
         if self._syncer is not None:
             self._syncer.close()
@@ -195,7 +195,7 @@ class Recorder:
         if self._writer is None or self._writer.closed:
             return
         try:
-            self._writer.finish(status, reason)
+            self._writer.finish(status, reason, safety)
         except (OSError, FoamlabError) as exc:
             log.error("could not close the run file %s: %s", self.path, exc)
             self._salvage(status, reason)

@@ -170,8 +170,11 @@ class RunWriter:
                 os.fsync(self._file.fileno())
                 self._last_sync = time.monotonic()
 
-    def finish(self, status: str = "finished", reason: str = "") -> None:
-        """Write the trailer (finished_at, status, abort_reason) and close. Idempotent."""
+    def finish(self, status: str = "finished", reason: str = "", safety: str = "") -> None:
+        """Write the trailer (finished_at, status, abort_reason, safety) and close. Idempotent.
+
+        `safety`: what went wrong bringing the machine to rest (a stop not acknowledged, a
+        crosshead not confirmed at rest, failed status polls), kept with the run it concerns."""
         if status not in ("finished", "aborted"):
             raise ValueError(f"status must be 'finished' or 'aborted', not {status!r}")
         with self._lock:
@@ -180,6 +183,8 @@ class RunWriter:
             trailer = [f"# finished_at: {now_iso()}", f"# status: {status}"]
             if reason or status == "aborted":
                 trailer.append(f"# abort_reason: {_one_line(reason) or 'not given'}")
+            if safety:
+                trailer.append(f"# safety: {_one_line(safety)}")
             self._file.write("\n".join(trailer) + "\n")
             self._sync()
             self._file.close()
