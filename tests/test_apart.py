@@ -46,17 +46,37 @@ def test_coalesced_orders_are_held_apart_where_the_run_fits_best():
     assert apart.fit.rmse < 1.1 * 0.1
 
 
-def test_real_file_default_fit_has_no_cancelling_pair_and_few_warnings():
-    """The real Bluehill file: +-596 cancelling amplitudes before; at most 5 warnings (issue 19);
-    the held orders are said in a note."""
+def _free_pairs(result) -> list[tuple[int, int]]:
+    """Coalesced pairs of the result's core fit whose orders are not both held."""
+    core = result.core_fit
+    held = ~np.isin(np.arange(core.model.n_phi), np.flatnonzero(core.model.base_bounds[1] - core.model.base_bounds[0] > 1e-6))
+    return [(i, j) for i, j in coalesced(core) if not (held[i] and held[j])]
+
+
+def test_real_file_default_fit_holds_cancelling_pairs_apart_or_says_they_cancel():
+    """The real Bluehill file: +-596 cancelling amplitudes before. Whether holding them apart is
+    kept is a BIC comparison that the last digit of a machine's arithmetic can turn (issue 23):
+    either way the result must be honest - held: the held orders said in a note, no free pair,
+    at most 5 warnings (issue 19); not held: a warning says which pairs cancel."""
     result = fit_run(load_run(REAL))
+    free = _free_pairs(result)
+    if free:
+        assert any("at nearly one order cancel" in w for w in result.warnings), result.warnings
+        return
     held = _held(result)
     note = next(n for n in result.notes if "held (fixed)" in n)
     assert held and all(f"{n} = " in note for n in held)
-    # a pair held apart may still offset (cycle 2: -0.0009 / +0.0033 at orders -2.28 / -1.98); none other
-    core = result.core_fit
-    held = ~np.isin(np.arange(core.model.n_phi), np.flatnonzero(core.model.base_bounds[1] - core.model.base_bounds[0] > 1e-6))
-    assert all(held[i] and held[j] for i, j in coalesced(core)), coalesced(core)
     assert len(result.warnings) <= 5, result.warnings
     r = np.abs([result.value(n) for n in result.names if n.startswith("r")])
     assert r.max() < 100, dict(zip(result.names, result.values))
+
+
+def test_cancelling_pairs_left_free_are_said(monkeypatch):
+    """The other way the choice can fall, taken on every machine: holding refused, the real file's
+    cancelling pairs (+-596 at beta 0.058 / 0.059) are named in a warning, not left to be read
+    off the correlation table."""
+    monkeypatch.setattr("foamlab.identification.fit.hold_apart", lambda fd, free: None)
+    result = fit_run(load_run(REAL))
+    assert _free_pairs(result)
+    said = [w for w in result.warnings if "at nearly one order cancel" in w]
+    assert len(said) == 1 and f"{len(_free_pairs(result))} pair(s)" in said[0], result.warnings

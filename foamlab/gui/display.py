@@ -190,6 +190,8 @@ class RunDisplay(QtWidgets.QWidget):
         _, analysis, report = self._ended
         analysis.forecast = scores
         report.set_forecast(scores)
+        for departure in self.live.departures:        # found by a forecast that came after the run
+            report.add_departure(departure)
         self.results.show_report(report)
 
     # -- a run from a file --------------------------------------------------------------

@@ -167,8 +167,10 @@ class Report:
         self.forecast_note = scores.note
 
     def add_departure(self, departure: Any) -> None:
-        """A foamlab.prediction.Departure seen during the run: a flag in words."""
-        self.flags.append(Flag(departure.message, DEPARTURE_MEANING))
+        """A foamlab.prediction.Departure seen during the run (or found by a forecast that came
+        after it): a flag in words, once."""
+        if all(f.name != departure.message for f in self.flags):
+            self.flags.append(Flag(departure.message, DEPARTURE_MEANING))
 
     # -- views ------------------------------------------------------------------------
     def headline_rows(self) -> list[ResultRow]:

@@ -19,7 +19,7 @@ from threadpoolctl import threadpool_limits
 from foamlab.analysis.noise import AT_NOISE_RATIO, at_the_noise
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
 from foamlab.analysis.solve import Fit, model_like, polish
-from foamlab.identification.apart import HeldApart, hold_apart
+from foamlab.identification.apart import HeldApart, coalesced, hold_apart
 from foamlab.identification.forms import choose as forms_choose
 from foamlab.identification.joint import (
     AT_BOUND,
@@ -226,6 +226,8 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, riv
     result = _result(fd, chosen.orders, steps, polished, time.perf_counter(), base)
     if apart is not None:
         _note_held(result, apart, free)
+    if hold:
+        _warn_cancelling(result, apart)
     if unreproduced:
         result.warnings.append("the model's own evaluation (what the simulator runs) does not reproduce this fit "
                                "within a tenth of its residual")
@@ -298,6 +300,8 @@ def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, 
     result = _result(fd, orders, paper, jf, time.perf_counter(), base)
     if apart is not None:
         _note_held(result, apart, free)
+    if hold:
+        _warn_cancelling(result, apart)
     return result
 
 
@@ -316,6 +320,23 @@ def _note_held(result: FitResult, apart: HeldApart, free: Fit) -> None:
     result.free_core = free
     result.notes.append(apart.note({n: float(v) for n, v, varied in zip(result.names, result.values, result.varied)
                                     if not varied and n.startswith("beta") and n not in result.tied}))
+
+
+def _warn_cancelling(result: FitResult, apart: HeldApart | None) -> None:
+    """Coalesced residual orders left free (holding them apart fitted worse than BIC_TIE, or a
+    pair the hold did not reach) are said: which way that choice falls can turn on the last digit
+    of a run's numbers, so the result must say which way it fell."""
+    core = result.core_fit
+    if core is None:
+        return
+    held = apart.held if apart is not None else np.zeros(core.params.layout.n_nonlinear, bool)
+    pairs = [(i, j) for i, j in coalesced(core) if not (held[i] and held[j])]
+    if not pairs:
+        return
+    phi = core.model.split(core.nu)[0]
+    orders = ", ".join(f"{phi[i]:.4g} / {phi[j]:.4g}" for i, j in pairs)
+    result.warnings.append(f"{len(pairs)} pair(s) of residual terms at nearly one order cancel (beta {orders}): "
+                           "the data determine each pair's sum, not its terms; held apart they fitted worse")
 
 
 #: A polished fit further than this from the noise level, with structure left in its

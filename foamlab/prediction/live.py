@@ -206,7 +206,7 @@ class LivePredictor:
                     except queue.Empty:
                         break
                 ending = self._take(batch) or ending
-                if ending and not self._scoring():
+                if ending and not self._still_needed():
                     self._abandon()
                     return
         except Exception:   # a prediction bug must never touch the run; say it once
@@ -246,15 +246,23 @@ class LivePredictor:
     def _forecast_next(self) -> None:
         """Start the forecast from the latest complete cycle, unless one is being made."""
         k = self._waiting
-        if k is None or self._ended or any(isinstance(w, ForecastJob) for w in self._pending.values()):
-            return          # after the run's end nothing is left to predict
+        if k is None or any(isinstance(w, ForecastJob) for w in self._pending.values()):
+            return
         self._waiting = None
+        if self._ended and k + 1 > self._completed:
+            return          # after the run's end only a cycle that was measured is worth forecasting (its score)
         prefix = self.samples.upto_cycle(k)
         job = ForecastJob(k, time.monotonic(), float(prefix.time_s[-1]))
         self._submit(job, make_forecast, prefix, self.plan, k, self.sampling_hz, self.n_cycles)
 
-    def _scoring(self) -> bool:
-        return any(not isinstance(w, ForecastJob) for w in self._pending.values())
+    def _still_needed(self) -> bool:
+        """After the run's end: a score being made, or a forecast of a measured cycle (its score).
+
+        A forecast that a slower computer delivers after the run still scores the cycle it
+        predicts (and says where that cycle left it): the result does not depend on the race."""
+        waiting = self._waiting is not None and self._waiting + 1 <= self._completed
+        return waiting or any(
+            not isinstance(w, ForecastJob) or w.after_cycle + 1 <= self._completed for w in self._pending.values())
 
     def _abandon(self) -> None:
         for future, what in list(self._pending.items()):
