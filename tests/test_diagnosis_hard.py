@@ -17,11 +17,13 @@ import pytest
 from foamlab.diagnosis import diagnose
 
 CASES = [
-    # regime, seed, effect, the verdict required
-    ("A", 300, {"lag_s": 0.05}, "channel_lag"),
-    # A seeds 300-307 on the merged code: named in 6 of 8 (301: Delta BIC 58 but held-out 0.1537 vs
-    # 0.1512 N, flipped by a 1.5e-5 N change of the basis; 304: Delta BIC 1.7): two of the clear ones here
-    ("A", 306, {"lag_s": 0.05}, "channel_lag"),
+    # regime, seed, effect, the verdict required. Seeds: the first two of each case's range, set
+    # before looking. Regime A's lag at 50 ms sits at the detection limit (seeds 300-307: 2 of 8
+    # under Delta BIC 10 or a held-out gain of 1e-5 N; benchmarks/bench_diagnosis.py --hard), so
+    # the test asks for 100 ms, where seeds 300/301 give Delta BIC 240/125 and held-out gains of
+    # 4.8/3.7 mN - far from the edge on any machine.
+    ("A", 300, {"lag_s": 0.1}, "channel_lag"),
+    ("A", 301, {"lag_s": 0.1}, "channel_lag"),
     ("B", 300, {"lag_s": 0.05}, "channel_lag"),
     ("B", 301, {"lag_s": 0.05}, "channel_lag"),
     ("B", 300, {"compliance": 1e-3}, "machine_compliance"),     # a 1 000 N/mm frame
