@@ -14,7 +14,7 @@ import sys
 from foamlab import FoamlabError, __version__
 
 # Order here is the order in `foamlab --help`.
-COMMAND_MODULES = ["run", "sim", "fit", "diagnose", "batch", "report", "series", "gui", "show", "catalog"]
+COMMAND_MODULES = ["run", "probe", "sim", "fit", "diagnose", "batch", "report", "series", "gui", "show", "catalog"]
 
 
 def build_parser() -> argparse.ArgumentParser:

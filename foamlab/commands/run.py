@@ -70,6 +70,9 @@ def register(subparsers) -> None:
     sim.add_argument("--fault", action="append", default=[], metavar="SPEC",
                      help="inject a fault (repeatable): NAME@T, NAME@T+D, NAME:p=P (see foamlab sim --help)")
     sim.add_argument("--seed", type=int, default=0, help="seed of its noise and random faults (default 0)")
+    p.add_argument("--unprobed-ok", action="store_true",
+                   help="run a --machine profile that has not passed `foamlab probe` on this computer without "
+                        "asking (scripts; the built-in simulated machine never asks)")
     p.add_argument("--no-predict", action="store_true",
                    help="no live prediction (from cycle 3 on: the rest of the run predicted from the cycles "
                         "measured, and a line when the specimen leaves the prediction)")
@@ -101,6 +104,24 @@ def _engine_logging(verbose: bool):
         logger.setLevel(level)
         if handler is not None:
             logger.removeHandler(handler)
+
+
+def _check_probed(profile: dict, name: str, unprobed_ok: bool) -> None:
+    """A profile that never passed `foamlab probe` here: warn, and ask (a terminal) or refuse (a script)."""
+    from foamlab.storage.probes import passed_probe
+
+    if passed_probe(profile) is not None:
+        return
+    warning = (f"machine profile {name!r} has not passed `foamlab probe --machine {name}` on this computer "
+               "(or was edited since): its units, scales and limits are unchecked against the device")
+    if unprobed_ok:
+        print(f"foamlab run: warning: {warning}", file=sys.stderr)
+        return
+    if not sys.stdin.isatty():
+        raise FoamlabError(f"{warning}; probe it first, or add --unprobed-ok")
+    answer = input(f"foamlab run: {warning}. Run anyway? [y/N] ").strip().lower()
+    if answer not in ("y", "yes"):
+        raise FoamlabError("not run: probe the machine first (foamlab probe)")
 
 
 def _positive(name: str, value: float | None) -> None:
@@ -199,6 +220,7 @@ def run(args) -> int:
             profile = load_profile(args.machine)
         except ProfileError as exc:
             raise FoamlabError(str(exc)) from None
+        _check_probed(profile, args.machine, args.unprobed_ok)
 
     height, width, depth = args.specimen_height, args.width, args.depth
     if builtin:
