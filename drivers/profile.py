@@ -2,12 +2,15 @@
 
 A profile (configs/machines/<name>.toml) names the protocol, the connection, the
 devices' settings and the safety limits; it references the wire contract by file
-name (`register_map = "_modbus_map.toml"` or `command_set = "_mark10_commands.toml"`).
+name (`command_set = "_mark10_commands.toml"`); a Modbus profile names its two devices
+(`[load_cell] device = "flintec-dad141"`, `[crosshead] device = "leadshine-cs2rs"`), whose
+device files (configs/devices/<id>.toml) are the registers as the manuals document them.
 
 `load_profile()` returns the profile as a plain dict, exactly as in the TOML, plus:
-  - "wire":   the referenced register map / command set, loaded (a dict);
+  - "wire":   the referenced command set, loaded (a dict); for Modbus {"load_cell": ...,
+              "crosshead": ...}, the two device files, loaded;
   - "source": the path of the profile file (str).
-The original `register_map` / `command_set` keys keep their file names.
+The original `command_set` / `device` keys keep their names.
 
 Errors in a profile raise ProfileError (a ValueError) with a one-line message naming
 the file and the key; `drivers` knows nothing of `foamlab`, the caller turns it into
@@ -24,10 +27,14 @@ from typing import Any
 
 from .ascii import AsciiMachine, CommandSet
 from .base import Machine
-from .modbus import WORD_ORDERS, ModbusCrosshead, ModbusLoadCell, ModbusMachine, RegisterMap
+from .cs2rs import motor_rpm, ramp_ms
+from .dad141 import UNIT_N
+from .modbus import ModbusMachine, device_map
 
 #: The repository's machine profiles (used when no directory is given).
 MACHINES_DIR = Path(__file__).resolve().parent.parent / "configs" / "machines"
+#: The repository's device files (a profile's own configs folder may hold its own `devices/`).
+DEVICES_DIR = MACHINES_DIR.parent / "devices"
 
 PROTOCOLS = ("modbus", "ascii")
 TRANSPORTS = ("tcp", "rtu")
@@ -39,7 +46,7 @@ CONNECTION_OVERRIDES = {
     "parity": str, "stopbits": int, "timeout_s": float, "retries": int,
 }
 #: Top-level profile keys `open_machine(**overrides)` accepts.
-PROFILE_OVERRIDES = {"word_order": str}
+PROFILE_OVERRIDES: dict[str, type] = {}
 
 
 class ProfileError(ValueError):
@@ -102,7 +109,11 @@ def load_profile(name_or_path: str | Path, configs_dir: str | Path | None = None
     protocol = profile.get("protocol")
     if protocol not in PROTOCOLS:
         raise ProfileError(f"{path.name}: protocol must be one of {', '.join(PROTOCOLS)}, got {protocol!r}")
-    wire_key = "register_map" if protocol == "modbus" else "command_set"
+    if protocol == "modbus":      # two devices, each named by its [load_cell] / [crosshead] `device`
+        profile["wire"] = {role: _read_toml(_device_file(profile, role, path)) for role in ("load_cell", "crosshead")}
+        validate_profile(profile)
+        return profile
+    wire_key = "command_set"
     wire_name = profile.get(wire_key)
     if not isinstance(wire_name, str) or not wire_name:
         raise ProfileError(f"{path.name}: protocol {protocol!r} needs `{wire_key} = \"FILE.toml\"`")
@@ -114,6 +125,22 @@ def load_profile(name_or_path: str | Path, configs_dir: str | Path | None = None
     profile["wire"] = _read_toml(wire_path)
     validate_profile(profile)
     return profile
+
+
+def _device_file(profile: dict, role: str, profile_path: Path) -> Path:
+    """`device = "ID"` -> devices/ID.toml beside the profile's machines folder, else the repository's;
+    `device = "FILE.toml"` -> that file (relative to the profile)."""
+    name = profile.get(role, {}).get("device") if isinstance(profile.get(role), dict) else None
+    if not isinstance(name, str) or not name:
+        raise ProfileError(f"{profile_path.name}: [{role}] needs `device = \"ID\"` (a file in configs/devices)")
+    if name.endswith(".toml"):
+        candidates = [profile_path.parent / name]
+    else:
+        candidates = [profile_path.parent.parent / "devices" / f"{name}.toml", DEVICES_DIR / f"{name}.toml"]
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    raise ProfileError(f"{profile_path.name}: [{role}] device file not found: {candidates[0]}")
 
 
 # --------------------------------------------------------------------------- validation
@@ -185,7 +212,10 @@ def validate_profile(profile: dict) -> None:
 
 
 def _validate_modbus(profile: dict, c: _Checker) -> None:
-    c.choice(profile, "word_order", "", WORD_ORDERS)
+    for key, why in (("word_order", "is the device's ([device.word_order] in its device file)"),
+                     ("register_map", "is gone: name the devices (`[load_cell] device`, `[crosshead] device`)")):
+        if key in profile:
+            c.fail("", f"`{key}` {why}")
     connection = profile["connection"]
     transport = c.choice(connection, "transport", "[connection]", TRANSPORTS)
     if transport == "tcp":
@@ -202,19 +232,39 @@ def _validate_modbus(profile: dict, c: _Checker) -> None:
             c.fail("[connection]", f"`parity` must be one of {', '.join(PARITIES)}")
         if connection.get("stopbits", 1) not in (1, 2):
             c.fail("[connection]", "`stopbits` must be 1 or 2")
-    for device in ("load_cell", "crosshead"):
-        unit = c.number(profile[device], "unit_id", f"[{device}]", integer=True)
+    units = [c.number(profile[role], "unit_id", f"[{role}]", integer=True) for role in ("load_cell", "crosshead")]
+    for role, unit in zip(("load_cell", "crosshead"), units):
         if not 1 <= unit <= 247:
-            c.fail(f"[{device}]", f"`unit_id` must be 1..247, got {unit}")
-    watchdog = c.number(profile["crosshead"], "watchdog_ms", "[crosshead]", integer=True, optional=True)
-    if watchdog is not None and not 0 <= watchdog <= 0xFFFF:
-        c.fail("[crosshead]", f"`watchdog_ms` must be 0..65535, got {watchdog}")
-    # The register map itself: building it checks every entry (drivers.modbus owns the format).
-    for device, driver in (("load_cell", ModbusLoadCell), ("crosshead", ModbusCrosshead)):
+            c.fail(f"[{role}]", f"`unit_id` must be 1..247, got {unit}")
+    if units[0] == units[1]:
+        c.fail("[crosshead]", f"`unit_id` {units[1]} is the load cell's too: two devices on one link need two ids")
+    devices = {}
+    for role in ("load_cell", "crosshead"):    # building a device map checks every entry of its file
         try:
-            driver.checked_map(RegisterMap.from_toml(profile["wire"], device))
+            devices[role] = device_map(profile, role)
         except ValueError as exc:
-            raise ProfileError(f"{profile['register_map']}: {exc}") from None
+            raise ProfileError(str(exc)) from None
+    if profile["load_cell"].get("unit", "N") not in UNIT_N:
+        c.fail("[load_cell]", f"`unit` must be one of {', '.join(UNIT_N)} (what the indicator is calibrated in)")
+    _validate_screw(profile["crosshead"], devices["crosshead"], c)
+
+
+def _validate_screw(crosshead: dict, drive, c: _Checker) -> None:
+    """The drive's scaling: screw lead, gear ratio, pulses per motor revolution, ramps in its units."""
+    if "watchdog_ms" in crosshead:
+        c.fail("[crosshead]", f"`watchdog_ms`: the {drive.name} has no documented host watchdog (its device file)")
+    lead = c.number(crosshead, "lead_mm", "[crosshead]", positive=True)
+    gear = c.number(crosshead, "gear_ratio", "[crosshead]", positive=True)
+    ppr = c.number(crosshead, "pulses_per_rev", "[crosshead]", integer=True, positive=True)
+    low, high = drive.registers["pulses_per_rev"].range or (1, 0xFFFF)
+    if not low <= ppr <= high:
+        c.fail("[crosshead]", f"`pulses_per_rev` must be {low}..{high} (the drive's Pr0.00), got {ppr}")
+    acceleration = c.number(crosshead, "acceleration_mm_s2", "[crosshead]", positive=True)
+    if not ramp_ms(acceleration, lead, gear) <= 0xFFFF:
+        c.fail("[crosshead]", f"`acceleration_mm_s2` {acceleration} is slower than the drive's ramp register holds")
+    top = motor_rpm(crosshead["max_speed_mm_min"], lead, gear)
+    if top > 0xFFFF:
+        c.fail("[crosshead]", f"`max_speed_mm_min` is {top:.0f} rpm at the motor: beyond the drive's speed register")
 
 
 def _validate_ascii(profile: dict, c: _Checker) -> None:
@@ -257,7 +307,7 @@ def open_machine(profile: dict | str | Path, *, connect: bool = True, **override
 
     `profile` is a loaded profile, or a name / path for load_profile().
     `overrides` replace connection settings: host, port, port_url, transport,
-    baudrate, parity, stopbits, timeout_s, retries, and word_order. Use it as a
+    baudrate, parity, stopbits, timeout_s and retries. Use it as a
     context manager to be sure it is closed: `with open_machine(p) as m: ...`
     (connect() is idempotent).
     """

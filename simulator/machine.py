@@ -39,22 +39,20 @@ import collections
 import math
 import threading
 import time
-import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
-from foamlab import CONFIG_DIR
 from foamlab.model import ModelParameters, SpecimenState
 from foamlab.model.effects import EffectChain, make_effects
 from simulator.clock import ManualClock, VirtualClock
 from simulator.faults import FaultPlan
 
-# The wire contract is the single definition of the drive's fault codes.
-_MAP = tomllib.loads((CONFIG_DIR / "machines" / "_modbus_map.toml").read_text(encoding="utf-8"))
-FAULT_CODES: dict[str, int] = dict(_MAP["crosshead"]["fault_codes"])
+# The simulated machine's own reasons for a latched fault; each device's server says them in
+# its protocol's words (the CS2RS's alarm codes, the ESM303's status and error replies).
+FAULT_CODES: dict[str, int] = {"none": 0, "stall": 1, "watchdog": 2, "emergency": 3, "limit": 4}
 FAULT_NONE = FAULT_CODES["none"]
 FAULT_STALL = FAULT_CODES["stall"]
 FAULT_WATCHDOG = FAULT_CODES["watchdog"]
@@ -583,6 +581,12 @@ class SimulatedMachine:
             self._sync(exact=True)
             self._zero_counts = self._quantize(self._raw_noise_free())
             self._peak = self._quantize(self._raw_noise_free() - self._zero_counts) - self._tare
+
+    def reset_load_cell_zero(self) -> None:
+        """Gross zero back to the calibration zero (an indicator's "reset zero")."""
+        with self._lock:
+            self._sync(exact=True)
+            self._zero_counts = 0.0
 
     def tare(self) -> None:
         with self._lock:

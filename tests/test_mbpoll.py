@@ -1,12 +1,12 @@
 """An independent Modbus client nobody here wrote - mbpoll (Debian package `mbpoll`) -
-reads the simulated net force (float32, unit 1) and the crosshead's actual position
-(int32, unit 2) over Modbus TCP and over Modbus RTU on the pty, and the values match
-the simulator's state.
+reads the simulated net force (the DAD 141.1's float32 at 0x2002, unit 1) and the
+crosshead's motor position (the CS2RS's int32 pulses at 0x602C, unit 2) over Modbus TCP and
+over Modbus RTU on the pty, and the values match the simulator's state.
 
 The crosshead is moving into the foam while mbpoll runs (real-time virtual clock), so
 each value must lie between the machine's noise-free state just before and just
 after the mbpoll call: the tolerance is exactly the time that passed, plus one
-count of the load cell / one micrometre.
+count of the load cell / one pulse.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import time
 
 import pytest
 
+from drivers.modbus import device_map
 from drivers.profile import load_profile
 from simulator.launch import TRANSPORTS, start_simulator
 from simulator.machine import SimulatedMachine
@@ -36,11 +37,10 @@ MOVE_SPEED_MM_MIN = 100.0
 
 
 def mbpoll_read(sim, unit: int, address: int, kind: str) -> float:
-    """One value read by mbpoll: PDU (0-based) addressing, the profile's word order."""
+    """One value read by mbpoll: PDU (0-based) addressing, high word first (both devices' order)."""
     profile = sim.profile
-    common = ["-a", str(unit), "-r", str(address), "-0", "-t", f"4:{kind}", "-c", "1", "-1", "-o", "2"]
-    if profile["word_order"] == "big":
-        common.append("-B")   # mbpoll's default is low word first
+    # -B: high word first (mbpoll's default is low word first)
+    common = ["-a", str(unit), "-r", str(address), "-0", "-t", f"4:{kind}", "-B", "-c", "1", "-1", "-o", "2"]
     if sim.transport == "modbus-tcp":
         argv = [MBPOLL, "-m", "tcp", "-p", str(sim.server.port), *common, sim.server.host]
     else:
@@ -58,9 +58,10 @@ def mbpoll_read(sim, unit: int, address: int, kind: str) -> float:
 @pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu-pty"])
 def test_mbpoll_reads_force_and_position(transport):
     profile = load_profile(TRANSPORTS[transport].profile)
-    wire = profile["wire"]
-    net_force = wire["load_cell"]["net_force"]["address"]
-    actual_position = wire["crosshead"]["actual_position"]["address"]
+    net_force = device_map(profile, "load_cell").registers["net"].address
+    motor_position = device_map(profile, "crosshead").registers["motor_position"].address
+    c = profile["crosshead"]
+    pulses_per_mm = c["pulses_per_rev"] * c["gear_ratio"] / c["lead_mm"]
     resolution = 0.01
     machine = SimulatedMachine(profile, speedup=SPEEDUP, noise_sigma_N=0.0, resolution_N=resolution)
     with start_simulator(transport, machine=machine) as sim:
@@ -79,8 +80,8 @@ def test_mbpoll_reads_force_and_position(transport):
         assert force > 1.0
 
         before = machine.snapshot()
-        position_um = mbpoll_read(sim, profile["crosshead"]["unit_id"], actual_position, "int")
+        pulses = mbpoll_read(sim, profile["crosshead"]["unit_id"], motor_position, "int")
         after = machine.snapshot()
-        assert before.position_mm * 1000 - 1 <= position_um <= after.position_mm * 1000 + 1, \
-            (before.position_mm, position_um, after.position_mm)
-        assert position_um > 8000
+        assert before.position_mm * pulses_per_mm - 1 <= pulses <= after.position_mm * pulses_per_mm + 1, \
+            (before.position_mm, pulses, after.position_mm)
+        assert pulses > 8 * pulses_per_mm

@@ -238,7 +238,7 @@ def run(args) -> int:
     try:
         if builtin:
             sim = _start_builtin(args)
-            profile = _tolerant_watchdog(sim.profile, args.speedup)
+            profile = sim.profile     # its drive (a CS2RS) has no host watchdog to widen
             overrides = sim.profile_overrides
         try:
             machine = open_machine(profile, connect=False, **overrides)
@@ -292,24 +292,6 @@ def _start_prediction(engine, method, progress: ProgressLine):
     engine.add_listener(predictor)
     predictor.start()
     return predictor
-
-
-#: Wall-clock silence the built-in machine's drive watchdog tolerates at any speedup (s).
-WATCHDOG_WALL_S = 0.25
-
-
-def _tolerant_watchdog(profile: dict, speedup: float) -> dict:
-    """The built-in machine's profile with a drive watchdog of at least WATCHDOG_WALL_S of wall time.
-
-    The watchdog counts machine time: at speedup 50 the profile's 2 s are 40 ms of wall time,
-    less than a busy PC may take to schedule a process, and the demo run would end in a
-    watchdog fault that no real machine would raise. The driver writes this value to the drive.
-    """
-    crosshead = profile.get("crosshead", {})
-    if not crosshead.get("watchdog_ms"):
-        return profile
-    wanted = min(0xFFFF, max(int(crosshead["watchdog_ms"]), round(WATCHDOG_WALL_S * 1000 * speedup)))
-    return {**profile, "crosshead": {**crosshead, "watchdog_ms": wanted}}
 
 
 def _start_builtin(args):

@@ -138,8 +138,8 @@ def _announce(sim, args) -> None:
     p = sim.profile
     lines = [f"foamlab sim: {sim.transport} serving at {sim.address}"]
     if p["protocol"] == "modbus":
-        lines.append(f"  load cell unit {p['load_cell']['unit_id']}, crosshead unit {p['crosshead']['unit_id']}, "
-                     f"word order {p['word_order']}")
+        lines.append(f"  load cell {p['load_cell']['device']} at unit {p['load_cell']['unit_id']}, "
+                     f"crosshead {p['crosshead']['device']} at unit {p['crosshead']['unit_id']}")
     run_flags = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in sim.profile_overrides.items())
     run_flags += f" --specimen-height {sim.machine.settings.specimen_height_mm:g}"
     if args.speedup != 1:
