@@ -10,7 +10,7 @@ from foamlab.methods import load_method
 from tests.hil_support import (approach, assert_keeps_the_schedule, machine_for, make_engine,
                                short_method, simulated, wait_at_rest)
 
-pytestmark = [pytest.mark.realtime, pytest.mark.hil, pytest.mark.timeout(60)]
+pytestmark = [pytest.mark.realtime, pytest.mark.hil, pytest.mark.schedule, pytest.mark.timeout(60)]
 
 #: Target of the issue: p99 deviation from the deadlines <= 2 ms at 16 Hz, zero missed.
 P99_TARGET_MS = 2.0
