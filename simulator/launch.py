@@ -37,6 +37,8 @@ TRANSPORTS: dict[str, TransportChoice] = {
     "modbus-rtu-pty": TransportChoice("sim-modbus-rtu", "rtu-pty"),
     "serial": TransportChoice("sim-serial", "ascii"),
 }
+#: Simulated devices by their device file (configs/devices/<name>.toml) -> the transport serving them.
+DEVICES: dict[str, str] = {"mark10-esm303": "serial"}
 
 
 class RunningSimulator:

@@ -25,6 +25,7 @@ import pytest
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.framer import FramerRTU, FramerType
 
+from drivers.modbus import device_map
 from drivers.profile import load_profile
 from foamlab.cli import main as foamlab_main
 from simulator.clock import ManualClock
@@ -38,12 +39,16 @@ ROOT = Path(__file__).resolve().parent.parent
 MODBUS_TRANSPORTS = ("modbus-tcp", "modbus-rtu", "modbus-rtu-pty")
 PROFILE_OF = {"modbus-tcp": "sim-modbus-tcp", "modbus-rtu": "sim-modbus-rtu",
               "modbus-rtu-pty": "sim-modbus-rtu", "serial": "sim-serial"}
-WIRE = load_profile("sim-modbus-tcp")["wire"]
-LC, CH = WIRE["load_cell"], WIRE["crosshead"]
-A = {**{k: v["address"] for k, v in LC.items() if isinstance(v, dict) and "address" in v},
-     **{f"ch_{k}": v["address"] for k, v in CH.items() if isinstance(v, dict) and "address" in v}}
-TRIG = CH["triggers"]
+# The devices as their device files describe them (a Flintec DAD 141.1, a Leadshine CS2RS);
+# the byte-exact transcripts of each are in tests/test_device_*.py.
+LC = device_map(load_profile("sim-modbus-tcp"), "load_cell")
+CH = device_map(load_profile("sim-modbus-tcp"), "crosshead")
+A = {**{k: r.address for k, r in LC.registers.items()}, "block": LC.blocks["result"].address,
+     **{f"ch_{k}": r.address for k, r in CH.registers.items()}}
+TRIG = CH.values["trigger"]
 LC_UNIT, CH_UNIT = 1, 2
+#: The profiles' screw: lead 4 mm, gear 10, 10 000 pulses/rev -> pulses per mm, mm/min per rpm.
+PULSES_PER_MM, MM_MIN_PER_RPM = 25000, 0.4
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -56,10 +61,6 @@ def manual_machine(transport: str, faults=(), **settings):
     return machine, clock
 
 
-def word_order(transport: str) -> str:
-    return load_profile(PROFILE_OF[transport])["word_order"]
-
-
 def pymodbus_client(sim):
     if sim.transport == "modbus-tcp":
         client = ModbusTcpClient(sim.server.host, port=sim.server.port, timeout=3, retries=0)
@@ -70,16 +71,17 @@ def pymodbus_client(sim):
     return client
 
 
-def f32(client, regs, order):
-    return client.convert_from_registers(regs, client.DATATYPE.FLOAT32, word_order=order)
+def f32(regs):
+    """Two registers, high word first (both devices' order) -> float32."""
+    return struct.unpack(">f", struct.pack(">HH", *regs))[0]
 
 
-def i32(client, regs, order):
-    return client.convert_from_registers(regs, client.DATATYPE.INT32, word_order=order)
+def i32(regs):
+    return struct.unpack(">i", struct.pack(">HH", *regs))[0]
 
 
-def to_i32(client, value, order):
-    return client.convert_to_registers(int(value), client.DATATYPE.INT32, word_order=order)
+def to_i32(value):
+    return list(struct.unpack(">HH", struct.pack(">i", int(value))))
 
 
 class RawLink:
@@ -173,139 +175,121 @@ def split_reply(transport: str, frame: bytes) -> tuple[int, bytes]:
 @pytest.mark.parametrize("transport", MODBUS_TRANSPORTS)
 def test_registers_decode_to_the_machine_state(transport):
     machine, clock = manual_machine(transport)
-    order = word_order(transport)
     machine.move_to(25.0, 300.0)
     clock.advance(3.0)   # moving down, 15+ mm into the foam (its top is 5 mm below zero)
     with start_simulator(transport, machine=machine) as sim:
         client = pymodbus_client(sim)
         try:
             block = client.read_holding_registers(A["block"], count=5, device_id=LC_UNIT).registers
-            gross = client.read_holding_registers(A["gross_force"], count=2, device_id=LC_UNIT).registers
-            peak = client.read_holding_registers(A["peak_force"], count=2, device_id=LC_UNIT).registers
-            capacity = client.read_holding_registers(A["capacity"], count=2, device_id=LC_UNIT).registers
-            lc_status = client.read_holding_registers(A["status"], count=1, device_id=LC_UNIT).registers[0]
-            pos_speed = client.read_holding_registers(A["ch_actual_position"], count=4, device_id=CH_UNIT).registers
+            gross = client.read_holding_registers(A["gross"], count=2, device_id=LC_UNIT).registers
+            net_int = client.read_holding_registers(A["net_int"], count=2, device_id=LC_UNIT).registers
+            peak = client.read_holding_registers(A["peak"], count=2, device_id=LC_UNIT).registers
+            qualifier = client.read_holding_registers(A["qualifier"], count=1, device_id=LC_UNIT).registers[0]
+            positions = client.read_holding_registers(A["ch_command_position"], count=4, device_id=CH_UNIT).registers
             ch_status = client.read_holding_registers(A["ch_status"], count=1, device_id=CH_UNIT).registers[0]
-            fault_code = client.read_holding_registers(A["ch_fault_code"], count=1, device_id=CH_UNIT).registers[0]
+            alarm = client.read_holding_registers(A["ch_alarm"], count=1, device_id=CH_UNIT).registers[0]
+            ppr = client.read_holding_registers(A["ch_pulses_per_rev"], count=1, device_id=CH_UNIT).registers[0]
         finally:
             client.close()
         ref = machine.read_load_cell()   # same virtual time: identical without noise
         state = machine.crosshead_status()
         assert ref.net_N > 5.0, "the plate should be in the foam"
-        assert f32(client, block[0:2], order) == pytest.approx(ref.gross_N, rel=1e-6)
-        assert f32(client, block[2:4], order) == pytest.approx(ref.net_N, rel=1e-6)
-        assert f32(client, gross, order) == pytest.approx(ref.gross_N, rel=1e-6)
-        assert f32(client, peak, order) == pytest.approx(ref.peak_N, rel=1e-6)
-        assert f32(client, capacity, order) == 500.0
-        bits = LC["status_bits"]
-        expected = sum(1 << bits[k] for k in bits if getattr(ref, k))
-        assert block[4] == lc_status == expected
-        assert i32(client, pos_speed[0:2], order) == round(machine.position_mm() * 1000)
-        assert i32(client, pos_speed[2:4], order) == round(machine.speed_mm_min() * 100)
+        assert f32(block[0:2]) == pytest.approx(ref.gross_N, rel=1e-6)      # gross, net, qualifier (S1 p.10)
+        assert f32(block[2:4]) == pytest.approx(ref.net_N, rel=1e-6)
+        assert f32(gross) == pytest.approx(ref.gross_N, rel=1e-6)
+        assert i32(net_int) == round(ref.net_N * 100)                        # increments of 0.01 N
+        assert f32(peak) == pytest.approx(ref.peak_N, rel=1e-6)
+        bits = LC.bits["qualifier"]
+        assert block[4] == qualifier == sum(1 << bits[k] for k in bits if getattr(ref, k))
+        assert i32(positions[0:2]) == i32(positions[2:4]) == round(machine.position_mm() * PULSES_PER_MM)
         assert machine.speed_mm_min() == pytest.approx(300.0)
-        sbits = CH["status_bits"]
-        assert ch_status == sum(1 << sbits[k] for k in sbits if getattr(state, k))
-        assert ch_status & (1 << sbits["moving"]) and ch_status & (1 << sbits["enabled"])
-        assert fault_code == state.fault_code == 0
+        assert ch_status == 0x0006 and state.moving                          # enabled + running
+        assert alarm == 0 and ppr == 10000
 
 
-@pytest.mark.parametrize("order, words", [("big", [0x43FA, 0x0000]), ("little", [0x0000, 0x43FA])])
-def test_word_order_is_the_profile_setting(order, words):
-    """500.0 N capacity is float32 0x43FA0000: high word first for "big", low word first for "little"."""
-    profile = load_profile("sim-modbus-tcp")
-    profile["word_order"] = order
-    machine, _ = manual_machine("modbus-tcp")
-    machine.move_to(0.5, 60.0)
-    with start_simulator("modbus-tcp", machine=machine, profile=profile) as sim:
+def test_32_bit_values_are_high_word_first():
+    """Both devices document high word first: 500.0 (float32 0x43FA0000) and -2 pulses."""
+    machine, _ = manual_machine("modbus-tcp", load_cell_offset_N=500.0, capacity_N=1000.0)
+    with start_simulator("modbus-tcp", machine=machine) as sim:
         client = pymodbus_client(sim)
         try:
-            assert client.read_holding_registers(A["capacity"], count=2, device_id=LC_UNIT).registers == words
-            target = client.read_holding_registers(A["ch_target_position"], count=2, device_id=CH_UNIT)
-            assert target.registers == [0, 0]
-            client.write_registers(A["ch_target_position"], to_i32(client, -2, order), device_id=CH_UNIT)
-            raw = client.read_holding_registers(A["ch_target_position"], count=2, device_id=CH_UNIT).registers
-            assert raw == ([0xFFFF, 0xFFFE] if order == "big" else [0xFFFE, 0xFFFF])
+            assert client.read_holding_registers(A["gross"], count=2, device_id=LC_UNIT).registers == [0x43FA, 0x0000]
+            client.write_registers(A["ch_pr0_position"], to_i32(-2), device_id=CH_UNIT)
+            raw = client.read_holding_registers(A["ch_pr0_position"], count=2, device_id=CH_UNIT).registers
+            assert raw == [0xFFFF, 0xFFFE]
         finally:
             client.close()
 
 
 # ----------------------------------------------------------------------------- writes act
 
+def pr0(client, position_mm: float, speed_mm_min: float, ramp_ms: int = 133, mode: int = 0x0001) -> None:
+    """Write the PR0 block (mode, position in pulses, rpm, ramps) in one function-16 request."""
+    words = [mode, *to_i32(round(position_mm * PULSES_PER_MM)), round(speed_mm_min / MM_MIN_PER_RPM), ramp_ms, ramp_ms]
+    assert not client.write_registers(A["ch_pr0_mode"], words, device_id=CH_UNIT).isError()
+
+
 def test_crosshead_writes_act_on_the_physics():
     machine, clock = manual_machine("modbus-tcp")
-    order = word_order("modbus-tcp")
     with start_simulator("modbus-tcp", machine=machine) as sim:
         c = pymodbus_client(sim)
         try:
             def trigger(name):
                 assert not c.write_register(A["ch_trigger"], TRIG[name], device_id=CH_UNIT).isError()
 
-            c.write_registers(A["ch_target_position"], to_i32(c, 12345, order), device_id=CH_UNIT)
-            c.write_registers(A["ch_target_speed"], to_i32(c, 30000, order), device_id=CH_UNIT)  # 300 mm/min
-            trigger("move_absolute")
+            def status():
+                return c.read_holding_registers(A["ch_status"], count=1, device_id=CH_UNIT).registers[0]
+
+            pr0(c, 12.345, 300.0)
+            trigger("start_path0")
             assert machine.crosshead_status().moving
             clock.advance(10.0)
             assert machine.position_mm() == pytest.approx(12.345, abs=1e-9)
-            assert machine.crosshead_status().in_position
+            assert status() == 0x0032                                        # enabled, command done, path done
 
             trigger("set_zero")
             assert machine.position_mm() == 0.0
-            trigger("jog_up")
-            clock.advance(1.0)
+            pr0(c, -3.0, 300.0, mode=CH.values["pr0_mode"]["relative"])     # 3 mm up from here
+            trigger("start_path0")
+            clock.advance(0.5)
             assert machine.speed_mm_min() == pytest.approx(-300.0)
-            trigger("stop")
-            clock.advance(1.0)
-            assert not machine.crosshead_status().moving and machine.position_mm() < -3.0
+            trigger("quick_stop")                                            # immediate in the simulation
+            assert not machine.crosshead_status().moving and -3.0 < machine.position_mm() < 0.0
+            assert status() == 0x0012                                        # no alarm: a stop is not a fault
+            assert machine.crosshead_status().emergency_stop                 # what the machine records
 
-            # acceleration 1 mm/s^2: a 1 mm move at 5 mm/s is a triangle, 0.5 mm after 1 s
-            c.write_registers(A["ch_acceleration"], c.convert_to_registers(1000, c.DATATYPE.UINT32, word_order=order),
-                              device_id=CH_UNIT)
+            # the ramp: 1 mm/s^2 is 6667 ms per 1000 rpm; a 1 mm move at 5 mm/s is a triangle, 0.5 mm after 1 s
             start = machine.position_mm()
-            c.write_registers(A["ch_target_position"], to_i32(c, round((start + 1.0) * 1000), order), device_id=CH_UNIT)
-            trigger("move_absolute")
+            pr0(c, start + 1.0, 300.0, ramp_ms=6667)
+            trigger("start_path0")                                           # runs: the quick stop latched nothing
             clock.advance(1.0)
             assert machine.position_mm() - start == pytest.approx(0.5, abs=1e-3)
             clock.advance(2.0)
 
-            # travel limits in one write: a jog down stops at the new lower limit
-            c.write_registers(A["ch_upper_limit"], to_i32(c, -10000, order) + to_i32(c, 2000, order),
-                              device_id=CH_UNIT)
-            c.write_registers(A["ch_acceleration"], c.convert_to_registers(50000, c.DATATYPE.UINT32, word_order=order),
-                              device_id=CH_UNIT)
-            trigger("jog_down")
-            clock.advance(5.0)
-            status = c.read_holding_registers(A["ch_status"], count=1, device_id=CH_UNIT).registers[0]
-            assert machine.position_mm() == pytest.approx(2.0, abs=1e-6)
-            assert status & (1 << CH["status_bits"]["lower_limit"])
+            # no soft limits on the drive: the machine's travel (its limit switches) stops a move
+            pr0(c, 75.0, 500.0)                                              # beyond the profile's 70 mm
+            trigger("start_path0")
+            clock.advance(20.0)
+            assert machine.position_mm() == pytest.approx(70.0, abs=1e-6)
 
-            trigger("emergency")
-            status = c.read_holding_registers(A["ch_status"], count=1, device_id=CH_UNIT).registers[0]
-            code = c.read_holding_registers(A["ch_fault_code"], count=1, device_id=CH_UNIT).registers[0]
-            assert status & (1 << CH["status_bits"]["emergency_stop"]) and status & (1 << CH["status_bits"]["fault"])
-            assert code == CH["fault_codes"]["emergency"]
-            trigger("reset_fault")
-            assert machine.crosshead_status().fault_code == 0
+            assert not c.write_register(A["ch_control_word"], CH.values["control_word"]["reset_alarm"],
+                                        device_id=CH_UNIT).isError()
+            assert not machine.crosshead_status().emergency_stop
         finally:
             c.close()
 
 
-def test_watchdog_is_fed_by_requests_and_trips_when_the_host_is_silent():
+def test_the_drive_has_no_watchdog_a_triggered_move_runs_to_its_end():
+    """No host watchdog is documented for the CS2RS: a silent host does not stop a move."""
     machine, clock = manual_machine("modbus-tcp")
-    order = word_order("modbus-tcp")
     with start_simulator("modbus-tcp", machine=machine) as sim:
         c = pymodbus_client(sim)
         try:
-            c.write_register(A["ch_watchdog_ms"], 500, device_id=CH_UNIT)
-            c.write_registers(A["ch_target_position"], to_i32(c, 60000, order), device_id=CH_UNIT)
-            c.write_registers(A["ch_target_speed"], to_i32(c, 10000, order), device_id=CH_UNIT)
-            c.write_register(A["ch_trigger"], TRIG["move_absolute"], device_id=CH_UNIT)
-            for _ in range(10):   # a host polling every 0.3 s keeps the drive going
-                clock.advance(0.3)
-                c.read_holding_registers(A["ch_actual_position"], count=2, device_id=CH_UNIT)
-            assert machine.crosshead_status().moving and machine.crosshead_status().fault_code == 0
-            clock.advance(0.6)    # silent longer than 500 ms
-            code = c.read_holding_registers(A["ch_fault_code"], count=1, device_id=CH_UNIT).registers[0]
-            assert code == CH["fault_codes"]["watchdog"]
+            pr0(c, 60.0, 100.0)
+            assert not c.write_register(A["ch_trigger"], TRIG["start_path0"], device_id=CH_UNIT).isError()
+            clock.advance(40.0)                                              # silent for 40 s
+            assert machine.position_mm() == pytest.approx(60.0, abs=1e-9)
+            assert machine.crosshead_status().fault_code == 0
         finally:
             c.close()
 
@@ -313,23 +297,24 @@ def test_watchdog_is_fed_by_requests_and_trips_when_the_host_is_silent():
 def test_load_cell_commands():
     machine, clock = manual_machine("modbus-tcp")
     machine.move_to(20.0, 500.0)
-    clock.advance(5.0)
+    clock.advance(15.0)          # at rest in the foam long enough for the reading to settle
     with start_simulator("modbus-tcp", machine=machine) as sim:
         c = pymodbus_client(sim)
         try:
             def command(name):
-                assert not c.write_register(A["command"], LC["commands"][name], device_id=LC_UNIT).isError()
+                value = LC.values["bit_commands"][name]
+                assert not c.write_register(A["bit_commands"], value, device_id=LC_UNIT).isError()
 
-            assert machine.read_load_cell().net_N > 5.0
-            command("tare")
+            assert machine.read_load_cell().net_N > 5.0 and machine.read_load_cell().no_motion
+            command("set_tare")
             r = machine.read_load_cell()
             assert r.tare_set and abs(r.net_N) <= 0.01 and r.gross_N > 5.0
-            command("clear_tare")
+            command("reset_tare")
             assert not machine.read_load_cell().tare_set
-            command("zero")
-            assert abs(machine.read_load_cell().gross_N) <= 0.01
+            command("set_zero")          # refused: far beyond 2 % of the capacity from the calibration zero
+            assert machine.read_load_cell().gross_N > 5.0
             clock.advance(1.0)
-            command("reset_peak")
+            command("reset_max")
             r = machine.read_load_cell()
             assert r.peak_N == pytest.approx(r.net_N, abs=0.011)
         finally:
@@ -346,17 +331,20 @@ def test_bad_addresses_and_values_answer_modbus_exceptions():
                 return resp.exception_code
 
             assert code(c.read_holding_registers(0x0000, count=1, device_id=LC_UNIT)) == 0x02
-            assert code(c.read_holding_registers(A["gross_force"], count=2, device_id=CH_UNIT)) == 0x02
+            assert code(c.read_holding_registers(A["gross"], count=2, device_id=CH_UNIT)) == 0x02
             assert code(c.read_holding_registers(A["block"] + 3, count=5, device_id=LC_UNIT)) == 0x02
-            assert code(c.write_register(A["gross_force"], 1, device_id=LC_UNIT)) == 0x02        # read-only
-            assert code(c.write_register(A["ch_actual_position"], 1, device_id=CH_UNIT)) == 0x02
+            assert code(c.read_holding_registers(0x2004, count=2, device_id=LC_UNIT)) == 0x02     # no peak there
+            assert code(c.read_holding_registers(0x6010, count=1, device_id=CH_UNIT)) == 0x02     # homing: not served
+            assert code(c.write_register(A["gross"], 1, device_id=LC_UNIT)) == 0x02              # read-only
+            assert code(c.write_register(A["ch_motor_position"], 1, device_id=CH_UNIT)) == 0x02
             assert code(c.write_register(A["ch_trigger"], 0x99, device_id=CH_UNIT)) == 0x03      # no such trigger
-            assert code(c.write_register(A["command"], 99, device_id=LC_UNIT)) == 0x03
-            assert code(c.write_register(A["ch_trigger"], TRIG["jog_down"], device_id=CH_UNIT)) == 0x03  # speed 0
-            assert code(c.write_registers(A["ch_upper_limit"], [0, 5000, 0, 1000], device_id=CH_UNIT)) == 0x03
+            assert code(c.write_register(A["bit_commands"], 0x0003, device_id=LC_UNIT)) == 0x03  # two bits at once
+            assert code(c.write_register(A["ch_pulses_per_rev"], 100, device_id=CH_UNIT)) == 0x03  # below 200
+            assert code(c.read_input_registers(A["ch_status"], count=1, device_id=CH_UNIT)) == 0x01  # not FC 04
             # a refused write leaves the stored value as it was
-            limits = c.read_holding_registers(A["ch_upper_limit"], count=4, device_id=CH_UNIT).registers
-            assert i32(c, limits[2:4], "big") == 70000
+            assert c.read_holding_registers(A["ch_pulses_per_rev"], count=1, device_id=CH_UNIT).registers == [10000]
+            pr0(c, 10.0, 600.0)                                                                   # 1500 rpm > 1250
+            assert code(c.write_register(A["ch_trigger"], TRIG["start_path0"], device_id=CH_UNIT)) == 0x03
             assert code(c.read_holding_registers(A["block"], count=5, device_id=7)) == 0x0B  # no such unit
             assert not machine.crosshead_status().moving
         finally:
@@ -424,107 +412,60 @@ def test_a_faulted_write_is_done_only_when_the_reply_was_hit(fault, done):
     with start_simulator("modbus-rtu", machine=machine) as sim:
         link = RawLink(sim)
         try:
-            link.send(rtu_frame(LC_UNIT, struct.pack(">BHH", 6, A["command"], LC["commands"]["tare"])))
+            link.send(rtu_frame(LC_UNIT, struct.pack(">BHH", 6, A["bit_commands"], LC.values["bit_commands"]["set_tare"])))
             link.recv(0.3, n=8)
             assert machine.read_load_cell().tare_set is done
         finally:
             link.close()
 
 
-# ----------------------------------------------------------------------------- ASCII
+# ----------------------------------------------------------------------------- ASCII (ESM303 + Series 5)
+# What the simulated ESM303 answers to each documented command: tests/test_device_mark10.py.
 
-class Ascii:
-    def __init__(self, sim):
-        self.link = RawLink(sim)
-
-    def ask(self, command: str, timeout: float = 2.0) -> str:
-        self.link.send(command.encode("ascii") + b"\r")
-        reply = self.link.recv(timeout, until=b"\r\n")
-        assert reply.endswith(b"\r\n"), (command, reply)
-        return reply[:-2].decode("ascii")
-
-    def close(self):
-        self.link.close()
-
-
-def test_ascii_commands_and_errors():
-    machine, clock = manual_machine("serial")
-    machine.move_to(20.0, 500.0)
-    clock.advance(5.0)
-    with start_simulator("serial", machine=machine) as sim:
-        a = Ascii(sim)
-        try:
-            r = machine.read_load_cell()
-            assert a.ask("n") == f"{machine.position_mm():.3f},{r.net_N:.3f}"
-            assert a.ask("x") == "20.000"
-            assert a.ask("?") == f"{r.net_N:.3f} N"
-            assert a.ask("w") == "M0 U0 L0 F0 E0 O0"
-            assert a.ask("e") == "50.0"
-            assert a.ask("e123.4") == ""
-            assert a.ask("e") == "123.4"
-            assert a.ask("e0") == a.ask("e99999") == a.ask("ex") == "*11"
-            assert a.ask("q") == a.ask("dd") == "*10"
-            assert a.ask("u") == ""
-            clock.advance(0.5)
-            assert machine.speed_mm_min() == pytest.approx(-123.4)
-            assert a.ask("w").startswith("M1 ")
-            assert a.ask("s") == ""
-            clock.advance(1.0)
-            assert a.ask("!") == ""
-            assert a.ask("d") == "*30" and a.ask("w") == "M0 U0 L0 F1 E1 O0"
-            assert a.ask("r") == "" and a.ask("w") == "M0 U0 L0 F0 E0 O0"
-            assert a.ask("z") == "" and a.ask("x") == "0.000"
-            assert a.ask("Z") == "" and a.ask("?") == "0.000 N"
-            assert a.ask("g-5") == "" and a.ask("g") == "-5.000"
-            assert a.ask("h-10") == "*11"
-            assert a.ask("h1.5") == "" and a.ask("d") == ""
-            clock.advance(5.0)
-            assert machine.position_mm() == pytest.approx(1.5)
-            assert a.ask("w") == "M0 U0 L1 F0 E0 O0"
-            assert a.ask("d") == "*21"
-        finally:
-            a.close()
-
-
-def test_ascii_overload():
+def test_esm303_overload_is_a_full_scale_reading_not_an_error():
+    # the vendor's `*22` is "value too large" (a parameter error), not an overload: the gauge
+    # keeps answering, at its full scale; the driver flags over range from the capacity
     machine, clock = manual_machine("serial", faults=["overload@1+2"])
     with start_simulator("serial", machine=machine) as sim:
-        a = Ascii(sim)
+        link = RawLink(sim)
         try:
-            assert a.ask("?") == "0.000 N"
+            link.send(b"/?C\r\\")
+            assert link.recv(2.0, until=b"\r\n") == b"0.000 N\r\n"
             clock.advance(1.5)
-            assert a.ask("?") == a.ask("n") == a.ask("d") == "*22"
-            assert a.ask("w").endswith("O1")
-            clock.advance(2.0)
-            assert a.ask("?") == "0.000 N"
+            full_scale = machine.settings.capacity_N * machine.settings.full_scale_ratio
+            link.send(b"n")
+            assert link.recv(2.0, n=len(f"{full_scale:.3f} N\r\n0.00 mm\r\n")) == \
+                f"{full_scale:.3f} N\r\n0.00 mm\r\n".encode()
         finally:
-            a.close()
+            link.close()
 
 
 @pytest.mark.parametrize("fault", ["drop", "timeout", "exception", "crc", "garbage"])
-def test_ascii_wire_fault_is_seen_on_the_wire_once(fault):
+@pytest.mark.parametrize("channel, asked, normal", [("stand", b"x", b"0.00 mm\r\n"),
+                                                      ("gauge", b"/?C\r\\", b"0.000 N\r\n")])
+def test_esm303_wire_fault_is_seen_on_the_wire_once(fault, channel, asked, normal):
     machine, _ = manual_machine("serial", faults=[f"{fault}@0"])
     with start_simulator("serial", machine=machine) as sim:
         link = RawLink(sim)
         try:
-            link.send(b"x\r")
+            link.send(asked)
             if fault == "drop":
                 with pytest.raises(EOFError):
                     link.recv(2.0, until=b"\r\n")
                 link.close()
                 assert wait_for(lambda: sim.server.pty.generation == 2), "a fresh pty replaces the hung-up one"
                 link = RawLink(sim)
-            elif fault == "timeout":
-                assert link.recv(0.3, n=1) == b""
+            elif fault == "timeout" or (fault == "exception" and channel == "stand"):
+                assert link.recv(0.3, n=1) == b""     # not done; the stand ignores a garbled command
             else:
-                line = link.recv(2.0, until=b"\r\n")
-                assert line.endswith(b"\r\n") and line != b"0.000\r\n"
+                got = link.recv(2.0, until=b"\r\n")
+                assert got.endswith(b"\r\n") and got != normal
                 if fault == "exception":
-                    assert line == b"*10\r\n"
-                else:   # crc / garbage: not a valid ASCII reply
-                    assert any(b >= 0x80 for b in line) or not re.fullmatch(rb"-?\d+\.\d{3}\r\n", line)
-            link.send(b"x\r")
-            assert link.recv(2.0, until=b"\r\n") == b"0.000\r\n"
+                    assert got == b"*10\r\n"          # the gauge: illegal command
+                else:   # crc / garbage: not a valid reply
+                    assert any(b >= 0x80 for b in got) or not re.fullmatch(rb"-?\d+\.\d+ (mm|N)\r\n", got)
+            link.send(asked)
+            assert link.recv(2.0, until=b"\r\n") == normal
             assert [name for _, name in machine.faults.fired] == [fault]
         finally:
             link.close()
@@ -545,8 +486,8 @@ def test_stop_leaves_no_threads_or_fds(transport):
     link = RawLink(sim)   # a client still connected when the server stops
     link_fd = str(link.fileno())
     if transport == "serial":
-        link.send(b"x\r")
-        assert link.recv(2.0, until=b"\r\n").endswith(b"\r\n")
+        link.send(b"x")
+        assert link.recv(2.0, until=b"\r\n").endswith(b" mm\r\n")
     else:
         link.send(read_request(transport, LC_UNIT, A["block"], 5))
         assert len(link.recv(2.0, n=reply_length(transport, 12))) == reply_length(transport, 12)
@@ -577,6 +518,10 @@ def test_port_in_use_is_an_error_and_leaves_nothing_running():
     (["--transport", "modbus-tcp", "--port", "70000"], "--port"),
     (["--transport", "modbus-tcp", "--speedup", "-1"], "--speedup"),
     (["--transport", "serial", "--port", "5020"], "pty"),
+    (["--device", "mark10-esm303", "--port", "5020"], "pty"),
+    (["--device", "nope"], "unknown device 'nope'"),
+    (["--device", "mark10-esm303", "--transport", "modbus-tcp"], "--device or --transport"),
+    ([], "--device or --transport"),
     (["--transport", "modbus-tcp", "--pty"], "--pty"),
     (["--transport", "modbus-tcp", "--port", "0", "--specimen", "/nonexistent/fit.json"], "fit.json"),
     (["--transport", "modbus-tcp", "--port", "x"], "invalid int"),
@@ -613,9 +558,9 @@ def test_sim_command_serves_until_sigterm():
         assert m and "profile: sim-modbus-tcp" in "\n".join(lines), lines
         client = ModbusTcpClient("127.0.0.1", port=int(m[1]), timeout=2, retries=0)
         assert client.connect()
-        capacity = client.read_holding_registers(A["capacity"], count=2, device_id=LC_UNIT)
+        ppr = client.read_holding_registers(A["ch_pulses_per_rev"], count=1, device_id=CH_UNIT)
         client.close()
-        assert f32(client, capacity.registers, "big") == 500.0
+        assert ppr.registers == [10000]
         proc.send_signal(signal.SIGTERM)
         out, err = proc.communicate(timeout=15)
     finally:
@@ -626,21 +571,23 @@ def test_sim_command_serves_until_sigterm():
     assert "stopped" in out and "Traceback" not in err
 
 
-def test_sim_command_serial_prints_a_pty_path_that_answers_until_ctrl_c():
-    proc, lines = _start_cli("--transport", "serial", "--speedup", "10")
+@pytest.mark.parametrize("argv", [("--device", "mark10-esm303"), ("--transport", "serial")])
+def test_sim_command_esm303_prints_a_pty_path_that_answers_until_ctrl_c(argv):
+    proc, lines = _start_cli(*argv, "--speedup", "10")
     try:
         m = re.search(r"serving at (\S+) \(pty (/dev/pts/\d+)\)", lines[0])
         assert m, lines
         fd = os.open(m[1], os.O_RDWR | os.O_NOCTTY)
         try:
             tty.setraw(fd)
-            os.write(fd, b"x\r")
+            os.write(fd, b"x")
             reply = b""
             deadline = time.monotonic() + 5
             while not reply.endswith(b"\r\n") and time.monotonic() < deadline:
                 if select.select([fd], [], [], 0.2)[0]:
                     reply += os.read(fd, 100)
-            assert reply == b"0.000\r\n"
+            assert reply == b"0.00 mm\r\n"
+            assert "device mark10-esm303" in "\n".join(lines)
         finally:
             os.close(fd)
         proc.send_signal(signal.SIGINT)

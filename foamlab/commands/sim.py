@@ -13,7 +13,7 @@ EXAMPLES = """\
 examples:
   foamlab sim --transport modbus-tcp                 # Modbus TCP on 127.0.0.1:5020 (profile sim-modbus-tcp)
   foamlab sim --transport modbus-rtu --pty           # Modbus RTU on a pty; prints the device path
-  foamlab sim --transport serial --speedup 20        # Mark-10-style ASCII on a pty, 20x faster than real time
+  foamlab sim --device mark10-esm303 --speedup 20    # Mark-10 ESM303 + Series 5 on a pty, 20x real time
   foamlab sim --transport modbus-tcp --port 0 --effect cycle_softening=0.1 --fault crc:p=0.01 --seed 3
 
 faults (--fault, repeatable): NAME@T (once at virtual time T s), NAME@T+D (window of D s),
@@ -32,9 +32,12 @@ def register(subparsers) -> None:
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--transport", required=True, choices=("modbus-tcp", "modbus-rtu", "serial"),
+    p.add_argument("--transport", choices=("modbus-tcp", "modbus-rtu", "serial"),
                    help="wire protocol: Modbus TCP, Modbus RTU (TCP socket, or a pty with --pty), "
-                        "or ASCII serial (always a pty)")
+                        "or serial (the Mark-10 ESM303, always a pty)")
+    p.add_argument("--device", metavar="NAME",
+                   help="the simulated device by its device file in configs/devices (mark10-esm303); "
+                        "instead of --transport")
     p.add_argument("--host", default=None, help="address to bind (default 127.0.0.1; TCP transports only)")
     p.add_argument("--port", type=int, default=None, metavar="N",
                    help="TCP port (default: the profile's, 5020/5021; 0 picks a free one)")
@@ -69,6 +72,14 @@ def parse_effects(items: list[str]) -> dict[str, float]:
 
 
 def _server_transport(args) -> str:
+    from simulator.launch import DEVICES
+
+    if bool(args.device) == bool(args.transport):
+        raise FoamlabError("name the simulated machine with --device or --transport (one of them)")
+    if args.device:
+        if args.device not in DEVICES:
+            raise FoamlabError(f"unknown device {args.device!r} (simulated: {', '.join(DEVICES)})")
+        args.transport = DEVICES[args.device]
     if args.transport == "serial":
         return "serial"
     if args.pty:
@@ -137,6 +148,9 @@ def _announce(sim, args) -> None:
     overrides = " ".join(f"{k}={v}" for k, v in sim.profile_overrides.items())
     p = sim.profile
     lines = [f"foamlab sim: {sim.transport} serving at {sim.address}"]
+    commands = getattr(sim.server, "commands", None)
+    if p["protocol"] == "ascii" and commands is not None:
+        lines.append(f"  device {commands.name}: commands and formats from configs/devices/{commands.name}.toml")
     if p["protocol"] == "modbus":
         lines.append(f"  load cell {p['load_cell']['device']} at unit {p['load_cell']['unit_id']}, "
                      f"crosshead {p['crosshead']['device']} at unit {p['crosshead']['unit_id']}")
