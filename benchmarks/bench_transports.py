@@ -57,7 +57,7 @@ class RawClient:
 
     def __init__(self, sim):
         self.transport = sim.transport
-        block = sim.profile["wire"]["load_cell"]["block"] if sim.profile["protocol"] == "modbus" else None
+        block = sim.profile["wire"]["load_cell"]["blocks"]["result"] if sim.profile["protocol"] == "modbus" else None
         if self.transport in ("modbus-rtu-pty", "serial"):
             self.fd = os.open(sim.server.client_url, os.O_RDWR | os.O_NOCTTY)
             tty.setraw(self.fd)
@@ -171,7 +171,7 @@ def main() -> int:
 
     rtu_profile = load_profile(TRANSPORTS["modbus-rtu-pty"].profile)
     ascii_profile = load_profile(TRANSPORTS["serial"].profile)
-    block_count = rtu_profile["wire"]["load_cell"]["block"]["count"]
+    block_count = rtu_profile["wire"]["load_cell"]["blocks"]["result"]["count"]
     rtu_baud = int(rtu_profile["connection"]["baudrate"])
     ascii_baud = int(ascii_profile["connection"]["baudrate"])
     rtu_limit, rtu_spec_limit = rtu_wire_limit(rtu_baud, block_count)

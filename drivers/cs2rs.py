@@ -159,3 +159,23 @@ class Cs2rsCrosshead(Crosshead):
         if not upper_mm < lower_mm:
             raise ValueError(f"upper limit {upper_mm:g} mm must be above (smaller than) lower limit {lower_mm:g} mm")
         self.travel_limits = (float(upper_mm), float(lower_mm))
+
+    # ------------------------------------------------------------------ commissioning (foamlab probe)
+    def self_checks(self) -> list[tuple[str, bool, str]]:
+        """At rest: the settings and the reads that settle what the CS2RS manuals leave open."""
+        ppr = int(self.drive.read("pulses_per_rev"))
+        word = int(self.drive.read("status"))
+        bits = self.drive.device.decode_bits("status", word)
+        alarm = int(self.drive.read("alarm"))
+        command, motor = int(self.drive.read("command_position")), int(self.drive.read("motor_position"))
+        return [
+            ("CS2RS pulses per revolution", ppr == self.pulses_per_rev,
+             f"0x0001 reads {ppr}, the profile says {self.pulses_per_rev}"),
+            ("CS2RS status bits", bits["enabled"] and not bits["running"] and not bits["fault"],
+             f"0x1003 reads 0x{word:04X} at rest: expected enabled (bit 1), not running (bit 2), no fault (bit 0)"),
+            ("CS2RS alarm", alarm == 0, f"0x2203 reads 0x{alarm:04X}"
+             + (f" ({self.drive.device.meaning('alarm', alarm) or 'not in the device file'})" if alarm else "")),
+            ("CS2RS position units", abs(command - motor) <= 2,
+             f"0x602A (command) reads {command}, 0x602C (motor) {motor} at rest: the same unit if they agree"),
+        ]
+

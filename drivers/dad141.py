@@ -62,3 +62,37 @@ class Dad141LoadCell(LoadCell):
                 f"{self.device.link.where}: unit {self.device.unit} did not take set_tare ({command.label()} = "
                 f"0x{device.value('bit_commands', 'set_tare'):04X}): {qualifier.label()} reads 0x{word:04X}, "
                 f"no tare bit (the reading was not stable)")
+
+    # ------------------------------------------------------------------ commissioning (foamlab probe)
+    def identify(self) -> str:
+        firmware = int(self.device.read("firmware"))
+        low = firmware & 0xFFFF
+        return (f"{self.device.device.name}: device id {int(self.device.read('device_id'))}, "
+                f"firmware {low & 0xFF}.{low >> 8:02d}")
+
+    def self_checks(self) -> list[tuple[str, bool, str]]:
+        """The reads that settle what S1 leaves open, on the unit as it is (docs: PROVENANCE.md).
+
+        Separate reads are separate samples (noise): the float is compared with the Int32 within 20
+        increments, and the block order is settled by a tare, which is exact inside one block read.
+        """
+        firmware = int(self.device.read("firmware"))
+        checks = [("DAD 141.1 address base", firmware >> 16 == 0,
+                   f"0x202E reads 0x{firmware:08X}: its high word must be 0 (S1 p.4)")]
+        span = 0.01 * self.capacity_N / UNIT_N[self.unit]           # 1 % of the capacity, calibration unit
+        gross, raw = float(self.device.read("gross")), int(self.device.read("gross_int"))
+        # the Int32 counts increments (decimal point 0..5, S2 p.32): the float is one of raw / 10^k,
+        # within 20 increments of noise between the two reads; the other word order is far off
+        fits = any(abs(gross - raw / 10 ** k) <= 20 / 10 ** k for k in range(6))
+        checks.append(("DAD 141.1 float word order", fits, f"0x2000 reads {gross:g} high word first, 0x2020 "
+                                                          f"{raw} increments" + ("" if raw else " (no load: weak)")))
+        net, block = float(self.device.read("net")), self.device.read_block("result")
+        tare_in_block = block["gross"] - block["net"]           # exact: one sample
+        if not self._status(int(block["qualifier"])).tare_set or abs(tare_in_block) < span:
+            checks.append(("DAD 141.1 order of 0x3500", True, "not settled: tare a load (> 1 % of the capacity) "
+                                                              "and probe again"))
+        else:
+            same = abs(tare_in_block - (gross - net)) < abs(tare_in_block + (gross - net))
+            checks.append(("DAD 141.1 order of 0x3500", same, f"0x3500 holds {block['gross']:g}, {block['net']:g}; "
+                                                              f"0x2000 gross {gross:g}, 0x2002 net {net:g}"))
+        return checks

@@ -58,6 +58,14 @@ class ModbusMachine(Machine):
                 raise
             self._checked = True
 
+    def identify(self) -> str:
+        """What the devices say they are (the CS2RS documents no identification register)."""
+        return f"{self.load_cell.identify()}; {self.crosshead.drive.device.name}: no identification register"
+
+    def self_checks(self) -> list[tuple[str, bool, str]]:
+        """foamlab probe's reads that settle the device files' unconfirmed entries (PROVENANCE.md)."""
+        return self.load_cell.self_checks() + self.crosshead.self_checks()
+
     def close(self) -> None:
         self.link.close()
         self._checked = False

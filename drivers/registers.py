@@ -239,9 +239,10 @@ class _Reader:
         return self.seen[name]
 
     def documented(self, device: dict, key: str, entry: str):
-        """A device property given as { value = ..., source = ... }."""
+        """A device property given as { value = ..., source = ... } (its source is checked with the rest)."""
         item = device.get(key)
-        self.provenance(item, f"{entry} {key}")
+        if not isinstance(item, dict):
+            self.fail(f"{entry} {key}", "must be a table with `value` and `source`")
         return item.get("value")
 
     def register(self, name: str, entry: dict) -> Register:

@@ -133,6 +133,8 @@ class Dad141Device(LiveDevice):
         for name in ("gross", "net", "peak"):
             values[f"{name}_int"] = round(values[name] * 10 ** self.decimals)
         values["qualifier"] = sum(1 << bit for name, bit in self.device.bits["qualifier"].items() if flags.get(name))
+        # identity: S2 p.30's "D:1410"; firmware 1.06 as S1 p.4 lays it out (minor byte first)
+        values.update(device_id=1410, firmware=0x0601)
         return values
 
     def _stable(self) -> bool:

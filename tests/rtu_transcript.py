@@ -56,6 +56,7 @@ class RtuWire:
     """Raw RTU bytes to and from a simulator's `modbus-rtu` (socket) server."""
 
     def __init__(self, sim):
+        self.url = sim.server.client_url          # socket://host:port, for a driver beside the raw bytes
         self.sock = socket.create_connection((sim.server.host, sim.server.port), timeout=2)
 
     def ask(self, request: bytes, reply_length: int, timeout: float = 2.0) -> bytes:
@@ -74,10 +75,12 @@ class RtuWire:
 
 @contextmanager
 def simulated(profile: dict | None = None, faults=(), **settings):
-    """A noise-free simulated machine on a manual clock behind an RTU socket server: (machine, clock, wire)."""
+    """A simulated machine on a manual clock (noise-free unless asked) behind an RTU socket server:
+    (machine, clock, wire)."""
     profile = profile or rtu_profile()
     clock = ManualClock()
-    machine = SimulatedMachine(profile, clock=clock, noise_sigma_N=0.0, faults=list(faults), **settings)
+    settings.setdefault("noise_sigma_N", 0.0)
+    machine = SimulatedMachine(profile, clock=clock, faults=list(faults), **settings)
     with start_simulator("modbus-rtu", machine=machine, profile=profile) as sim:
         wire = RtuWire(sim)
         try:

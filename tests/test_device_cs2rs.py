@@ -10,11 +10,14 @@ ones that are not). Each transcript runs against the driver and against the simu
 
 from __future__ import annotations
 
+import struct
+
 import pytest
 
 from drivers.base import Crosshead, CrossheadStatus, DeviceRefused
 from drivers.cs2rs import DeviceMismatch, EmergencyStopLatched
 from drivers.profile import load_profile, open_machine
+from recorded_peer import rtu
 from rtu_transcript import driver_on, frame, rtu_profile, simulated
 
 pytestmark = pytest.mark.timeout(30)
@@ -210,3 +213,31 @@ def test_the_simulator_answers_the_manuals_frames(units, request_hex, reply_hex)
     with simulated(rtu_profile(**units)) as (machine, clock, wire):
         assert wire.ask(frame(request_hex), len(frame(reply_hex))) == frame(reply_hex)
         assert not machine.crosshead_status().moving
+
+
+# ----------------------------------------------------------------------------- foamlab probe's reads
+
+def _read(address: int, count: int, *words: int) -> tuple[str, str]:
+    request = rtu(2, struct.pack(">BHH", 3, address, count))
+    return request.hex(" "), rtu(2, bytes([3, 2 * len(words)]) + struct.pack(f">{len(words)}H", *words)).hex(" ")
+
+
+def test_the_probe_reads_catch_a_motor_position_in_encoder_counts():
+    """0x602C's unit is open (pulses or encoder counts, notes §7.2): at rest it must agree with 0x602A."""
+    exchanges = [_read(0x0001, 1, 10000), _read(0x1003, 1, 0x0032), _read(0x2203, 1, 0),
+                 _read(0x602A, 2, 0x0003, 0xD090), _read(0x602C, 2, 0x0000, 0x9C40)]   # 250 000 vs 40 000
+    with driver_on(exchanges) as machine:
+        checks = {name: ok for name, ok, _ in machine.crosshead.self_checks()}
+    assert checks == {"CS2RS pulses per revolution": True, "CS2RS status bits": True, "CS2RS alarm": True,
+                      "CS2RS position units": False}
+
+
+def test_the_probe_reads_pass_on_the_simulated_drive():
+    with simulated() as (sim_machine, clock, wire):
+        machine = open_machine(rtu_profile(), port_url=wire.url, timeout_s=0.5)
+        try:
+            machine.crosshead.move_to(3.0, 300.0)
+            clock.advance(5.0)
+            assert all(ok for _, ok, _ in machine.crosshead.self_checks()), machine.crosshead.self_checks()
+        finally:
+            machine.close()

@@ -13,7 +13,9 @@ import struct
 import pytest
 
 from drivers.base import DeviceRefused, LoadCellStatus
-from rtu_transcript import driver_on, frame, simulated
+from drivers.profile import open_machine
+from recorded_peer import rtu
+from rtu_transcript import driver_on, frame, rtu_profile, simulated
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -122,3 +124,42 @@ def test_function_4_reads_the_same_block():
         holding = wire.ask(frame(READ_BLOCK), 15)
         inputs = wire.ask(frame("01 04 35 00 00 05 3F C5"), 15)
     assert inputs[1] == 0x04 and inputs[2:-2] == holding[2:-2]
+
+
+# ----------------------------------------------------------------------------- foamlab probe's reads
+
+def _read(address: int, count: int, *words: int) -> tuple[str, str]:
+    request = rtu(1, struct.pack(">BHH", 3, address, count))
+    return request.hex(" "), rtu(1, bytes([3, 2 * len(words)]) + struct.pack(f">{len(words)}H", *words)).hex(" ")
+
+
+def test_the_probe_reads_settle_the_block_order_and_catch_a_swapped_one():
+    """With a tare gross != net: 0x3500 must hold 0x2000's value first (S1 p.10), not GW's net first."""
+    gross, net = struct.unpack(">HH", f32(12.5)), struct.unpack(">HH", f32(2.5))
+    exchanges = [_read(0x202E, 2, 0x0000, 0x0601), _read(0x2000, 2, *gross), _read(0x2020, 2, 0x0000, 1250),
+                 _read(0x2002, 2, *net), _read(0x3500, 5, *net, *gross, 0x0030)]      # swapped
+    with driver_on(exchanges) as machine:
+        checks = {name: (ok, detail) for name, ok, detail in machine.load_cell.self_checks()}
+    assert checks["DAD 141.1 address base"][0] and checks["DAD 141.1 float word order"][0]
+    assert checks["DAD 141.1 order of 0x3500"] == (False, "0x3500 holds 2.5, 12.5; 0x2000 gross 12.5, 0x2002 net 2.5")
+
+
+def test_a_float_in_the_other_word_order_is_caught():
+    swapped = struct.unpack(">HH", f32(12.5))[::-1]                      # low word first
+    exchanges = [_read(0x202E, 2, 0x0000, 0x0601), _read(0x2000, 2, *swapped), _read(0x2020, 2, 0x0000, 1250),
+                 _read(0x2002, 2, *swapped), _read(0x3500, 5, *swapped, *swapped, 0x0010)]
+    with driver_on(exchanges) as machine:
+        checks = {name: ok for name, ok, _ in machine.load_cell.self_checks()}
+    assert checks == {"DAD 141.1 address base": True, "DAD 141.1 float word order": False,
+                      "DAD 141.1 order of 0x3500": True}                # no tare: not settled, said so
+
+
+def test_the_probe_reads_pass_on_the_simulated_unit():
+    with simulated(load_cell_offset_N=30.0, noise_sigma_N=0.05) as (sim_machine, clock, wire):
+        machine = open_machine(rtu_profile(), port_url=wire.url, timeout_s=0.5)
+        try:
+            machine.load_cell.tare()                                   # 30 N: settles the block order
+            assert machine.identify().startswith("Flintec DAD 141.1: device id 1410, firmware 1.06")
+            assert all(ok for _, ok, _ in machine.self_checks()), machine.self_checks()
+        finally:
+            machine.close()
