@@ -43,7 +43,8 @@ from .base import (
 from .mark10_device import CommandSet, GaugeUnit, StandUnit, reply_fields
 from .serial_line import SerialLine
 
-__all__ = ["AsciiMachine", "CommandSet", "DeviceErrorReply", "Mark10Crosshead", "Mark10Link", "Series5Gauge"]
+__all__ = ["AsciiMachine", "CommandSet", "DeviceErrorReply", "Mark10Crosshead", "Mark10Link", "Series5Gauge",
+           "profile_units"]
 
 log = logging.getLogger(__name__)
 
@@ -397,20 +398,18 @@ class Mark10Crosshead(Crosshead):
             self.link.send("limit_mode")
 
 
-def _profile_units(profile: dict, commands: CommandSet) -> tuple[StandUnit, GaugeUnit, int]:
-    """The stand's travel unit, the gauge's force unit and the travel sign the profile names."""
-    from .profile import ProfileError   # drivers.profile imports this module
-
-    where = profile.get("source", "<profile>").rsplit("/", 1)[-1]
+def profile_units(profile: dict, commands: CommandSet) -> tuple[StandUnit, GaugeUnit, int]:
+    """The stand's travel unit, the gauge's force unit and the travel sign the profile names
+    (ValueError naming the key; drivers.profile checks it when it loads the profile)."""
     crosshead, load_cell = profile["crosshead"], profile["load_cell"]
     travel, force = crosshead.get("travel_unit", "mm"), load_cell.get("force_unit", "N")
     sign = crosshead.get("travel_sign", 1)
     if travel not in commands.stand_units:
-        raise ProfileError(f"{where}: [crosshead] `travel_unit` must be one of {', '.join(commands.stand_units)}, got {travel!r}")
+        raise ValueError(f"[crosshead] `travel_unit` must be one of {', '.join(commands.stand_units)}, got {travel!r}")
     if force not in commands.gauge_units:
-        raise ProfileError(f"{where}: [load_cell] `force_unit` must be one of {', '.join(commands.gauge_units)}, got {force!r}")
+        raise ValueError(f"[load_cell] `force_unit` must be one of {', '.join(commands.gauge_units)}, got {force!r}")
     if sign not in (1, -1) or isinstance(sign, bool):
-        raise ProfileError(f"{where}: [crosshead] `travel_sign` must be 1 or -1, got {sign!r}")
+        raise ValueError(f"[crosshead] `travel_sign` must be 1 or -1, got {sign!r}")
     return commands.stand_units[travel], commands.gauge_units[force], sign
 
 
@@ -420,7 +419,7 @@ class AsciiMachine(Machine):
     def __init__(self, profile: dict):
         self.profile = profile
         self.commands = CommandSet.from_toml(profile["wire"])
-        stand_unit, gauge_unit, sign = _profile_units(profile, self.commands)
+        stand_unit, gauge_unit, sign = profile_units(profile, self.commands)
         framing = self.commands.serial
         self.line = SerialLine(profile["connection"], bytesize=framing["data_bits"], parity=framing["parity"],
                                stopbits=framing["stop_bits"], line_end=b"\n")

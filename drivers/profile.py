@@ -25,7 +25,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from .ascii import AsciiMachine, CommandSet
+from .ascii import AsciiMachine, CommandSet, profile_units
 from .base import Machine
 from .cs2rs import motor_rpm, ramp_ms
 from .dad141 import UNIT_N
@@ -273,9 +273,13 @@ def _validate_ascii(profile: dict, c: _Checker) -> None:
         c.fail("[connection]", "`port_url` must be a pyserial URL or device path")
     c.number(connection, "baudrate", "[connection]", integer=True, positive=True)
     try:
-        CommandSet.from_toml(profile["wire"])
+        commands = CommandSet.from_toml(profile["wire"])
     except ValueError as exc:
         raise ProfileError(f"{profile['command_set']}: {exc}") from None
+    try:   # the profile's units and travel sign, against what the device file offers
+        profile_units(profile, commands)
+    except ValueError as exc:
+        c.fail("", str(exc))
 
 
 # --------------------------------------------------------------------------- opening

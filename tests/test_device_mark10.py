@@ -415,3 +415,40 @@ def test_driver_and_simulator_agree_end_to_end():
             assert m.crosshead.read_travel_limits() == (-20.0, m.crosshead.read_position())
             m.load_cell.tare()
             assert m.load_cell.read().force_N == 0.0
+
+
+# ================================================================= commissioning (foamlab probe)
+
+def test_every_unconfirmed_entry_says_its_assumption_and_what_settles_it():
+    commands = CommandSet.from_toml(load_profile("sim-serial")["wire"])
+    open_items = {e.name: e for e in commands.unconfirmed()}
+    for name in ("stand.framing", "stand.reply_framing", "stand.acknowledge", "stand.commands.read_sample",
+                 "stand.commands.status", "stand.commands.read_travel", "gauge.commands.zero"):
+        assert open_items[name].assumption and open_items[name].settle, name
+    assert "stand.commands.set_speed" not in open_items and "gauge.errors_source" not in open_items
+    assert any("e-stop" in a for a in commands.absent) and any("watchdog" in a for a in commands.absent)
+
+
+def test_self_checks_confirm_the_simulated_device_and_identify_it():
+    machine, _ = sim_machine()
+    with start_simulator("serial", machine=machine) as sim:
+        with open_machine(load_profile("sim-serial"), timeout_s=1.0, **sim.profile_overrides) as m:
+            checks = m.self_checks()
+            identity = m.identify()
+    assert [ok for _, ok, _ in checks] == [True] * 8, checks
+    assert all("as the device file assumes" in detail for _, _, detail in checks[:7])
+    assert identity == "foamlab simulated Series 5 / M5-100 (simulated) / 1.00 / SIM00001"
+
+
+def test_self_checks_say_which_reply_differs_from_the_assumption():
+    exchanges = [(b"x", b"12.35\r\n"),                                  # bare number: read, but differs
+                 (b"n", line("4.285 N") + line("12.35 mm")), (b"p", b"S;L\r\n"),   # unreadable
+                 (b"a", line("50.0 mm/min")), (b"v", line("-20.00 mm")), (b"w", line("70.00 mm")),
+                 *gauge(b"?C", line("4.285 N")), *gauge(b"LIST", line("V1.00;LBF;CUR;FULL;B0"))]
+    with driver(exchanges) as machine:
+        checks = {name.split(" (")[0]: (ok, detail) for name, ok, detail in machine.self_checks()}
+    assert checks["travel reply"][0] and "differs from the device file's assumption" in checks["travel reply"][1]
+    assert checks["status reply"] == (False, "b'S;L\\r\\n': the driver cannot read it (serial %s: unexpected "
+                                      "reply to 'p': 'S;L')" % machine.line.url)
+    assert checks["sample reply"] == (True, "b'4.285 N\\r\\n12.35 mm\\r\\n': as the device file assumes")
+    assert checks["gauge settings"][0] is False and "lacks N" in checks["gauge settings"][1]

@@ -95,6 +95,8 @@ def test_missing_file():
      "", r"leadshine-cs2rs.toml: \[registers.pr0_accel\] is `confirmed = false`: say what would settle it"),
     (CS2RS, "quick_stop  = { value = 0x0040", "stop  = { value = 0x0040",
      r"leadshine-cs2rs.toml: \[values.trigger\] lacks 'quick_stop'"),
+    ("sim-serial.toml", "travel_sign = 1", "travel_sign = 2", r"sim-serial.toml: \[crosshead\] `travel_sign` must be 1 or -1"),
+    ("sim-serial.toml", 'force_unit = "N"', 'force_unit = "lb"', r"sim-serial.toml: \[load_cell\] `force_unit` must be one of N,"),
     (MARK10, "[stand.commands.read_sample]", "[stand.commands.read_samples]",
      r"mark10-esm303.toml: \[stand.commands\] lacks read_sample"),
     (DAD, 'layout = ["gross", "net", "qualifier"]', 'layout = ["gross", "peak", "qualifier"]',
