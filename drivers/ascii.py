@@ -100,6 +100,7 @@ class Mark10Link:
         return self.send_text(self.commands.stand[name].text(**values))
 
     def send_text(self, text: str) -> str:
+        # under the lock: never while a pass-through is open (an `s` there would reach the gauge)
         with self.line.lock:
             self.line.write(text.encode("ascii") + self.commands.stand_terminator)
         return text
@@ -303,8 +304,11 @@ class Mark10Crosshead(Crosshead):
         return self.travel_sign * mm / self.unit.to_mm
 
     def _set_speed(self, speed_mm_min: float) -> None:
-        text = self.unit.speed.format(speed_mm_min / self.unit.to_mm) if 0 < speed_mm_min <= self.max_speed_mm_min else ""
-        if not text or float(text) <= 0:
+        """`eXXXX.X` (mm) / `eXX.XX` (inch); a speed that rounds to zero is refused, not sent."""
+        text = "0"
+        if 0 < speed_mm_min <= self.max_speed_mm_min:
+            text = self.unit.speed.format(speed_mm_min / self.unit.to_mm)
+        if float(text) <= 0:
             raise ValueError(f"speed {speed_mm_min} mm/min outside (0, {self.max_speed_mm_min}] mm/min "
                              f"at the stand's resolution ({self.unit.speed.resolution:g} {self.unit.speed_unit})")
         self.link.send("set_speed", speed=text)

@@ -78,9 +78,7 @@ class SerialLine:
         port = self._open_port()
         try:
             port.write(data)
-        except serial.SerialTimeoutException as exc:
-            raise self._lost(exc) from None
-        except (serial.SerialException, OSError) as exc:
+        except (serial.SerialException, OSError) as exc:   # a write timeout too: the line is stuck
             raise self._lost(exc) from None
 
     def read_line(self, timeout_s: float | None = None) -> bytes:
