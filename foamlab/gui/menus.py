@@ -20,6 +20,7 @@ class Menus:
     auto_diagnose: QtGui.QAction
     diagnose: QtGui.QAction
     predict: QtGui.QAction
+    probe: QtGui.QAction             # Machine > Probe (foamlab.gui.commissioning)
 
 
 def build_menus(bar: QtWidgets.QMenuBar, auto_diagnose: bool) -> Menus:
@@ -43,4 +44,6 @@ def build_menus(bar: QtWidgets.QMenuBar, auto_diagnose: bool) -> Menus:
     predict = analysis.addAction("&Live prediction")
     predict.setCheckable(True)
     predict.setChecked(True)
-    return Menus(*actions, auto, diagnose, predict)
+    machine = bar.addMenu("&Machine")
+    probe = machine.addAction("&Probe the connected machine…")
+    return Menus(*actions, auto, diagnose, predict, probe)

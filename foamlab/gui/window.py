@@ -25,6 +25,7 @@ from foamlab import FoamlabError
 from foamlab.acquisition.safety import check_run_fits, remember_contact
 from foamlab.gui.background import BackgroundQueue
 from foamlab.gui.bridge import EngineBridge
+from foamlab.gui.commissioning import Commissioning
 from foamlab.gui.connection import ConnectionView
 from foamlab.gui.controls import ControlPanel
 from foamlab.gui.dialogs import DialogSlot, EscapeStops, ask, choose_file
@@ -162,6 +163,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.series_view.pdf_button.clicked.connect(self.series_report_action.trigger)
         self.series_view.message.connect(lambda text, error: self._status(text, error=error))
         self.quit_action.triggered.connect(self.close)
+        self.commissioning = Commissioning(self.link, self._show_dialog, self._status, self)
+        self.menus.probe.triggered.connect(self.commissioning.start)
         self.diagnose_action.triggered.connect(self.diagnose_shown_run)
         self.browser.open_requested.connect(self.open_file)
         self.display.message.connect(lambda text, error: self._status(text, error=error))
