@@ -132,7 +132,12 @@ class Cs2rsCrosshead(Crosshead):
         if direction not in (1, -1):
             raise ValueError(f"jog direction must be +1 (down) or -1 (up), got {direction!r}")
         # A bounded move: velocity mode or the 0x4001 jog would run on if the host fell silent.
-        self.move_to(self.travel_limits[1] if direction > 0 else self.travel_limits[0], speed_mm_min)
+        limit = self.travel_limits[1] if direction > 0 else self.travel_limits[0]
+        position = self.read_position()    # at or beyond that limit the move would go the other way
+        if direction * (limit - position) <= LIMIT_TOLERANCE_MM:
+            raise ValueError(f"jog {'down' if direction > 0 else 'up'} refused: the crosshead is at {position:.3f} mm, "
+                             f"at or beyond the travel limit {limit:g} mm")
+        self.move_to(limit, speed_mm_min)
 
     def stop(self) -> None:
         # 0x40 (quick stop, Pr8.23's deceleration) is the drive's only documented stop.

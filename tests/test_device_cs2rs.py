@@ -57,13 +57,20 @@ def test_move_to_writes_pr0_then_triggers_path_0():
 def test_jog_is_a_bounded_absolute_move_to_the_travel_limit():
     # down: to the lower limit 70 mm = 1 750 000 = 0x001A:0xB3F0; up: to -20 mm = -500 000 = 0xFFF8:0x5EE0;
     # 50 mm/min = 125 rpm = 0x007D
-    exchanges = [("02 10 62 00 00 06 0C 00 01 00 1A B3 F0 00 7D 00 85 00 85 77 5F", PR0_WRITTEN),
+    # (first the position: a jog from beyond its limit would move the other way, and is refused)
+    exchanges = [(READ_POSITION, "02 03 04 00 03 D0 90 64 9F"),                       # at 10 mm
+                 ("02 10 62 00 00 06 0C 00 01 00 1A B3 F0 00 7D 00 85 00 85 77 5F", PR0_WRITTEN),
                  (START_PR0, START_PR0),
+                 (READ_POSITION, "02 03 04 00 03 D0 90 64 9F"),
                  ("02 10 62 00 00 06 0C 00 01 FF F8 5E E0 00 7D 00 85 00 85 4C 18", PR0_WRITTEN),
-                 (START_PR0, START_PR0)]
+                 (START_PR0, START_PR0),
+                 (READ_POSITION, "02 03 04 00 1A B3 F0 9D 80")]                       # at 70 mm: the limit
     with driver_on(exchanges) as machine:
         machine.crosshead.jog(+1, 50.0)
         machine.crosshead.jog(-1, 50.0)
+        with pytest.raises(ValueError, match=r"jog down refused: the crosshead is at 70.000 mm, at or beyond "
+                                             r"the travel limit 70 mm"):
+            machine.crosshead.jog(+1, 50.0)
 
 
 def test_stop_estop_reset_and_zero_write_their_documented_values():

@@ -168,8 +168,9 @@ def test_move_to_negative_target_is_twos_complement_high_word_first():
 def test_jog_stop_estop_reset_zero_write_their_documented_values():
     frame = Frames("tcp")
     trigger = lambda code: frame(CROSSHEAD, write_single(0x6002, code), write_single(0x6002, code))
-    exchanges = [frame(CROSSHEAD, *pr0(-500000, 250)), trigger(0x0010),   # jog up: to the upper limit -20 mm
-                 frame(CROSSHEAD, *pr0(1750000, 59)), trigger(0x0010),    # jog down: to the lower limit 70 mm
+    at_zero = lambda: frame(CROSSHEAD, read_request(0x602C, 2), read_reply(0, 0))   # where it is, first
+    exchanges = [at_zero(), frame(CROSSHEAD, *pr0(-500000, 250)), trigger(0x0010),   # jog up: to -20 mm
+                 at_zero(), frame(CROSSHEAD, *pr0(1750000, 59)), trigger(0x0010),    # jog down: to 70 mm
                  trigger(0x0040), trigger(0x0040),                      # stop, emergency stop: the quick stop
                  frame(CROSSHEAD, write_single(0x1801, 0x1111), write_single(0x1801, 0x1111)),
                  trigger(0x0021)]                                       # set zero: nothing else writes 0x21
