@@ -10,11 +10,7 @@ from __future__ import annotations
 
 from .base import DeviceRefused, ForceReading, LoadCell, LoadCellStatus
 from .modbus_link import DeviceOnLink, ModbusLink
-from .registers import DeviceMap
-
-#: Units a DAD 141.1 may be calibrated in (the profile's `[load_cell] unit`) -> N per unit;
-#: "kg" is a cell calibrated with masses (kilogram-force).
-UNIT_N = {"N": 1.0, "kN": 1000.0, "kg": 9.80665, "g": 0.00980665, "lbf": 4.4482216152605}
+from .registers import UNIT_N, DeviceMap
 
 
 class Dad141LoadCell(LoadCell):

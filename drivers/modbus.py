@@ -12,7 +12,7 @@ from .base import DeviceError, Machine
 from .cs2rs import Cs2rsCrosshead
 from .dad141 import Dad141LoadCell
 from .modbus_link import MODBUS_EXCEPTIONS, DeviceOnLink, ModbusLink
-from .registers import DeviceMap
+from .registers import DeviceMap, profile_device
 
 __all__ = ["DRIVERS", "MODBUS_EXCEPTIONS", "DeviceOnLink", "ModbusLink", "ModbusMachine", "device_map"]
 
@@ -22,10 +22,7 @@ DRIVERS = {"load_cell": {"flintec-dad141": Dad141LoadCell}, "crosshead": {"leads
 
 def device_map(profile: dict, role: str) -> DeviceMap:
     """The profile's device for `role` ("load_cell" / "crosshead"), checked against its driver."""
-    name = profile[role]["device"]
-    device = DeviceMap.from_toml(profile["wire"][role], name if name.endswith(".toml") else f"{name}.toml")
-    if device.kind != role:
-        raise ValueError(f"{device.file}: a {device.kind} device cannot be the {role}")
+    device = profile_device(profile, role)
     driver = DRIVERS[role].get(device.id)
     if driver is None:
         raise ValueError(f"{device.file}: no {role} driver for {device.id} (drivers: {', '.join(DRIVERS[role])})")

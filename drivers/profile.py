@@ -28,8 +28,8 @@ from typing import Any
 from .ascii import AsciiMachine, CommandSet, profile_units
 from .base import Machine
 from .cs2rs import motor_rpm, ramp_ms
-from .dad141 import UNIT_N
 from .modbus import ModbusMachine, device_map
+from .registers import UNIT_N
 
 #: The repository's machine profiles (used when no directory is given).
 MACHINES_DIR = Path(__file__).resolve().parent.parent / "configs" / "machines"

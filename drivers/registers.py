@@ -28,6 +28,9 @@ TYPES = {"uint16": "H", "int16": "h", "uint32": "I", "int32": "i", "float32": "f
 WORD_ORDERS = ("big", "little")
 ACCESS = ("r", "w", "rw")
 KINDS = ("load_cell", "crosshead")
+#: Units an indicator may be calibrated in (a profile's `[load_cell] unit`) -> N per unit;
+#: "kg" is a cell calibrated with masses (kilogram-force).
+UNIT_N = {"N": 1.0, "kN": 1000.0, "kg": 9.80665, "g": 0.00980665, "lbf": 4.4482216152605}
 
 
 @dataclass(frozen=True)
@@ -193,6 +196,16 @@ class DeviceMap:
 
     def meaning(self, register: str, value: int) -> str | None:
         return self.meanings.get(register, {}).get(value)
+
+
+def profile_device(profile: dict, role: str) -> DeviceMap:
+    """The device a loaded machine profile names for `role` ("load_cell" / "crosshead"), as its
+    device file describes it (drivers.profile loads the file into profile["wire"][role])."""
+    name = profile[role]["device"]
+    device = DeviceMap.from_toml(profile["wire"][role], name if name.endswith(".toml") else f"{name}.toml")
+    if device.kind != role:
+        raise ValueError(f"{device.file}: a {device.kind} device cannot be the {role}")
+    return device
 
 
 class _Reader:

@@ -21,8 +21,7 @@ from typing import Any, Callable
 from pymodbus.constants import ExcCodes
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.dad141 import UNIT_N
-from drivers.registers import DeviceMap
+from drivers.registers import UNIT_N, DeviceMap
 from simulator.machine import FAULT_EMERGENCY, FAULT_NONE, FAULT_STALL
 
 log = logging.getLogger(__name__)

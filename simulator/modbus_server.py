@@ -36,7 +36,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import SimDevice
 
-from drivers.modbus import device_map
+from drivers.registers import profile_device
 from simulator.modbus_devices import LiveDevice, simulate
 from simulator.pty_link import PtyPort, PtyTransport
 
@@ -167,7 +167,7 @@ class ModbusSimServer:
         self.drops = 0
         # unit id -> the device answering there, as its device file documents it
         self.devices: dict[int, LiveDevice] = {
-            int(profile[role]["unit_id"]): simulate(machine, device_map(profile, role), profile[role])
+            int(profile[role]["unit_id"]): simulate(machine, profile_device(profile, role), profile[role])
             for role in ("load_cell", "crosshead")}
         self.unit_ids = tuple(self.devices)
         self.load_cell, self.crosshead = self.devices.values()
