@@ -37,8 +37,11 @@ TRANSPORTS: dict[str, TransportChoice] = {
     "modbus-rtu-pty": TransportChoice("sim-modbus-rtu", "rtu-pty"),
     "serial": TransportChoice("sim-serial", "ascii"),
 }
-#: Simulated devices by their device file (configs/devices/<name>.toml) -> the transport serving them.
-DEVICES: dict[str, str] = {"mark10-esm303": "serial"}
+#: Simulated machines by their devices (configs/devices/<name>.toml) -> the transport serving them:
+#: the ESM303 stand with its gauge; the DAD 141.1 indicator and CS2RS drive on one RS-485 line
+#: (Modbus RTU), or behind a Modbus TCP gateway.
+DEVICES: dict[str, str] = {"mark10-esm303": "serial", "dad141-cs2rs": "modbus-rtu",
+                           "dad141-cs2rs-tcp": "modbus-tcp"}
 
 
 class RunningSimulator:

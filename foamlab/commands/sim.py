@@ -36,7 +36,8 @@ def register(subparsers) -> None:
                    help="wire protocol: Modbus TCP, Modbus RTU (TCP socket, or a pty with --pty), "
                         "or serial (the Mark-10 ESM303, always a pty)")
     p.add_argument("--device", metavar="NAME",
-                   help="the simulated device by its device file in configs/devices (mark10-esm303); "
+                   help="the simulated machine by its devices (configs/devices): mark10-esm303, "
+                        "dad141-cs2rs (Modbus RTU) or dad141-cs2rs-tcp (behind a Modbus TCP gateway); "
                         "instead of --transport")
     p.add_argument("--host", default=None, help="address to bind (default 127.0.0.1; TCP transports only)")
     p.add_argument("--port", type=int, default=None, metavar="N",
