@@ -26,7 +26,7 @@ from foamlab.storage.catalog import Catalog
 from foamlab.storage.runfile import write_run_file
 
 REPO = Path(__file__).resolve().parent.parent
-N_RUNS = 20
+N_RUNS = 10                              # an archive of ten runs in two folders (was 20: 40 s of the suite)
 SPEED = 200.0                            # mm/min: 3 cycles in 105 s, 210 samples at 2 Hz
 BROKEN = {"broken_header.csv": "hello,world\n1,2\n",
           "broken_value.csv": "time_s,displacement_mm,force_N\n0,0,0\n0.5,0.1,x\n",
@@ -87,7 +87,7 @@ def first(archive, cluster, tmp_path_factory):
 
 
 @pytest.mark.timeout(120)
-def test_twenty_runs_and_three_broken_files_are_twenty_results_and_three_error_rows(first, archive):
+def test_ten_runs_and_three_broken_files_are_ten_results_and_three_error_rows(first, archive):
     table, out = first
     assert len(table) == N_RUNS + len(BROKEN)
     rows = [BatchRow.from_record(r) for r in table.to_dict("records")]
@@ -104,7 +104,7 @@ def test_twenty_runs_and_three_broken_files_are_twenty_results_and_three_error_r
         assert r.effect == ("" if r.verdict == "none" else r.verdict)
         if r.verdict in CAUSES:
             assert r.gain > 1 and r.rmse_before > r.rmse_after
-    assert sum(r.verdict == "cycle_softening" for r in good) >= 5
+    assert sum(r.verdict == "cycle_softening" for r in good) >= 4        # of the 5 softened (5 of 8 with 20 runs)
     # the output file holds the table; the journal is gone once it is written
     again = pd.read_csv(out)
     assert list(again["sha256"]) == list(table["sha256"]) and not out.with_name(out.name + ".journal.jsonl").exists()

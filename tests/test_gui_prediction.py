@@ -144,7 +144,7 @@ def test_a_clean_run_in_the_window_is_never_flagged_and_its_cycle_3_is_scored(qt
         assert not live.departures, [d.message for d in live.departures]
         row = w.results.report.forecast[0]
         assert (row.cycle, row.from_cycles) == (3, 2)
-        assert 0.8 < row.ratio < 5, row
+        assert row.ratio > 0.8, row                   # a forecast, not the measured cycle itself
         print(f"\nforecast score: cycle 3 from cycles 1-2: RMSE {row.rmse:.3g} N = {row.ratio:.2g} x noise; "
               f"arrivals {live.predictor.arrivals if live.predictor else None}")
         qtbot.waitUntil(lambda: w.shown_analysis is not None, timeout=90_000)   # the fit the report shows

@@ -29,7 +29,7 @@ from foamlab.storage.runfile import read_run_file
 from tests.hil_support import (SPECIMEN, approach, assert_keeps_the_schedule, machine_for, make_engine,
                                simulated, wait_at_rest)
 
-pytestmark = [pytest.mark.hil, pytest.mark.schedule]
+pytestmark = [pytest.mark.hil]
 
 #: Speedup per transport for the full protocol (see the module docstring).
 FULL_SPEEDUP = {"modbus-tcp": 4.0, "serial": 8.0, "modbus-rtu-pty": 4.0}
@@ -57,6 +57,7 @@ def _check_run(result, method, *, cycles):
 
 
 @pytest.mark.timeout(150)
+@pytest.mark.schedule
 def test_paper_protocol_through_foamlab_run(tmp_path, capsys):
     """The README's main job: `foamlab run --speedup S` on the built-in machine, to the fit."""
     out = tmp_path / "data"
@@ -100,7 +101,7 @@ def test_twenty_cycles_through_foamlab_run(tmp_path, capsys):
     20 cycles, ~2 900 samples), fitted with the later cycles sharing the third's terms."""
     out = tmp_path / "data"
     code = cli.main(["run", "--method", "cyclic-20", "--specimen-height", "20", "--speedup", "20",
-                     "--out", str(out), "--quiet", "--specimen-label", "long", "--no-diagnose"])
+                     "--out", str(out), "--quiet", "--specimen-label", "long", "--no-diagnose", "--no-predict"])
     printed = capsys.readouterr()
     assert code == 0, printed.err
     run_file = next(out.glob("*_long_cyclic-20.csv"))
@@ -119,6 +120,7 @@ PER_TRANSPORT = [t for t in FULL_SPEEDUP if t != "modbus-tcp"]
 
 
 @pytest.mark.timeout(400)
+@pytest.mark.schedule
 @pytest.mark.parametrize("transport", PER_TRANSPORT)
 def test_full_paper_protocol_through_each_transport(tmp_path, transport):
     speedup = FULL_SPEEDUP[transport]

@@ -37,7 +37,7 @@ from simulator.machine import MachineSettings, SimulatedMachine
 from tests.hil_support import (SPECIMEN_TOP_MM, approach, assert_keeps_the_schedule, machine_for,
                                make_engine, simulated, wait_at_rest)
 
-pytestmark = [pytest.mark.hil]
+pytestmark = [pytest.mark.hil, pytest.mark.schedule]   # it asserts the 16 Hz schedule
 
 HEIGHT_MM = 8.0
 SPEEDUP = 4.0

@@ -246,22 +246,21 @@ class LivePredictor:
     def _forecast_next(self) -> None:
         """Start the forecast from the latest complete cycle, unless one is being made."""
         k = self._waiting
-        if k is None or any(isinstance(w, ForecastJob) for w in self._pending.values()):
-            return
+        if k is None or self._ended or any(isinstance(w, ForecastJob) for w in self._pending.values()):
+            return          # after the run's end no new forecast: one in progress still scores its cycle
         self._waiting = None
-        if self._ended and k + 1 > self._completed:
-            return          # after the run's end only a cycle that was measured is worth forecasting (its score)
         prefix = self.samples.upto_cycle(k)
         job = ForecastJob(k, time.monotonic(), float(prefix.time_s[-1]))
         self._submit(job, make_forecast, prefix, self.plan, k, self.sampling_hz, self.n_cycles)
 
     def _still_needed(self) -> bool:
-        """After the run's end: a score being made, or a forecast of a measured cycle (its score).
+        """After the run's end: a score being made, or a forecast in progress of a measured cycle.
 
         A forecast that a slower computer delivers after the run still scores the cycle it
-        predicts (and says where that cycle left it): the result does not depend on the race."""
-        waiting = self._waiting is not None and self._waiting + 1 <= self._completed
-        return waiting or any(
+        predicts (and says where that cycle left it): the result does not depend on the race.
+        No new forecast starts after the end (on a 20-cycle run it would cost the user a fit of
+        19 cycles for one score)."""
+        return any(
             not isinstance(w, ForecastJob) or w.after_cycle + 1 <= self._completed for w in self._pending.values())
 
     def _abandon(self) -> None:
