@@ -153,7 +153,15 @@ def test_fit_simulate_run_fit_agrees(tmp_path):
           f"{second.rmse:.4f} N = {second.rmse / NOISE_N:.3f} x the load cell's noise; "
           f"missed samples {result.missed} ({result.path})\n{table}")
     assert compared.sum() >= 0.8 * len(first.names)
-    outside = [n for n, zi, c in zip(first.names, z, compared) if c and abs(zi) > 3]
+    # k0 is the force where each run put displacement 0: where the preload was crossed, between two
+    # samples of the contact search. Its uncertainty is that step times the stiffness there, not the
+    # fit's standard error (measured: 0.557 vs 0.455 N, z = -3.7, once the drive's move starts a
+    # sample sooner after the contact - the CS2RS's one PR0 write + trigger).
+    step_mm = method.contact.search_speed_mm_min / 60.0 / method.sampling_hz
+    k0_tolerance = step_mm * first.value("k1") / first.params.x_scale_mm
+    k0 = first.names.index("k0")
+    assert abs(second.values[k0] - first.values[k0]) <= k0_tolerance, (k0_tolerance, table)
+    outside = [n for n, zi, c in zip(first.names, z, compared) if c and abs(zi) > 3 and n != "k0"]
     assert not outside, f"outside 3 combined standard errors: {outside}\n{table}"
     # The refit reaches the load cell's noise - away from the reversals. At a reversal the
     # model's force jumps (damping off, the cycle's residual force on: Eq. 10's switching),
