@@ -99,13 +99,15 @@ def assert_keeps_the_schedule(result):
     no reply, or the engine's thread held up (measured in CI on this 2-core VM: 8 of 14 160
     over TCP at speedup 4 - one read without a reply, one 58 ms reply - and 12 over ASCII at 8,
     11 of them one 108 ms pause outside any request). At most 0.5 % of the deadlines; unless
-    replies take over half a period at p99: then the computer is overloaded (skipped).
+    replies take over half a period at p99: then the computer is overloaded (skipped) - and it
+    preempts the engine's thread as well as the replies (one core kept busy, the window's test at
+    x15: work p99 1.9 ms of a 4.2 ms period, replies 7.5 ms), so that is asked first.
     """
     timing = result.timing
     period_ms = timing.period_s * 1e3
-    assert timing.work_p99_ms <= 0.25 * period_ms, timing
     if result.missed and timing.rtt_p99_ms > period_ms / 2:
         pytest.skip(f"computer overloaded: reply p99 {timing.rtt_p99_ms:.1f} ms > half the "
                     f"{period_ms:.1f} ms period; {result.missed} deadlines missed")
+    assert timing.work_p99_ms <= 0.25 * period_ms, timing
     deadlines = result.n_samples + result.missed
     assert result.missed <= 0.005 * deadlines, timing

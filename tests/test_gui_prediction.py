@@ -107,7 +107,7 @@ def test_softening_from_cycle_3_is_flagged_on_cycle_3s_samples(qtbot, tmp_path):
 
 # --------------------------------------------------------------------------- end to end
 
-HIL_SPEEDUP = 15.0         # the README main job's speedup over Modbus TCP
+HIL_SPEEDUP = 8.0          # the window's GUI thread shares the process: at x15 with a core kept busy its work p99 was 46 % of the period
 SPECIMEN = ("live", "72.5", "100", "100")
 CYCLE_S = 2 * 58.0 / 50.0 * 60.0          # machine seconds per cycle (58 mm down and up at 50 mm/min)
 RUN_TIMEOUT_MS = int((3 * CYCLE_S / HIL_SPEEDUP + 120) * 1000)
