@@ -42,6 +42,9 @@ SWITCH_INTERVAL_S = 0.0005
 
 def _child(conn, transport: str, kwargs: dict, realtime: bool) -> None:
     """Child process: serve the machine; answer requests on `conn` until told to stop."""
+    # The parent's pid now, before "ready": read after it, a parent killed in between (a loaded
+    # computer preempting the child right after its send) left the orphan watching its new parent.
+    parent_pid = os.getppid()
     if realtime:
         # threads started below inherit the policy
         try:
@@ -81,7 +84,6 @@ def _child(conn, transport: str, kwargs: dict, realtime: bool) -> None:
     try:
         conn.send(("ready", {"profile": sim.profile, "overrides": sim.profile_overrides,
                              "address": sim.address}))
-        parent_pid = os.getppid()
         while True:
             # A parent killed outright (SIGKILL) may not close the pipe: a forked sibling can
             # hold its end. So the parent's pid is watched too; an orphan stops serving.

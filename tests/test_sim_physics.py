@@ -376,6 +376,7 @@ def test_virtual_clock_runs_at_speedup():
         VirtualClock(0)
 
 
+@pytest.mark.schedule      # 20 s of machine time is 0.2 s of wall time: a starved ticker thread slips
 def test_ticker_advances_physics_without_requests():
     m = SimulatedMachine(speedup=100, noise_sigma_N=0.0)
     try:
