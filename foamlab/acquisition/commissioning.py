@@ -90,10 +90,6 @@ class _Probe:
         self.checks.append(Check(name, True, detail))
         return True
 
-    def optional(self, owner, method: str, name: str, missing: str) -> None:
-        if getattr(owner, method, None) is None:
-            self.checks.append(Check(name, None, missing))
-
 
 def probe(machine: Machine, profile: dict, limits: Limits, *,
           confirm_move: Callable[[str], bool] | None = None) -> ProbeReport:
