@@ -21,15 +21,13 @@ examples:
   foamlab diagnose run.csv --suggest next.toml      # ...written to next.toml; then: foamlab run --method next.toml
 
 verdict: a cause of the catalogue (cycle_softening, damping_cycle_change, channel_lag,
-force_zero_drift, machine_compliance, direction_friction, rate_dependence), 'none' (the
+force_zero_drift, machine_compliance, direction_friction, memory_lag, rate_dependence), 'none' (the
 model explains the data down to the noise) or 'unexplained' (structure no cause explains).
 gain: RMSE before/after the extension, on all data and on held-out blocks, and delta BIC.
 """
 
 
 def register(subparsers) -> None:
-    from foamlab.diagnosis.causes import CAUSES  # noqa: PLC0415 (a light module)
-
     p = subparsers.add_parser(
         "diagnose", help=HELP,
         description=("Fit the paper's model to the run(s), simulate them, study the residuals (by "
@@ -46,7 +44,7 @@ def register(subparsers) -> None:
                    help="print one JSON object: verdict and findings (best first; effect, gain)")
     p.add_argument("--report", metavar="DIR", help="write an HTML report with figures into DIR")
     p.add_argument("--causes", metavar="NAME[,NAME...]",
-                   help=f"test only these causes (default: all: {', '.join(CAUSES)})")
+                   help="test only these causes (default: all, as listed under 'verdict' below)")
     p.add_argument("--no-store", action="store_true",
                    help="do not write <run>.diagnosis.json beside a foamlab run file or index it")
     p.add_argument("--form", choices=("auto", "causal", "paper"), default="auto",
@@ -61,7 +59,6 @@ def register(subparsers) -> None:
                         "as a method file for `foamlab run --method` (default ./suggested-<run>.toml, never "
                         "overwriting: numbered instead)")
     p.set_defaults(func=run)
-
 
 
 def _causes(text: str | None) -> list[str] | None:

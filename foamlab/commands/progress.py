@@ -11,9 +11,6 @@ import contextlib
 import sys
 from typing import Callable, Iterator
 
-from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
 Callback = Callable[[str, float], None]
 
 
@@ -23,6 +20,8 @@ def terminal_progress(title: str, quiet: bool = False) -> Iterator[Callback]:
     if quiet or not sys.stderr.isatty():
         yield lambda stage, fraction: None
         return
+    from rich.console import Console  # noqa: PLC0415 (keep `foamlab --help` fast)
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn  # noqa: PLC0415
     bar = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f} %"),
                    TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn(),
                    console=Console(stderr=True), transient=True)

@@ -5,11 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from foamlab import FoamlabError
-from foamlab.segmentation import Segmentation
+
+if TYPE_CHECKING:
+    from foamlab.segmentation import Segmentation
 
 HELP = "import a data file and print its summary (format, cycles, turning points, contact loss)"
 
@@ -53,6 +54,8 @@ def _span(seg: Segmentation, a: int, b: int) -> dict:
 
 
 def summarize(seg: Segmentation) -> dict:
+    import numpy as np  # noqa: PLC0415 (keep `foamlab --help` fast)
+
     r = seg.run
     out: dict = {
         "path": r.source,
