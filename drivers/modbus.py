@@ -2,8 +2,8 @@
 
 Each device is the one its device file describes (configs/devices/<id>.toml, read into a
 drivers.registers.DeviceMap) and is driven by that device's class: the Flintec DAD 141.1
-(drivers.dad141) and the Leadshine CS2RS (drivers.cs2rs). Both share one ModbusLink (one
-socket or one serial line, two unit ids; drivers.modbus_link).
+(drivers.dad141) or the Laumas TLU (drivers.tlu), and the Leadshine CS2RS (drivers.cs2rs).
+Both share one ModbusLink (one socket or one serial line, two unit ids; drivers.modbus_link).
 """
 
 from __future__ import annotations
@@ -13,11 +13,13 @@ from .cs2rs import Cs2rsCrosshead
 from .dad141 import Dad141LoadCell
 from .modbus_link import MODBUS_EXCEPTIONS, DeviceOnLink, ModbusLink
 from .registers import DeviceMap, profile_device
+from .tlu import TluLoadCell
 
 __all__ = ["DRIVERS", "MODBUS_EXCEPTIONS", "DeviceOnLink", "ModbusLink", "ModbusMachine", "device_map"]
 
 #: Device id (a device file's [device] id) -> the class that drives it, per role.
-DRIVERS = {"load_cell": {"flintec-dad141": Dad141LoadCell}, "crosshead": {"leadshine-cs2rs": Cs2rsCrosshead}}
+DRIVERS = {"load_cell": {"flintec-dad141": Dad141LoadCell, "laumas-tlu": TluLoadCell},
+           "crosshead": {"leadshine-cs2rs": Cs2rsCrosshead}}
 
 
 def device_map(profile: dict, role: str) -> DeviceMap:

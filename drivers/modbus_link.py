@@ -240,11 +240,12 @@ class ModbusLink:
         return words
 
     def write_words(self, unit: int, address: int, words: Sequence[int], label: str,
-                    meanings: dict[int, str] | None = None) -> None:
-        """Function 6 for one register, function 16 for several (one request: atomic on the device)."""
+                    meanings: dict[int, str] | None = None, single: bool = True) -> None:
+        """Function 6 for one register, function 16 for several (one request: atomic on the device);
+        `single=False`: function 16 always (a device without function 6, such as the Laumas TLU)."""
         words = list(words)
         action = f"write of {label}"
-        if len(words) == 1:
+        if len(words) == 1 and single:
             self._execute(action, unit, lambda: self._client.write_register(address, words[0], device_id=unit),
                           meanings)
         else:
@@ -258,6 +259,7 @@ class DeviceOnLink:
     def __init__(self, link: ModbusLink, device: DeviceMap, unit: int):
         self.link, self.device, self.unit = link, device, unit
         self._meanings = device.exceptions
+        self._single = 6 in device.functions
 
     def read(self, name: str) -> int | float:
         register = self.device.registers[name]
@@ -272,17 +274,17 @@ class DeviceOnLink:
     def write(self, name: str, value: int) -> None:
         register = self.device.registers[name]
         self.link.write_words(self.unit, register.address, register.encode(value, self.device.word_order),
-                              f"{register.label()} = {value}", self._meanings)
+                              f"{register.label()} = {value}", self._meanings, self._single)
 
     def write_block(self, name: str, values: dict[str, int | float]) -> None:
         block = self.device.blocks[name]
         shown = ", ".join(f"{k} = {v}" for k, v in values.items())
         self.link.write_words(self.unit, block.address, block.encode(values, self.device.word_order),
-                              f"{block.label()}: {shown}", self._meanings)
+                              f"{block.label()}: {shown}", self._meanings, self._single)
 
     def command(self, register: str, name: str) -> None:
         """Write one of the register's documented values (the device file's [values.<register>])."""
         value = self.device.value(register, name)
         reg = self.device.registers[register]
         self.link.write_words(self.unit, reg.address, reg.encode(value, self.device.word_order),
-                              f"{reg.label()} = 0x{value:04X} ({name})", self._meanings)
+                              f"{reg.label()} = 0x{value:04X} ({name})", self._meanings, self._single)

@@ -28,7 +28,7 @@ from typing import Any
 from .ascii import AsciiMachine, CommandSet, profile_units
 from .base import Machine
 from .cs2rs import motor_rpm, ramp_ms
-from .modbus import ModbusMachine, device_map
+from .modbus import DRIVERS, ModbusMachine, device_map
 from .registers import UNIT_N
 
 #: The repository's machine profiles (used when no directory is given).
@@ -246,6 +246,12 @@ def _validate_modbus(profile: dict, c: _Checker) -> None:
             raise ProfileError(str(exc)) from None
     if profile["load_cell"].get("unit", "N") not in UNIT_N:
         c.fail("[load_cell]", f"`unit` must be one of {', '.join(UNIT_N)} (what the indicator is calibrated in)")
+    check_profile = getattr(DRIVERS["load_cell"][devices["load_cell"].id], "check_profile", None)
+    if check_profile is not None:    # settings a driver needs beyond the common ones (the TLU's decimals)
+        try:
+            check_profile(profile["load_cell"])
+        except ValueError as exc:
+            c.fail("[load_cell]", str(exc))
     _validate_screw(profile["crosshead"], devices["crosshead"], c)
 
 

@@ -1,4 +1,5 @@
-"""The simulated machine as the two Modbus devices of its profile: a Flintec DAD 141.1 and a Leadshine CS2RS.
+"""The simulated machine as the two Modbus devices of its profile: a Flintec DAD 141.1 (or a Laumas
+TLU) and a Leadshine CS2RS.
 
 Each answers the registers of its device file (configs/devices/<id>.toml, read by
 drivers.registers, as the driver reads it) and nothing else: pymodbus' SimData covers
@@ -258,8 +259,45 @@ class Cs2rsDevice(LiveDevice):
             raise Refused(f"control word 0x{value:04X} is not simulated")
 
 
+class TluDevice(LiveDevice):
+    """The Laumas TLU: 32-bit weights without their decimal point, the status word, the command register.
+
+    Functions 03 and 16 only (others answer 0x01, simulator.modbus_server); a request with a bad CRC
+    gets no reply (pymodbus drops it), as L1 p.30 says. The weights are sent as L3 p.3 has them:
+    the magnitude, with the sign in the status bits. The command register takes the documented
+    save (99, nothing to model) and answers any other value 0x03: the TLU's zero and tare values
+    are not documented, so no value is simulated as doing one. Firmware, instrument type, year,
+    serial number, program type and 40014 have no documented encoding: they read 0.
+    """
+
+    def __init__(self, machine: Any, device: DeviceMap, settings: dict):
+        super().__init__(machine, device)
+        self.counts_per_N = 10 ** int(settings["decimals"]) / (UNIT_N[settings.get("unit", "N")]
+                                                              * int(settings.get("force_sign", 1)))
+        self.capacity_N = machine.settings.capacity_N
+
+    def live(self, names: set[str]) -> dict[str, int | float]:
+        r = self.machine.read_load_cell()
+        counts = {name: round(value * self.counts_per_N)
+                  for name, value in (("gross", r.gross_N), ("net", r.net_N), ("peak", r.peak_N))}
+        flags = {"over_9_divisions": r.over_range, "over_110_percent": r.gross_N > 1.1 * self.capacity_N,
+                 "gross_overflow": abs(counts["gross"]) > 999999, "net_overflow": abs(counts["net"]) > 999999,
+                 "net_mode": r.tare_set, "stable": r.no_motion,
+                 "centre_of_zero": abs(r.gross_N * self.counts_per_N) <= 0.25}     # within 1/4 division
+        flags.update({f"{name}_negative": value < 0 for name, value in counts.items()})
+        values: dict[str, int | float] = {name: abs(value) for name, value in counts.items()}
+        values["status"] = sum(1 << bit for name, bit in self.device.bits["status"].items() if flags.get(name))
+        values.update({name: 0 for name in names - values.keys()})
+        return values
+
+    def on_write(self, name: str, value: int, stored: Callable[[str], int | float]) -> None:
+        if name == "command" and value != self.device.value("command", "save_eeprom"):
+            raise Refused(f"command {value} is not one the TLU's manual documents")
+        # setpoint 1 is a parameter: stored (the simulated TLU has no outputs to switch)
+
+
 #: Device id -> its simulation.
-SIMULATIONS = {"flintec-dad141": Dad141Device, "leadshine-cs2rs": Cs2rsDevice}
+SIMULATIONS = {"flintec-dad141": Dad141Device, "laumas-tlu": TluDevice, "leadshine-cs2rs": Cs2rsDevice}
 
 
 def simulate(machine: Any, device: DeviceMap, settings: dict) -> LiveDevice:
@@ -269,4 +307,4 @@ def simulate(machine: Any, device: DeviceMap, settings: dict) -> LiveDevice:
         raise ValueError(f"no simulation of {device.id} (simulated: {', '.join(SIMULATIONS)})") from None
 
 
-__all__ = ["Cs2rsDevice", "Dad141Device", "LiveDevice", "Refused", "simulate"]
+__all__ = ["Cs2rsDevice", "Dad141Device", "LiveDevice", "Refused", "TluDevice", "simulate"]

@@ -31,19 +31,20 @@ def frame(text: str) -> bytes:
     return data
 
 
-def rtu_profile(**units) -> dict:
-    """The RTU sim profile, with other unit ids if asked (load_cell=..., crosshead=...)."""
-    profile = copy.deepcopy(load_profile("sim-modbus-rtu"))
+def rtu_profile(name: str = "sim-modbus-rtu", **units) -> dict:
+    """An RTU sim profile, with other unit ids if asked (load_cell=..., crosshead=...)."""
+    profile = copy.deepcopy(load_profile(name))
     for role, unit in units.items():
         profile[role]["unit_id"] = unit
     return profile
 
 
 @contextmanager
-def driver_on(exchanges: list[tuple[str, str]], *, connect: bool = False, **units):
-    """The Modbus machine of the RTU profile against a recorded peer on a pty, playing `exchanges`."""
+def driver_on(exchanges: list[tuple[str, str]], *, connect: bool = False, profile: str = "sim-modbus-rtu",
+              **units):
+    """The Modbus machine of an RTU profile against a recorded peer on a pty, playing `exchanges`."""
     with RecordedPeer([(frame(q), frame(a) if a else b"") for q, a in exchanges], transport="pty") as peer:
-        machine = open_machine(rtu_profile(**units), connect=False, port_url=peer.url, timeout_s=0.5)
+        machine = open_machine(rtu_profile(profile, **units), connect=False, port_url=peer.url, timeout_s=0.5)
         try:
             machine.connect() if connect else machine.link.connect()
             yield machine

@@ -42,6 +42,17 @@ def test_the_probe_reads_every_channel_and_moves_only_when_told(transport):
     assert still.passed and not still.moved and "not confirmed" in still.text(), still.text()
 
 
+def test_the_probe_reads_the_laumas_tlu_beside_the_drive():
+    """The fourth device (sim-modbus-rtu-tlu): identified, every channel read, its open status bits
+    tested, its decimals said to be the profile's."""
+    with simulated("modbus-rtu", profile="sim-modbus-rtu-tlu", speedup=5.0) as sim:
+        report = _probe(sim, move=True)
+    details = {c.name: c.detail for c in report.checks}
+    assert report.passed and report.moved, report.text()
+    assert details["identity"].startswith("Laumas TLU: instrument type")
+    assert "Laumas TLU status bits" in details and "uses 2 decimals (the profile's)" in details["Laumas TLU decimals"]
+
+
 def test_a_drive_set_otherwise_than_its_profile_is_named_not_run():
     """The profile says 5 000 pulses per revolution, the drive holds 10 000 (0x0001): every
     position would be off by two."""
