@@ -7,7 +7,9 @@ duration (speeds, accelerations, watchdog timeouts, fault times) stays
 consistent in virtual seconds.
 
 - VirtualClock: ``now() = speedup * (monotonic() - t0)``.
-- ManualClock: advanced explicitly (deterministic unit tests, batch studies).
+- ManualClock: advanced explicitly (deterministic unit tests, batch studies); it is also a run's
+  clock (foamlab.acquisition.clock.RunClock): a run's waits advance it, so the run engine drives
+  the in-process machine (simulator.inprocess) in virtual time.
 
 Both convert virtual durations to real ones (``to_real``), so a server can wait
 on the wall clock for a virtual deadline.
@@ -68,6 +70,17 @@ class ManualClock:
             if t < self._t:
                 raise ValueError("a clock cannot go back in time")
             self._t = float(t)
+
+    def wait(self, event: threading.Event, timeout: float) -> bool:
+        """A run's wait (foamlab.acquisition.clock.RunClock): virtual time moves on by `timeout`
+        unless `event` is already set - a run in virtual time never sleeps."""
+        if event.is_set():
+            return True
+        self.advance(max(float(timeout), 0.0))
+        return event.is_set()
+
+    def sleep(self, seconds: float) -> None:
+        self.advance(max(float(seconds), 0.0))
 
     def to_real(self, virtual_s: float) -> float:
         return 0.0

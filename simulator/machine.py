@@ -575,6 +575,12 @@ class SimulatedMachine:
                 tare_set=self._tare_set,
             )
 
+    def read_sample(self) -> tuple[LoadCellReading, float]:
+        """The load cell's reading and the crosshead's position at one physics instant."""
+        with self._lock:
+            reading = self.read_load_cell()
+            return reading, self._p - self._zero
+
     def zero_load_cell(self) -> None:
         """Gross := 0 at the present load (the indicator averages, i.e. noise-free)."""
         with self._lock:

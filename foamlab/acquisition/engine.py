@@ -26,12 +26,12 @@ import gc
 import logging
 import math
 import threading
-import time
 from pathlib import Path
 from typing import Any, Callable
 
 from drivers.base import DeviceConnectionLost, DeviceError, Machine
 from foamlab import FoamlabError, __version__
+from foamlab.acquisition.clock import WALL_CLOCK, RunClock
 from foamlab.acquisition.events import (ABORTED, CONNECTING, CONTACT_SEARCH, END_ERROR, END_ESTOP, END_FAULT,
                                         END_FINISHED, END_LIMIT, END_LINK, END_STOP, END_STORAGE, FINISHED,
                                         IDLE, PARK_AFTER, PARKING, RUNNING, STOPPING, TARING, Listeners,
@@ -61,14 +61,16 @@ class RunEngine:
     (1 for a real machine). `connect=False` leaves the link to the caller (the window connects
     and disconnects itself). `recorder`: where the samples go (default: a Recorder on
     `out_dir`). A folder the recorder cannot write refuses the run here, before any motion.
+    `clock`: what the run waits by (a virtual clock for the in-process machine: acquisition.clock).
     """
 
     def __init__(self, machine: Machine, method: Method, specimen: Specimen, out_dir: str | Path,
                  limits: Limits | None = None, speedup: float = 1.0, progress_interval_s: float = 0.25,
                  *, connect: bool = True, machine_name: str | None = None, run_name: str | None = None,
-                 realtime: bool = True, recorder: Recorder | None = None):
+                 realtime: bool = True, recorder: Recorder | None = None, clock: RunClock = WALL_CLOCK):
         self.machine, self.method, self.specimen = machine, method, specimen
         self.speedup = float(speedup)
+        self.clock = clock
         self.progress_interval_s = float(progress_interval_s)
         self.manage_connection = connect
         profile = getattr(machine, "profile", None) or {}     # drivers built from a profile carry it
@@ -96,14 +98,15 @@ class RunEngine:
         self._stop_reason = ""
         self._thread: threading.Thread | None = None
         self._result: RunResult | None = None
-        self._stopper = Stopper(machine, self._estop)
+        self._stopper = Stopper(machine, self._estop, clock)
         # filled by the worker
         self._start_position: float | None = None
         self._contact: float | None = None
         self._step_start_s = 0.0
         self._sampler = Sampler(machine, self.limits, self.recorder, self._listeners, period_s=self.period_s,
                                 speedup=self.speedup, wake=self._wake, check_flags=self._check_flags,
-                                on_sample=lambda s: self._report_progress(s.displacement_mm, s.force_N))
+                                on_sample=lambda s: self._report_progress(s.displacement_mm, s.force_N),
+                                clock=clock)
         self._progress = ProgressReporter(self._listeners, self.plan, method.n_cycles, self.speedup,
                                           progress_interval_s)
         self._connected_once = False
@@ -279,14 +282,14 @@ class RunEngine:
                                         f"limit {self.limits.travel_lower_mm:g} mm (contact at {self._contact:.2f} mm)")
 
     def _wait_at_rest(self) -> None:
-        deadline = time.monotonic() + STOP_CONFIRM_S + 5.0 / self.speedup
-        while time.monotonic() < deadline:
+        deadline = self.clock.now() + STOP_CONFIRM_S + 5.0 / self.speedup
+        while self.clock.now() < deadline:
             self._check_flags()
             status = self.machine.crosshead.status()
             check_crosshead_status(status, self.machine)
             if not status.moving:
                 return
-            self._wake.wait(0.005)
+            self.clock.wait(self._wake, 0.005)
         raise RunAborted(END_FAULT, "the crosshead did not come to rest after a stop")
 
     def _header(self) -> dict:
@@ -307,14 +310,14 @@ class RunEngine:
         step = planned.step
         target = self._contact + planned.end_mm
         if step.action != "dwell":
-            sent = time.monotonic()
+            sent = self.clock.now()
             command(self.machine.crosshead.move_to, target, step.speed_mm_min)
-            self._sampler.waited_for_device(time.monotonic() - sent)
+            self._sampler.waited_for_device(self.clock.now() - sent)
         # the run's own schedule (and machine clock) starts when the first step is under way;
         # the contact search had its own, whose samples are not part of the run
         if planned.index == 0:
             self._sampler.restart(self._interrupted())
-        start_s = self._step_start_s = self._sampler.machine_time(time.monotonic())
+        start_s = self._step_start_s = self._sampler.machine_time(self.clock.now())
         if step.action == "dwell":
             while True:
                 if self._sampler.take(record=True) is not None and self.recorder.last[0] - start_s >= step.duration_s:
@@ -360,7 +363,7 @@ class RunEngine:
         try:
             return park(self.machine, self._stopper, self.limits, self._start_position, speed,
                         speedup=self.speedup, poll_s=max(min(self.period_s, 0.05), 0.001), wake=self._wake,
-                        interrupted=lambda: self._estop.is_set() or self._stop.is_set())
+                        interrupted=lambda: self._estop.is_set() or self._stop.is_set(), clock=self.clock)
         finally:
             if stop_requested:
                 self._stop.set()

@@ -26,13 +26,13 @@ from __future__ import annotations
 import collections
 import logging
 import threading
-import time
 import weakref
 from dataclasses import dataclass
 from typing import Callable
 
 from drivers.base import CrossheadStatus, DeviceConnectionLost, DeviceError, DeviceRefused, Machine
 from foamlab import FoamlabError
+from foamlab.acquisition.clock import WALL_CLOCK, RunClock
 from foamlab.acquisition.events import END_ESTOP, END_FAULT, END_LIMIT, END_OVERLOAD, RunAborted
 
 log = logging.getLogger(__name__)
@@ -161,15 +161,15 @@ class CrossheadWatch:
     even without slack (that may cost a sample: counted as missed).
     """
 
-    def __init__(self, machine: Machine):
-        self.machine = machine
+    def __init__(self, machine: Machine, clock: RunClock = WALL_CLOCK):
+        self.machine, self.clock = machine, clock
         self._last = 0.0
         self._rtt = 0.0
         self._in_a_row = 0
         self.failed: list[str] = []        # every failed poll, said in the run's safety note
 
     def maybe_read(self, schedule) -> None:
-        since = time.monotonic() - self._last
+        since = self.clock.now() - self._last
         if since < STATUS_INTERVAL_S:
             return
         if since < STATUS_FORCED_INTERVAL_S and schedule.slack() < 1.5 * self._rtt + 1e-4:
@@ -179,7 +179,7 @@ class CrossheadWatch:
     def read(self, schedule=None) -> CrossheadStatus | None:
         """The drive's status; None when this poll failed (counted and said: the device's own
         error reply, or MAX_FAILED_STATUS_POLLS failures in a row, end the run)."""
-        t = time.monotonic()
+        t = self.clock.now()
         try:
             status = self.machine.crosshead.status()
         except DeviceConnectionLost:
@@ -187,7 +187,7 @@ class CrossheadWatch:
         except DeviceRefused as exc:
             raise RunAborted(END_FAULT, f"crosshead status refused: {exc}") from None
         except DeviceError as exc:
-            self._last = time.monotonic()
+            self._last = self.clock.now()
             self._in_a_row += 1
             self.failed.append(str(exc))
             log.warning("crosshead status failed (%d in a row): %s", self._in_a_row, exc)
@@ -195,7 +195,7 @@ class CrossheadWatch:
                 raise RunAborted(END_FAULT, f"crosshead status unreadable ({self._in_a_row} polls in a row): "
                                             f"{exc}") from None
             return None
-        done = time.monotonic()
+        done = self.clock.now()
         self._in_a_row = 0
         if schedule is not None:
             schedule.waited_for_device(done - t)
@@ -218,8 +218,8 @@ class Stopper:
     for good (then nothing more is sent: no park).
     """
 
-    def __init__(self, machine: Machine, estop: threading.Event):
-        self.machine = machine
+    def __init__(self, machine: Machine, estop: threading.Event, clock: RunClock = WALL_CLOCK):
+        self.machine, self.clock = machine, clock
         self.estop = estop
         self.link_alive = False
 
@@ -230,7 +230,7 @@ class Stopper:
         last line of defence beyond that.
         """
         crosshead = self.machine.crosshead
-        deadline = time.monotonic() + STOP_RETRY_S
+        deadline = self.clock.now() + STOP_RETRY_S
         errors: list[str] = []
         while True:
             estop = ("emergency stop", "emergency stopped", crosshead.emergency_stop)
@@ -247,7 +247,7 @@ class Stopper:
                     if not errors:
                         log.warning("%s of the crosshead failed: %s (retrying for %g s)", verb, exc, STOP_RETRY_S)
                     errors.append(str(exc))
-            if time.monotonic() >= deadline:
+            if self.clock.now() >= deadline:
                 self.link_alive = False
                 return f"stop and emergency stop failed ({len(errors)} attempts): {errors[-1]}"
             if lost:
@@ -255,7 +255,7 @@ class Stopper:
                     self.machine.connect()
                 except Exception as exc:
                     errors.append(str(exc))
-            time.sleep(0.02)
+            self.clock.sleep(0.02)
 
     def confirm_at_rest(self) -> str:
         """Wait until the drive reports no motion: "" when it does, else why not, in one line.
@@ -263,9 +263,9 @@ class Stopper:
         Not confirmed within STOP_CONFIRM_S (or the status unreadable): an emergency stop is
         sent and the reason is returned, never swallowed - the run's trailer and the screen say it.
         """
-        deadline = time.monotonic() + STOP_CONFIRM_S
+        deadline = self.clock.now() + STOP_CONFIRM_S
         last_error = ""
-        while time.monotonic() < deadline:
+        while self.clock.now() < deadline:
             try:
                 if not self.machine.crosshead.status().moving:
                     return ""
@@ -277,7 +277,7 @@ class Stopper:
                 return note
             except DeviceError as exc:
                 last_error = f"status unreadable: {exc}"
-            time.sleep(0.005)
+            self.clock.sleep(0.005)
         note = f"crosshead not confirmed at rest within {STOP_CONFIRM_S:g} s ({last_error})"
         try:
             self.machine.crosshead.emergency_stop()
@@ -289,7 +289,8 @@ class Stopper:
 
 
 def park(machine: Machine, stopper: Stopper, limits: Limits, target: float, speed: float, *,
-         speedup: float, poll_s: float, interrupted: Callable[[], bool], wake: threading.Event) -> str:
+         speedup: float, poll_s: float, interrupted: Callable[[], bool], wake: threading.Event,
+         clock: RunClock = WALL_CLOCK) -> str:
     """Move back to the start position; `interrupted`, the force or a fault halts it. Says what happened."""
     crosshead = machine.crosshead
     try:
@@ -301,8 +302,8 @@ def park(machine: Machine, stopper: Stopper, limits: Limits, target: float, spee
         high = 0
         crosshead.move_to(target, speed)
         distance = abs(start.position_mm - target)
-        deadline = time.monotonic() + (distance / speed * 60.0 * 1.5 + 5.0) / speedup + 2.0
-        while time.monotonic() < deadline:
+        deadline = clock.now() + (distance / speed * 60.0 * 1.5 + 5.0) / speedup + 2.0
+        while clock.now() < deadline:
             if interrupted():
                 crosshead.stop()
                 return "park interrupted by a stop request"
@@ -320,7 +321,7 @@ def park(machine: Machine, stopper: Stopper, limits: Limits, target: float, spee
                 return f"parked at {target:.3f} mm"
             if (status.upper_limit or status.lower_limit) and not status.moving:
                 return f"park ended at a travel limit, {reading.position_mm:.3f} mm"
-            wake.wait(poll_s)
+            clock.wait(wake, poll_s)
         crosshead.stop()
         return "park timed out; crosshead stopped"
     except Exception as exc:

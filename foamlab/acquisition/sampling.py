@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections.abc import Callable
 
 from drivers.base import DeviceConnectionLost, DeviceError, DeviceRefused, Machine
+from foamlab.acquisition.clock import WALL_CLOCK, RunClock
 from foamlab.acquisition.events import END_FAULT, Listeners, RunAborted, Sample
 from foamlab.acquisition.safety import CrossheadWatch, Limits
 from foamlab.acquisition.schedule import SampleSchedule, ScheduleStats
@@ -31,11 +31,12 @@ class Sampler:
 
     def __init__(self, machine: Machine, limits: Limits, recorder: Recorder, listeners: Listeners, *,
                  period_s: float, speedup: float, wake: threading.Event, check_flags: Callable[[], None],
-                 on_sample: Callable[[Sample], None]):
+                 on_sample: Callable[[Sample], None], clock: RunClock = WALL_CLOCK):
         self.machine, self.limits, self.recorder, self.listeners = machine, limits, recorder, listeners
+        self.clock = clock
         self.period_s, self.speedup, self.wake = period_s, speedup, wake
         self.check_flags, self.on_sample = check_flags, on_sample
-        self.watch = CrossheadWatch(machine)
+        self.watch = CrossheadWatch(machine, clock)
         self.schedule: SampleSchedule | None = None
         self.t0 = 0.0
         self.step: PlannedStep | None = None
@@ -49,7 +50,7 @@ class Sampler:
         self.wake.clear()
         if interrupted:
             self.wake.set()
-        self.schedule = SampleSchedule(self.period_s, wake=self.wake)
+        self.schedule = SampleSchedule(self.period_s, clock=self.clock.now, wake=self.wake, wait=self.clock.wait)
         self.t0 = self.schedule.t0
         self.failed_reads = 0
         return self.schedule
@@ -78,7 +79,7 @@ class Sampler:
         if slot is None:
             return None
         _, lateness = slot
-        t_request = time.monotonic()
+        t_request = self.clock.now()
         try:
             reading = self.machine.read_sample()
         except DeviceConnectionLost:
@@ -86,7 +87,7 @@ class Sampler:
         except DeviceRefused as exc:     # the device said no: asking again will not change that
             raise RunAborted(END_FAULT, f"device refused a sample: {exc}") from None
         except DeviceError as exc:
-            schedule.waited_for_device(time.monotonic() - t_request)
+            schedule.waited_for_device(self.clock.now() - t_request)
             self.failed_reads += 1
             self._in_a_row += 1
             schedule.miss()
@@ -94,7 +95,7 @@ class Sampler:
                 raise RunAborted(END_FAULT, f"device not answering: {exc}") from None
             log.warning("sample failed (%d in a row): %s", self._in_a_row, exc)
             return None
-        t_done = time.monotonic()
+        t_done = self.clock.now()
         schedule.waited_for_device(t_done - t_request)
         self._in_a_row = 0
         position, force = reading.position_mm, reading.force_N

@@ -61,7 +61,8 @@ class SampleSchedule:
     """
 
     def __init__(self, period_s: float, start: float | None = None,
-                 clock: Callable[[], float] = time.monotonic, wake: threading.Event | None = None):
+                 clock: Callable[[], float] = time.monotonic, wake: threading.Event | None = None,
+                 wait: Callable[[threading.Event, float], bool] | None = None):
         if not period_s > 0:
             raise ValueError("the sampling period must be > 0")
         self.period = float(period_s)
@@ -74,6 +75,8 @@ class SampleSchedule:
         self._returned = None         # when next() last returned a deadline
         self.work_s: list[float] = []  # per sample: wall time between next()s minus device waits
         self._wake = wake or threading.Event()
+        # how to wait for a deadline: on `wake` in wall time, or a virtual clock's wait (RunClock)
+        self._wait = wait or (lambda event, timeout: event.wait(timeout))
 
     def deadline(self, k: int) -> float:
         return self.t0 + k * self.period
@@ -95,7 +98,7 @@ class SampleSchedule:
             self.work_s.append(max(0.0, now - self._returned - self._device_s))
         self._returned = None
         while now < deadline:
-            if self._wake.wait(deadline - now):
+            if self._wait(self._wake, deadline - now):
                 return None
             now = self.clock()
         behind = int((now - deadline) // self.period)
