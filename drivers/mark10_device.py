@@ -13,6 +13,8 @@ import re
 import string
 from dataclasses import dataclass, field
 
+from .device_file import Entry, FileReader
+
 #: Stand commands the driver sends, and gauge commands it sends through the pass-through.
 STAND_COMMANDS = ("move_down", "move_up", "stop", "zero_travel", "read_travel", "read_sample", "status",
                   "read_speed", "set_speed", "set_lower_limit", "set_upper_limit", "limit_mode",
@@ -46,17 +48,6 @@ class FixedWidth:
 
     def pattern(self, signed: bool) -> str:
         return ("-?" if signed else "") + rf"\d{{{self.integer_digits}}}\.\d{{{self.decimals}}}"
-
-
-@dataclass(frozen=True)
-class Entry:
-    """One device-file entry: where it comes from and whether the manuals settle it."""
-
-    name: str
-    source: str
-    confirmed: bool
-    assumption: str = ""
-    settle: str = ""
 
 
 @dataclass(frozen=True)
@@ -106,16 +97,8 @@ def _text(value, where: str) -> str:
 
 
 def _entry(name: str, table: dict) -> Entry:
-    if not isinstance(table, dict):
-        raise ValueError(f"[{name}] must be a table")
-    confirmed = table.get("confirmed")
-    if not isinstance(confirmed, bool):
-        raise ValueError(f"[{name}] needs `confirmed = true|false`")
-    entry = Entry(name, _text(table.get("source"), f"[{name}] source"), confirmed,
-                  table.get("assumption", ""), table.get("settle", ""))
-    if not confirmed and not (entry.assumption and entry.settle):
-        raise ValueError(f"[{name}] is unconfirmed: it needs `assumption` and `settle`")
-    return entry
+    """An entry's provenance (drivers.device_file); an unconfirmed one states its assumption too."""
+    return FileReader("").entry(table, f"[{name}]", assumption=True)
 
 
 def _commands(tables: dict, where: str, required: tuple[str, ...]) -> dict[str, Command]:

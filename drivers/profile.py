@@ -28,6 +28,7 @@ from typing import Any
 from .ascii import AsciiMachine, CommandSet, profile_units
 from .base import Machine
 from .cs2rs import motor_rpm, ramp_ms
+from .device_file import FileReader
 from .modbus import DRIVERS, ModbusMachine, device_map
 from .registers import UNIT_N
 
@@ -145,20 +146,11 @@ def _device_file(profile: dict, role: str, profile_path: Path) -> Path:
 
 # --------------------------------------------------------------------------- validation
 
-class _Checker:
+class _Checker(FileReader):
     """Small helper so every message names the file and the key."""
 
     def __init__(self, profile: dict):
-        self.file = Path(profile.get("source", "<profile>")).name
-
-    def fail(self, where: str, msg: str):
-        raise ProfileError(f"{self.file}: {where + ' ' if where else ''}{msg}")
-
-    def table(self, parent: dict, key: str, where: str) -> dict:
-        value = parent.get(key)
-        if not isinstance(value, dict):
-            self.fail(where, f"needs a [{key}] table")
-        return value
+        super().__init__(Path(profile.get("source", "<profile>")).name, ProfileError)
 
     def number(self, table: dict, key: str, where: str, *, positive=False, optional=False, integer=False):
         value = table.get(key)

@@ -22,6 +22,8 @@ import struct
 from dataclasses import dataclass, field
 from typing import Sequence
 
+from .device_file import Entry, FileReader
+
 #: Register types a device file may use -> struct format (big-endian bytes inside a register).
 TYPES = {"uint16": "H", "int16": "h", "uint32": "I", "int32": "i", "float32": "f"}
 #: Order of the two registers of a 32-bit value: "big" = high word first (ABCD).
@@ -104,13 +106,6 @@ class Block:
 
 
 @dataclass(frozen=True)
-class Provenance:
-    source: str
-    confirmed: bool = True
-    settle: str = ""
-
-
-@dataclass(frozen=True)
 class DeviceMap:
     """One device file, typed. `bits[register][name]` = bit number; `values[register][name]` =
     a command or code value of that register; `meanings[register][value]` = its words."""
@@ -126,7 +121,7 @@ class DeviceMap:
     values: dict[str, dict[str, int]]
     meanings: dict[str, dict[int, str]]
     exceptions: dict[int, str]
-    provenance: dict[str, Provenance] = field(default_factory=dict, compare=False)
+    provenance: dict[str, Entry] = field(default_factory=dict, compare=False)
     file: str = field(default="", compare=False)     # where it was read from, for messages
 
     # ------------------------------------------------------------------ reading a device file
@@ -208,21 +203,12 @@ def profile_device(profile: dict, role: str) -> DeviceMap:
     return device
 
 
-class _Reader:
-    """Reads entries; every message names the file and the entry."""
+class _Reader(FileReader):
+    """Reads a Modbus device file's entries, keeping each one's provenance."""
 
     def __init__(self, where: str):
-        self.where = where
-        self.seen: dict[str, Provenance] = {}
-
-    def fail(self, entry: str, msg: str):
-        raise ValueError(f"{self.where}: {entry + ' ' if entry else ''}{msg}")
-
-    def table(self, parent: dict, key: str, entry: str) -> dict:
-        value = parent.get(key)
-        if not isinstance(value, dict):
-            self.fail(entry, f"needs a [{key}] table")
-        return value
+        super().__init__(where)
+        self.seen: dict[str, Entry] = {}
 
     def text(self, table: dict, key: str, entry: str) -> str:
         value = table.get(key)
@@ -236,19 +222,8 @@ class _Reader:
             self.fail(entry, f"`{key}` must be an integer {low}..{high}, got {value!r}")
         return value
 
-    def provenance(self, entry: dict, name: str) -> Provenance:
-        """Nothing undocumented: a source, and for an unsettled entry what would settle it."""
-        if not isinstance(entry, dict):
-            self.fail(name, "must be a table")
-        source = entry.get("source")
-        if not isinstance(source, str) or not source.strip():
-            self.fail(name, "needs a `source` (manual, section/page)")
-        confirmed = entry.get("confirmed", True)
-        if not isinstance(confirmed, bool):
-            self.fail(name, "`confirmed` must be true or false")
-        if not confirmed and not str(entry.get("settle", "")).strip():
-            self.fail(name, "is `confirmed = false`: say what would settle it (`settle`)")
-        self.seen[name] = Provenance(source, confirmed, str(entry.get("settle", "")))
+    def provenance(self, entry: dict, name: str) -> Entry:
+        self.seen[name] = self.entry(entry, name)
         return self.seen[name]
 
     def documented(self, device: dict, key: str, entry: str):

@@ -422,10 +422,10 @@ def test_driver_and_simulator_agree_end_to_end():
 def test_every_unconfirmed_entry_says_its_assumption_and_what_settles_it():
     commands = CommandSet.from_toml(load_profile("sim-serial")["wire"])
     open_items = {e.name: e for e in commands.unconfirmed()}
-    for name in ("stand.framing", "stand.reply_framing", "stand.acknowledge", "stand.commands.read_sample",
-                 "stand.commands.status", "stand.commands.read_travel", "gauge.commands.zero"):
+    for name in ("[stand.framing]", "[stand.reply_framing]", "[stand.acknowledge]", "[stand.commands.read_sample]",
+                 "[stand.commands.status]", "[stand.commands.read_travel]", "[gauge.commands.zero]"):
         assert open_items[name].assumption and open_items[name].settle, name
-    assert "stand.commands.set_speed" not in open_items and "gauge.errors_source" not in open_items
+    assert "[stand.commands.set_speed]" not in open_items and "[gauge.errors_source]" not in open_items
     assert any("e-stop" in a for a in commands.absent) and any("watchdog" in a for a in commands.absent)
 
 

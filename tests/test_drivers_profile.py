@@ -102,7 +102,9 @@ def test_missing_file():
     (DAD, 'layout = ["gross", "net", "qualifier"]', 'layout = ["gross", "peak", "qualifier"]',
      r"flintec-dad141.toml: block 'result' must hold net and qualifier"),
     (MARK10, '"*10" = "illegal command"', '"E10" = "illegal command"', r"\[gauge.errors\] 'E10' must look like"),
-    (MARK10, 'settle = "capture: send `x`; the reply', 'note = "', r"\[stand.commands.read_travel\] is unconfirmed: it needs"),
+    (MARK10, 'settle = "capture: send `x`; the reply', 'note = "',
+     r"mark10-esm303.toml: \[stand.commands.read_travel\] is `confirmed = false`: say what foamlab assumes "
+     r"\(`assumption`\) and what would settle it"),
     (MARK10, 'send = "?C"', 'send = 3', r"\[gauge.commands.read_current\] send must be a string"),
     ("sim-serial.toml", "[limits]", "[limits\n", r"not valid TOML"),
 ])
