@@ -1,17 +1,20 @@
 """Highest sustained request rate of each simulator transport on loopback, and the
 simulator's per-sample physics cost.
 
-One request = one sample: the load-cell block read (0x3500, 5 registers, unit 1) on
-Modbus, `n` (travel + force) on ASCII. A lean raw client keeps exactly one request
-outstanding (Modbus is master/slave: a master waits for each reply) and counts
-replies for --seconds; the rate is the median over --repeats. The machine behind the
-server is the real SimulatedMachine on its real-time clock (physics ticker running).
+The requests are the real drivers' for one sample, built from the device files: on Modbus
+what ModbusMachine.read_sample sends - the CS2RS motor position (0x602C, 2 registers, unit
+2), the DAD 141.1 result block (0x3500: gross, net, qualifier, 5 registers, unit 1), the
+position again; on ASCII the ESM303's `n` (no terminator), answered by two lines (force,
+travel, each with its unit). A lean raw client keeps exactly one request outstanding
+(Modbus is master/slave: a master waits for each reply) and counts replies for --seconds;
+the rate is the median over --repeats. The machine behind the server is the real
+SimulatedMachine on its real-time clock (physics ticker running).
 
-The RTU figure is compared with what the wire itself allows at the profile's baud
-rate: 11 bits per character (start + 8 data + parity or 2nd stop + stop), request 8
-bytes + reply 5 + 2*5 bytes, and a 3.5-character silence after each frame. (The
-Modbus serial spec fixes that silence at 1.75 ms above 19200 baud; that figure is
-printed too.) ASCII is 8N1: 10 bits per character.
+The RTU figure is compared with what the wire itself allows at the profile's baud rate:
+11 bits per character (start + 8 data + parity or 2nd stop + stop), each request 8 bytes
+and its reply 5 + 2 x registers, and a 3.5-character silence after each frame. (The Modbus
+serial spec fixes that silence at 1.75 ms above 19200 baud; that figure is printed too.)
+ASCII is 8N1: 10 bits per character.
 
     .venv/bin/python benchmarks/bench_transports.py [--seconds 2] [--repeats 5] [--no-write]
 """
@@ -37,6 +40,8 @@ sys.path.insert(0, str(ROOT))
 
 from pymodbus.framer import FramerRTU  # noqa: E402
 
+from drivers.mark10_device import CommandSet  # noqa: E402
+from drivers.modbus import device_map  # noqa: E402
 from drivers.profile import load_profile  # noqa: E402
 from simulator.clock import ManualClock  # noqa: E402
 from simulator.launch import TRANSPORTS, start_simulator  # noqa: E402
@@ -52,12 +57,28 @@ LABELS = {
 SAMPLE_RATE_HZ = 16.0   # the paper's protocol samples at 16 Hz (62.5 ms per sample)
 
 
+def modbus_sample(profile: dict) -> list[tuple[int, int, int]]:
+    """(unit, address, registers) of each function-03 read of one sample, as the drivers send them:
+    position (Cs2rsCrosshead.read_position), force block (Dad141LoadCell.read), position again
+    (Machine.read_sample brackets the force with two position reads)."""
+    cell, drive = device_map(profile, "load_cell"), device_map(profile, "crosshead")
+    block, position = cell.blocks["result"], drive.registers["motor_position"]
+    at_drive = (int(profile["crosshead"]["unit_id"]), position.address, position.count)
+    return [at_drive, (int(profile["load_cell"]["unit_id"]), block.address, block.count), at_drive]
+
+
+def ascii_sample(profile: dict) -> tuple[bytes, int]:
+    """The ESM303's `n` as the driver sends it, and how many reply lines it waits for."""
+    commands = CommandSet.from_toml(profile["wire"])
+    command = commands.stand["read_sample"]
+    return command.send.encode("ascii") + commands.stand_terminator, len(command.reply)
+
+
 class RawClient:
     """Prebuilt request bytes, exact reply lengths: the client costs as little as possible."""
 
     def __init__(self, sim):
         self.transport = sim.transport
-        block = sim.profile["wire"]["load_cell"]["blocks"]["result"] if sim.profile["protocol"] == "modbus" else None
         if self.transport in ("modbus-rtu-pty", "serial"):
             self.fd = os.open(sim.server.client_url, os.O_RDWR | os.O_NOCTTY)
             tty.setraw(self.fd)
@@ -66,26 +87,29 @@ class RawClient:
             self.sock = socket.create_connection((sim.server.host, sim.server.port))
             self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             self.fd = self.sock.fileno()
+        # (request, reply length in bytes or None, reply lines) per request of one sample
+        self.requests: list[tuple[bytes, int | None, int]] = []
         if self.transport == "serial":
-            self.request, self.reply_len = b"n\r", None
-        else:
-            unit = sim.profile["load_cell"]["unit_id"]
-            pdu = struct.pack(">BHH", 3, block["address"], block["count"])
+            request, lines = ascii_sample(sim.profile)
+            self.requests.append((request, None, lines))
+        for unit, address, count in (modbus_sample(sim.profile) if self.transport != "serial" else ()):
+            pdu = struct.pack(">BHH", 3, address, count)
             if self.transport == "modbus-tcp":
-                self.request = struct.pack(">HHHB", 1, 0, len(pdu) + 1, unit) + pdu
-                self.reply_len = 7 + 2 + 2 * block["count"]
+                self.requests.append((struct.pack(">HHHB", 1, 0, len(pdu) + 1, unit) + pdu, 9 + 2 * count, 0))
             else:
                 body = bytes([unit]) + pdu
-                self.request = body + FramerRTU.compute_CRC(body).to_bytes(2, "big")
-                self.reply_len = 3 + 2 * block["count"] + 2
+                self.requests.append((body + FramerRTU.compute_CRC(body).to_bytes(2, "big"), 5 + 2 * count, 0))
+        self._next = 0
         self.last_reply = b""
 
     def transact(self) -> None:
-        os.write(self.fd, self.request) if self.sock is None else self.sock.sendall(self.request)
+        request, reply_len, lines = self.requests[self._next]
+        self._next = (self._next + 1) % len(self.requests)
+        os.write(self.fd, request) if self.sock is None else self.sock.sendall(request)
         data = b""
-        while (len(data) < self.reply_len) if self.reply_len else not data.endswith(b"\r\n"):
+        while (len(data) < reply_len) if reply_len else data.count(b"\n") < lines:
             if not select.select([self.fd], [], [], 2.0)[0]:
-                raise TimeoutError(f"{self.transport}: no reply (got {data!r})")
+                raise TimeoutError(f"{self.transport}: no reply to {request!r} (got {data!r})")
             chunk = os.read(self.fd, 4096) if self.sock is None else self.sock.recv(4096)
             if not chunk:
                 raise ConnectionError(f"{self.transport}: connection closed")
@@ -146,15 +170,15 @@ def physics_cost_us(samples: int, repeats: int, steps_per_sample: int | None) ->
     return statistics.median(costs)
 
 
-def rtu_wire_limit(baudrate: int, block_count: int) -> tuple[float, float]:
-    """Requests/s a perfect RTU line allows: (with 3.5-char gaps, with the spec's 1.75 ms gaps)."""
-    bits_per_char = 11
-    chars = 8 + (5 + 2 * block_count)
-    char_s = bits_per_char / baudrate
-    with_char_gaps = (chars + 2 * 3.5) * char_s
+def rtu_wire_limit(baudrate: int, counts: list[int]) -> tuple[float, float]:
+    """Requests/s a perfect RTU line allows for these function-03 reads (registers each), in turn:
+    (with 3.5-char gaps, with the spec's 1.75 ms gaps)."""
+    char_s = 11 / baudrate
+    chars = sum(8 + 5 + 2 * count for count in counts)
     gap = 3.5 * char_s if baudrate <= 19200 else 1.75e-3
-    with_spec_gaps = chars * char_s + 2 * gap
-    return 1.0 / with_char_gaps, 1.0 / with_spec_gaps
+    with_char_gaps = (chars + 2 * 3.5 * len(counts)) * char_s
+    with_spec_gaps = chars * char_s + 2 * gap * len(counts)
+    return len(counts) / with_char_gaps, len(counts) / with_spec_gaps
 
 
 def ascii_wire_limit(baudrate: int, request_bytes: int, reply_bytes: int) -> float:
@@ -171,32 +195,35 @@ def main() -> int:
 
     rtu_profile = load_profile(TRANSPORTS["modbus-rtu-pty"].profile)
     ascii_profile = load_profile(TRANSPORTS["serial"].profile)
-    block_count = rtu_profile["wire"]["load_cell"]["blocks"]["result"]["count"]
+    reads = modbus_sample(rtu_profile)
+    ascii_request, _ = ascii_sample(ascii_profile)
     rtu_baud = int(rtu_profile["connection"]["baudrate"])
     ascii_baud = int(ascii_profile["connection"]["baudrate"])
-    rtu_limit, rtu_spec_limit = rtu_wire_limit(rtu_baud, block_count)
+    rtu_limit, rtu_spec_limit = rtu_wire_limit(rtu_baud, [count for _, _, count in reads])
 
-    load_before = os.getloadavg()[0]
+    load_before = Path("/proc/loadavg").read_text().split()[0] if Path("/proc/loadavg").exists() \
+        else f"{os.getloadavg()[0]:.2f}"
     rows = []
     for transport in ("modbus-tcp", "modbus-rtu", "modbus-rtu-pty", "serial"):
         median, rates, reply_bytes = sustained_rate(transport, args.seconds, args.repeats)
+        per_sample = 1 if transport == "serial" else len(reads)
         if transport.startswith("modbus-rtu"):
             limit = f"{rtu_limit:.0f} ({rtu_spec_limit:.0f} with 1.75 ms gaps) at {rtu_baud} baud"
         elif transport == "serial":
-            limit = f"{ascii_wire_limit(ascii_baud, 2, reply_bytes):.0f} at {ascii_baud} baud 8N1"
+            limit = f"{ascii_wire_limit(ascii_baud, len(ascii_request), reply_bytes):.0f} at {ascii_baud} baud 8N1"
         else:
             limit = "-"
-        rows.append((LABELS[transport], median, 1e6 / median, min(rates), max(rates), limit))
+        rows.append((LABELS[transport], median, median / per_sample, 1e6 / median, min(rates), max(rates), limit))
         print(f"{LABELS[transport]:<28} {median:9.0f} req/s", flush=True)
 
     one_step = physics_cost_us(args.samples, args.repeats, steps_per_sample=1)
     auto_steps = math.ceil(1 / SAMPLE_RATE_HZ / MIN_AUTO_STEP_S)   # the simulator's step up to speedup 20
     default_step = physics_cost_us(args.samples, args.repeats, steps_per_sample=auto_steps)
 
-    table = ["| transport | requests/s (median) | us/request | min..max over repeats | wire limit (requests/s) |",
-             "|---|---:|---:|---:|---|"]
-    for label, median, us, low, high, limit in rows:
-        table.append(f"| {label} | {median:.0f} | {us:.0f} | {low:.0f}..{high:.0f} | {limit} |")
+    table = ["| transport | requests/s (median) | samples/s | us/request | min..max over repeats "
+             "| wire limit (requests/s) |", "|---|---:|---:|---:|---:|---|"]
+    for label, median, samples, us, low, high, limit in rows:
+        table.append(f"| {label} | {median:.0f} | {samples:.0f} | {us:.0f} | {low:.0f}..{high:.0f} | {limit} |")
     table = "\n".join(table)
     rtu_pty = next(r[1] for r in rows if r[0] == LABELS["modbus-rtu-pty"])
     ratio = rtu_pty / rtu_limit
@@ -218,11 +245,12 @@ def main() -> int:
     if not args.no_write:
         note = (f"{SECTION}\n\n"
                 f"Loopback, {platform.python_implementation()} {platform.python_version()}, "
-                f"{os.cpu_count()} cores, pymodbus server classes; one request = one sample (Modbus: the "
-                f"0x3500 load-cell block, 5 registers; ASCII: `n`), one request outstanding, "
-                f"{args.seconds:g} s x {args.repeats} repeats, real-time SimulatedMachine behind the server. "
-                f"Numbers depend on the machine's load: 1-minute load average {load_before:.1f} before, "
-                f"{os.getloadavg()[0]:.1f} after the run.\n\n"
+                f"{os.cpu_count()} cores, pymodbus server classes; the drivers' requests for one sample "
+                f"(Modbus: CS2RS position 0x602C, DAD 141.1 block 0x3500 (gross, net, qualifier), position "
+                f"again - {len(reads)} requests; ASCII: the ESM303's `n`, two reply lines), one request "
+                f"outstanding, {args.seconds:g} s x {args.repeats} repeats, real-time SimulatedMachine behind "
+                f"the server. Numbers depend on the machine's load: 1-minute load average (/proc/loadavg) "
+                f"{load_before} before, {os.getloadavg()[0]:.2f} after the run.\n\n"
                 f"{table}\n\n{verdict}\n\n{physics}\n")
         path = ROOT / "docs" / "benchmarks.md"
         path.parent.mkdir(exist_ok=True)
