@@ -85,7 +85,7 @@ class TluLoadCell(LoadCell):
                                 stable=bits["stable"], tare_set=bits["net_mode"])
         return ForceReading(self._to_N * net, status)
 
-    def _refuse(self, action: str, name: str) -> None:
+    def _command(self, action: str, name: str) -> None:
         device = self.device.device
         where = device.provenance[f"[values.command] {name}"]
         if where.confirmed:     # a value the manual settles may be sent (none is, today)
@@ -96,10 +96,10 @@ class TluLoadCell(LoadCell):
             f"is from {where.source}, not a TLU manual; would settle it: {where.settle}")
 
     def zero(self) -> None:
-        self._refuse("zero", "semi_auto_zero")
+        self._command("zero", "semi_auto_zero")
 
     def tare(self) -> None:
-        self._refuse("tare", "tare")
+        self._command("tare", "tare")
 
     # ------------------------------------------------------------------ commissioning (foamlab probe)
     def identify(self) -> str:
