@@ -26,8 +26,9 @@ def register(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--speedup", type=float, default=1.0, metavar="S",
-                   help="clock rate of the built-in simulated machine (default 1: real time); "
-                        "a real machine always runs in real time")
+                   help="the machine clock's rate, as `foamlab run --speedup` (default 1: real time, as a "
+                        "real machine runs): the built-in simulated machine runs this fast, and a profile "
+                        "served by `foamlab sim --speedup S` needs the same S")
     p.add_argument("--machine", metavar="PROFILE", help="machine profile preselected in the window")
     p.add_argument("--method", metavar="METHOD", help="test method preselected (configs/methods/)")
     p.add_argument("--out", metavar="DIR", help="data folder (default $FOAMLAB_DATA or ~/foamlab-data)")

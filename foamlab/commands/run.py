@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import logging
 import math
 import sys
@@ -195,35 +196,27 @@ class ProgressLine:
 
 
 def run(args) -> int:
-    from drivers.profile import ProfileError, load_profile, open_machine
-    from foamlab.acquisition import RunEngine
+    from drivers.profile import ProfileError, load_profile
+    from foamlab.acquisition.session import MachineSession
     from foamlab.methods import load_method
     from foamlab.rundata import Specimen
     from foamlab.storage.recorder import Recorder
 
-    for name in ("speedup", "specimen_height", "width", "depth"):
+    for name in ("specimen_height", "width", "depth"):
         _positive("--" + name.replace("_", "-"), getattr(args, name))
     if (args.width is None) != (args.depth is None):
         raise FoamlabError("give both --width and --depth (or neither)")
     method = load_method(args.method)
-    builtin = args.machine is None
-    if not builtin and (args.fault or args.effect or args.sim_specimen):
-        raise FoamlabError("--fault, --effect and --sim-specimen apply to the built-in simulated machine only")
-    overrides = {k: v for k, v in (("host", args.host), ("port", args.port), ("port_url", args.port_url))
-                 if v is not None}
-    if builtin and overrides:
-        raise FoamlabError("--host/--port/--port-url apply with --machine only")
-
-    profile = None
-    if not builtin:
+    choice = _machine_choice(args)
+    if not choice.builtin:
         try:
-            profile = load_profile(args.machine)
+            choice = dataclasses.replace(choice, profile=load_profile(args.machine))
         except ProfileError as exc:
             raise FoamlabError(str(exc)) from None
-        _check_probed(profile, args.machine, args.unprobed_ok)
+        _check_probed(choice.profile, args.machine, args.unprobed_ok)
 
     height, width, depth = args.specimen_height, args.width, args.depth
-    if builtin:
+    if choice.builtin:
         dims = _sim_specimen_dimensions(args.sim_specimen)
         height = height or dims.get("height_mm")
         if width is None:
@@ -234,34 +227,45 @@ def run(args) -> int:
     out_dir = data_dir(args.out)
     Recorder(out_dir).check_folder()     # before the simulator starts; the engine checks again
 
-    sim = predictor = scores = None
-    try:
-        if builtin:
-            sim = _start_builtin(args)
-            profile = sim.profile     # its drive (a CS2RS) has no host watchdog to widen
-            overrides = sim.profile_overrides
+    predictor = scores = None
+    # not connected here: the engine connects, and lets go of the link when the run ends
+    with MachineSession.open(choice, connect=False) as session:
         try:
-            machine = open_machine(profile, connect=False, **overrides)
-        except ProfileError as exc:
-            raise FoamlabError(str(exc)) from None
-        engine = RunEngine(machine, method, specimen, out_dir, speedup=args.speedup)
-        where = f"built-in simulated machine ({sim.transport} at {sim.address})" if sim else profile["name"]
-        if not args.quiet:
-            print(f"foamlab run: {method.describe()} on {where}; specimen {height:g} mm"
-                  f"{f', {width:g} x {depth:g} mm' if width else ''}; speedup {args.speedup:g}x", flush=True)
-        progress = ProgressLine(enabled=not args.quiet)
-        engine.add_listener(progress)
-        predictor = None if args.no_predict else _start_prediction(engine, method, progress)
-        with _engine_logging(args.verbose):
-            result = _wait(engine)
-            scores = predictor.finish(PREDICTION_WAIT_S) if predictor is not None else None
-        progress.close()
-    finally:
-        if sim is not None:
-            sim.stop()
-        if predictor is not None:
-            predictor.close()
+            engine = session.engine(method, specimen, out_dir)
+            if not args.quiet:
+                print(f"foamlab run: {method.describe()} on {session.name}; specimen {height:g} mm"
+                      f"{f', {width:g} x {depth:g} mm' if width else ''}; speedup {session.speedup:g}x",
+                      flush=True)
+            progress = ProgressLine(enabled=not args.quiet)
+            engine.add_listener(progress)
+            predictor = None if args.no_predict else _start_prediction(engine, method, progress)
+            with _engine_logging(args.verbose):
+                result = _wait(engine)
+                scores = predictor.finish(PREDICTION_WAIT_S) if predictor is not None else None
+            progress.close()
+        finally:
+            if predictor is not None:
+                predictor.close()
     return _report(result, method, out_dir, fit=not args.no_fit, diagnose=not args.no_diagnose, forecast=scores)
+
+
+def _machine_choice(args):
+    """The machine the options name (foamlab.acquisition.session: the window's assembly too)."""
+    from foamlab.acquisition.session import MachineChoice
+
+    builtin = args.machine is None
+    if not builtin and (args.fault or args.effect or args.sim_specimen):
+        raise FoamlabError("--fault, --effect and --sim-specimen apply to the built-in simulated machine only")
+    overrides = {k: v for k, v in (("host", args.host), ("port", args.port), ("port_url", args.port_url))
+                 if v is not None}
+    simulator = {}
+    if builtin:
+        from foamlab.commands.sim import parse_effects
+
+        simulator = {"specimen": args.sim_specimen, "effects": parse_effects(args.effect) or None,
+                     "faults": args.fault or None, "seed": args.seed}
+    return MachineChoice(profile=args.machine, speedup=args.speedup, transport=args.transport,
+                         overrides=overrides, simulator=simulator)
 
 
 #: After the run, how long `foamlab run` waits for the live prediction's last forecast score (s).
@@ -292,25 +296,6 @@ def _start_prediction(engine, method, progress: ProgressLine):
     engine.add_listener(predictor)
     predictor.start()
     return predictor
-
-
-def _start_builtin(args):
-    """simulator.launch.start_simulator on 127.0.0.1 (free port), in its own process.
-
-    Its own process, like a real machine: in this one it would compete with the
-    acquisition for the interpreter lock (see simulator/process.py).
-    """
-    from simulator.process import start_simulator_process
-
-    from foamlab.commands.sim import parse_effects
-
-    effects = parse_effects(args.effect) or None
-    try:
-        return start_simulator_process(args.transport, host="127.0.0.1", port=0, speedup=args.speedup,
-                                       specimen=args.sim_specimen, effects=effects,
-                                       faults=args.fault or None, seed=args.seed)
-    except (ValueError, TimeoutError) as exc:    # bad specimen file, effect or fault spec; no start
-        raise FoamlabError(f"cannot start the simulated machine: {exc}") from None
 
 
 def _wait(engine):

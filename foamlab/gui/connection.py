@@ -9,8 +9,9 @@ from collections.abc import Callable
 from PySide6 import QtCore
 
 from foamlab import FoamlabError
+from foamlab.acquisition.session import MachineSession
 from foamlab.gui.controls import ControlPanel
-from foamlab.gui.machine_link import Connection, MachineLink, Readout
+from foamlab.gui.machine_link import MachineLink, Readout
 
 POLL_HZ = 5            # idle readouts
 
@@ -45,7 +46,7 @@ class ConnectionView:
             self.link.connect_machine(self.controls.profile_combo.currentText(), speedup)
         self._changed()
 
-    def _on_connected(self, conn: Connection) -> None:
+    def _on_connected(self, conn: MachineSession) -> None:
         from foamlab.acquisition import Limits
 
         self._trouble = False

@@ -14,19 +14,18 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
-import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
 from PySide6 import QtCore
 
+from foamlab.acquisition.session import BUILTIN_TRANSPORT, MachineChoice, MachineSession
 from foamlab.gui.background import BackgroundQueue
 
 log = logging.getLogger(__name__)
 
 #: The built-in simulated machine's entry in the profile chooser.
 BUILTIN_SIMULATOR = "Built-in simulated machine"
-BUILTIN_TRANSPORT = "modbus-tcp"
 
 
 @dataclass(frozen=True)
@@ -37,17 +36,8 @@ class Readout:
     overload: bool = False
 
 
-@dataclass
-class Connection:
-    machine: Any                  # drivers.base.Machine, connected
-    profile: dict                 # the loaded machine profile
-    name: str                     # what the window shows
-    speedup: float                # the machine clock's rate (1 for a real machine)
-    simulator: Any = None         # simulator.process.SimulatorProcess when built in
-
-
 class MachineLink(QtCore.QObject):
-    connected = QtCore.Signal(object)         # Connection
+    connected = QtCore.Signal(object)         # MachineSession (the CLI's assembly too)
     connect_failed = QtCore.Signal(str)
     disconnected = QtCore.Signal()
     readout = QtCore.Signal(object)           # Readout
@@ -58,7 +48,7 @@ class MachineLink(QtCore.QObject):
         super().__init__(parent)
         self.simulator_options = dict(simulator or {})   # the built-in machine's effects, seed
         self.queue = BackgroundQueue("foamlab-machine", self)
-        self.connection: Connection | None = None
+        self.connection: MachineSession | None = None
         self._poll_in_flight = False
         self.run_active = False               # set by the window while the engine owns the machine
 
@@ -69,34 +59,17 @@ class MachineLink(QtCore.QObject):
 
     # -- connection ------------------------------------------------------------------
     def connect_machine(self, profile_name: str, speedup: float) -> None:
-        def work() -> Connection:
-            from drivers.profile import load_profile, open_machine
+        def work() -> MachineSession:
+            return MachineSession.open(self.choice(profile_name, speedup))
 
-            if profile_name == BUILTIN_SIMULATOR:
-                # In its own process: the window's drawing must not hold the interpreter lock
-                # the simulated machine needs to answer on time (see simulator/process.py).
-                from simulator.process import start_simulator_process
-
-                sim = start_simulator_process(BUILTIN_TRANSPORT, speedup=speedup, **self.simulator_options)
-                try:
-                    machine = open_machine(sim.profile, **sim.profile_overrides)
-                except Exception:
-                    sim.stop()
-                    raise
-                return Connection(machine, sim.profile, f"{BUILTIN_SIMULATOR} ({sim.address})", speedup, sim)
-            profile = load_profile(profile_name)
-            machine = open_machine(profile)
-            # A real machine runs in real time whatever --speedup says.
-            return Connection(machine, profile, profile_name, 1.0, None)
-
-        def work_unless_closed() -> Connection:
+        def work_unless_closed() -> MachineSession:
             conn = work()
             if self.queue.closed:   # the window closed while connecting: let nothing run on
-                _close(conn)
+                conn.close()
                 raise RuntimeError("the window was closed while connecting")
             return conn
 
-        def done(conn: Connection) -> None:
+        def done(conn: MachineSession) -> None:
             self.connection = conn
             self.connected.emit(conn)
 
@@ -108,10 +81,16 @@ class MachineLink(QtCore.QObject):
             return None
 
         def work() -> None:
-            _close(conn)
+            conn.close()
 
         return self.submit(work, lambda _: self.disconnected.emit(),
                            lambda msg: (self.error.emit(msg), self.disconnected.emit()))
+
+    def choice(self, profile_name: str, speedup: float) -> MachineChoice:
+        """The chooser's entry as a machine choice (the built-in machine with its options)."""
+        if profile_name == BUILTIN_SIMULATOR:
+            return MachineChoice(speedup=speedup, transport=BUILTIN_TRANSPORT, simulator=self.simulator_options)
+        return MachineChoice(profile=profile_name, speedup=speedup)
 
     # -- idle operations ---------------------------------------------------------------
     def poll(self) -> None:
@@ -162,7 +141,7 @@ class MachineLink(QtCore.QObject):
     def shutdown(self, timeout_s: float = 10.0) -> None:
         """Close the link and the simulator, then stop the machine thread (blocks up to timeout_s)."""
         conn, self.connection = self.connection, None
-        future = self.queue.submit(lambda: _close(conn)) if conn is not None else None
+        future = self.queue.submit(conn.close) if conn is not None else None
         self.queue.closed = True          # no more calls, no more callbacks into the window
         if future is not None:
             try:
@@ -170,34 +149,3 @@ class MachineLink(QtCore.QObject):
             except Exception as exc:
                 log.warning("closing the machine link: %s", exc)
         self.queue.shutdown(wait=False)
-
-
-#: Closing the window: how long a moving crosshead gets to come to rest before an e-stop (wall s).
-REST_TIMEOUT_S = 3.0
-
-
-def _bring_to_rest(machine, timeout_s: float = REST_TIMEOUT_S) -> None:
-    """Leave the crosshead at rest before letting go of the link: stop it if it moves (a
-    jog, a park cut short), wait for it to stand still, e-stop it if it does not in time."""
-    try:
-        if not machine.crosshead.status().moving:
-            return
-        machine.crosshead.stop()
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if not machine.crosshead.status().moving:
-                return
-            time.sleep(0.02)   # polling a drive's status flag: nothing to wait on but the wire
-        log.error("crosshead still moving %.0f s after stop: emergency stop", timeout_s)
-        machine.crosshead.emergency_stop()
-    except Exception as exc:  # a dead link cannot be told anything; the drive's watchdog stops it
-        log.warning("could not confirm the crosshead at rest before closing: %s", exc)
-
-
-def _close(conn: Connection) -> None:
-    try:
-        _bring_to_rest(conn.machine)
-        conn.machine.close()
-    finally:
-        if conn.simulator is not None:
-            conn.simulator.stop()

@@ -234,7 +234,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self._status("start refused: the specimen entry is not valid", error=True)
             return False
         try:
-            from foamlab.acquisition import Limits, RunEngine
+            from foamlab.acquisition import Limits
             from foamlab.methods import load_method
 
             method = load_method(self.method_combo.currentText())
@@ -243,8 +243,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 raise FoamlabError("the upper travel limit must be above (smaller than) the lower one")
             position = self.last_readout.position_mm if self.last_readout is not None else None
             check_run_fits(method, specimen, limits, position)
-            engine = RunEngine(conn.machine, method, specimen, self.out_dir, limits=limits,
-                               speedup=conn.speedup, connect=False, machine_name=conn.profile.get("name"))
+            engine = conn.engine(method, specimen, self.out_dir, limits=limits)
         except FoamlabError as exc:
             self.specimen_form.show_error(f"Cannot start: {exc}")
             self._status(f"start refused: {exc}", error=True)
