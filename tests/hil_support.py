@@ -1,4 +1,6 @@
-"""Helpers for the run-engine tests against the simulated machine (in its own process)."""
+"""Helpers for the run-engine tests against the simulated machine: in-process on the run's own
+virtual clock (the safety paths: tests/test_engine_inprocess.py), or in its own process behind a
+wire (the protocols and the wire's faults)."""
 
 from __future__ import annotations
 
@@ -13,12 +15,15 @@ from drivers.profile import open_machine
 from foamlab.acquisition import RunEngine
 from foamlab.methods import load_method
 from foamlab.rundata import Specimen
+from simulator.inprocess import InProcessMachine
 from simulator.process import start_simulator_process
 
 #: The built-in simulated machine's default specimen (configs/specimens/default.toml).
 SPECIMEN = Specimen("sim-default", 72.5, 100.0, 100.0)
 #: The simulated specimen's top surface, machine coordinates (simulator.machine.MachineSettings).
 SPECIMEN_TOP_MM = 5.0
+#: Above the specimen's top, as an operator leaves the plate before a test (machine mm).
+START_MM = SPECIMEN_TOP_MM - 0.3
 
 
 def short_method(tmp_path: Path, *, strain=0.10, speed=23.6, cycles=3, dwell_s=0.0,
@@ -111,3 +116,30 @@ def assert_keeps_the_schedule(result):
     assert timing.work_p99_ms <= 0.25 * period_ms, timing
     deadlines = result.n_samples + result.missed
     assert result.missed <= 0.005 * deadlines, timing
+
+
+# ---- in-process, in virtual time -------------------------------------------------------------
+
+def machine_at_start(**settings) -> InProcessMachine:
+    """The in-process machine (ManualClock) with its plate at START_MM, at rest."""
+    machine = InProcessMachine(noise_sigma_N=settings.pop("noise_sigma_N", 0.02), **settings)
+    machine.sim.move_to(START_MM, 400.0)
+    machine.clock.set(machine.sim.motion_eta())
+    machine.sim.advance()
+    assert machine.sim.position_mm() == pytest.approx(START_MM, abs=1e-9)
+    return machine
+
+
+def inprocess_engine(machine: InProcessMachine, method, out_dir, *, specimen=SPECIMEN, **kwargs) -> RunEngine:
+    """A run on the in-process machine in its virtual time (the engine waits by the machine's clock)."""
+    if not hasattr(method, "plan"):
+        method = load_method(method)
+    return RunEngine(machine, method, specimen, out_dir, clock=machine.clock, realtime=False, **kwargs)
+
+
+def finish(engine: RunEngine, timeout_s: float = 20.0):
+    """Start the run and wait for its result (a run in virtual time takes well under a second)."""
+    engine.start()
+    result = engine.wait(timeout_s)
+    assert result is not None, "the run did not end"
+    return result

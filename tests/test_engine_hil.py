@@ -1,16 +1,13 @@
-"""Run engine exit paths against the simulated machine (Modbus TCP, real drivers): operator
-stop, emergency stop, force and travel limits, a broken listener. Every path must leave the
-crosshead at rest, the samples on disk and the reason recorded."""
+"""A run against the simulated machine over Modbus TCP (real drivers) whose method comes from a
+file. The engine's exit paths (stop, e-stop, limits, park, faults, a broken listener) are tested
+in-process, in virtual time: tests/test_engine_inprocess.py."""
 
 from __future__ import annotations
-
-import threading
 
 import numpy as np
 import pytest
 
 from foamlab import pipeline
-from foamlab.acquisition import Limits
 from foamlab.storage.runfile import read_run_file
 from tests.hil_support import approach, machine_for, make_engine, short_method, simulated, wait_at_rest
 
@@ -29,100 +26,6 @@ def _assert_file_matches(result):
     np.testing.assert_allclose(on_disk.displacement_mm, result.run.displacement_mm, atol=1e-9)
     np.testing.assert_allclose(on_disk.force_N, result.run.force_N, atol=1e-9)
     return on_disk
-
-
-class StopAfter:
-    """Listener that calls `action` once the displacement passes `mm` (from the worker thread)."""
-
-    def __init__(self, mm, action):
-        self.mm, self.action, self.fired = mm, action, threading.Event()
-        self.samples = 0
-
-    def on_sample(self, sample):
-        self.samples += 1
-        if sample.displacement_mm >= self.mm and not self.fired.is_set():
-            self.fired.set()
-            threading.Thread(target=self.action).start()   # as the GUI does, from another thread
-
-
-def test_operator_stop_keeps_the_data_and_parks(tmp_path):
-    with simulated(speedup=SPEEDUP) as sim:
-        approach(machine_for(sim))
-        engine = make_engine(sim, short_method(tmp_path, strain=0.2, cycles=1), tmp_path, speedup=SPEEDUP)
-        listener = StopAfter(5.0, lambda: engine.request_stop("stopped by the test"))
-        engine.add_listener(listener)
-        result = engine.run()
-        status = wait_at_rest(sim)
-    assert result.status == "aborted" and result.reason == "stopped by the test" and result.end == "stop"
-    assert result.park.startswith("parked at")
-    assert status["fault"] is False and status["emergency_stop"] is False
-    assert 5.0 <= result.run.displacement_mm.max() < 6.0    # stopped right after the request
-    assert listener.samples == result.n_samples
-    _assert_file_matches(result)
-    assert pipeline.method_stage(pipeline.Analysis(result.run, result.path), engine.method).method_results is not None
-
-
-def test_emergency_stop_latches_and_does_not_park(tmp_path):
-    with simulated(speedup=SPEEDUP) as sim:
-        approach(machine_for(sim))
-        engine = make_engine(sim, short_method(tmp_path, strain=0.2, cycles=1), tmp_path, speedup=SPEEDUP)
-        engine.add_listener(StopAfter(4.0, engine.emergency_stop))
-        result = engine.run()
-        status = wait_at_rest(sim)
-        position = sim.snapshot()["position_mm"]
-    assert result.status == "aborted" and result.end == "estop"
-    assert "emergency stop" in result.reason
-    assert status["emergency_stop"] is True and status["fault"] is True
-    assert result.park.startswith("not parked")
-    assert position == pytest.approx(result.contact_position_mm + result.run.displacement_mm[-1], abs=0.1)
-    _assert_file_matches(result)
-
-
-def test_force_limit_stops_at_once_and_marks_the_run(tmp_path):
-    limits = Limits(force_N=30.0, travel_upper_mm=-20.0, travel_lower_mm=70.0, max_speed_mm_min=500.0)
-    with simulated(speedup=SPEEDUP) as sim:
-        approach(machine_for(sim))
-        engine = make_engine(sim, short_method(tmp_path, strain=0.5, speed=100.0, cycles=1), tmp_path,
-                             speedup=SPEEDUP, limits=limits)
-        result = engine.run()
-        wait_at_rest(sim)
-    assert result.status == "aborted" and result.end == "limit"
-    assert result.reason.startswith("force limit 30 N reached")
-    assert result.run.force_N[-1] >= 30.0 > result.run.force_N[-2]   # the sample that crossed it is kept
-    assert result.park.startswith("parked at")                      # a limit stop parks (load removed)
-    _assert_file_matches(result)
-
-
-def test_travel_limit_refuses_a_method_that_would_cross_it(tmp_path):
-    limits = Limits(force_N=450.0, travel_upper_mm=-20.0, travel_lower_mm=20.0, max_speed_mm_min=500.0)
-    with simulated(speedup=SPEEDUP) as sim:
-        approach(machine_for(sim))
-        engine = make_engine(sim, short_method(tmp_path, strain=0.5, cycles=1), tmp_path, speedup=SPEEDUP,
-                             limits=limits)
-        result = engine.run()
-        wait_at_rest(sim)
-    assert result.status == "aborted" and result.end == "limit"
-    assert "beyond the lower travel limit 20 mm" in result.reason
-    assert result.n_samples == 0 and result.path is None         # stopped at contact, before any step
-
-
-def test_a_broken_listener_does_not_stop_the_run(tmp_path, caplog):
-    class Broken:
-        def on_sample(self, sample):
-            raise RuntimeError("display bug")
-
-    finished = []
-    with simulated(speedup=SPEEDUP) as sim:
-        approach(machine_for(sim))
-        engine = make_engine(sim, short_method(tmp_path, strain=0.02, speed=100.0, cycles=1), tmp_path,
-                             speedup=SPEEDUP)
-        engine.add_listener(Broken())
-        engine.add_listener(type("L", (), {"on_finished": lambda self, r: finished.append(r)})())
-        result = engine.run()
-        wait_at_rest(sim)
-    assert result.status == "finished" and finished == [result]
-    assert sum("display bug" in str(r.exc_info) or "Broken" in r.getMessage() for r in caplog.records) == 1
-    _assert_file_matches(result)
 
 
 def test_a_run_made_with_a_method_file_finds_its_method_again(tmp_path):

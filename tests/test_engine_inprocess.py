@@ -14,45 +14,18 @@ import pytest
 
 from drivers.base import DeviceTimeout
 from foamlab import pipeline
-from foamlab.acquisition import Limits, RunEngine
+from foamlab.acquisition import Limits
 from foamlab.acquisition.safety import MAX_FAILED_STATUS_POLLS
 from foamlab.acquisition.sampling import MAX_FAILED_READS
-from foamlab.methods import load_method
 from foamlab.storage.runfile import read_run_file
 from simulator.inprocess import InProcessMachine
-from tests.hil_support import SPECIMEN, SPECIMEN_TOP_MM, short_method
+from tests.hil_support import SPECIMEN, START_MM, finish, inprocess_engine, machine_at_start, short_method
 
 pytestmark = pytest.mark.timeout(30)
 
-#: Above the specimen's top, as an operator leaves the plate before a test (machine mm).
-START_MM = SPECIMEN_TOP_MM - 0.3
-
-
-def machine_at_start(**settings) -> InProcessMachine:
-    """The in-process machine with its plate just above the specimen, at rest."""
-    machine = InProcessMachine(noise_sigma_N=settings.pop("noise_sigma_N", 0.02), **settings)
-    machine.sim.move_to(START_MM, 400.0)
-    machine.clock.set(machine.sim.motion_eta())
-    machine.sim.advance()
-    assert machine.sim.position_mm() == pytest.approx(START_MM, abs=1e-9)
-    return machine
-
-
-def engine_for(machine: InProcessMachine, method_path, tmp_path, **kwargs) -> RunEngine:
-    """A run on the machine in its virtual time (the engine waits by the machine's clock)."""
-    return RunEngine(machine, load_method(method_path), SPECIMEN, tmp_path, clock=machine.clock,
-                     realtime=False, **kwargs)
-
-
-def finish(engine: RunEngine):
-    engine.start()
-    result = engine.wait(20)
-    assert result is not None, "the run did not end"
-    return result
-
 
 def run(machine: InProcessMachine, method_path, tmp_path, *listeners, **kwargs):
-    engine = engine_for(machine, method_path, tmp_path, **kwargs)
+    engine = inprocess_engine(machine, method_path, tmp_path, **kwargs)
     for listener in listeners:
         engine.add_listener(listener)
     return engine, finish(engine)
@@ -104,9 +77,27 @@ def test_a_run_finishes_keeps_every_deadline_and_parks(tmp_path):
                                                    engine.method).method_results.values if v.cycle} == {1, 2}
 
 
+def test_a_broken_listener_does_not_stop_the_run(tmp_path, caplog):
+    class Broken:
+        def on_sample(self, sample):
+            raise RuntimeError("display bug")
+
+    finished = []
+    machine = machine_at_start()
+    engine = inprocess_engine(machine, short_method(tmp_path, strain=0.02, speed=100.0, cycles=1), tmp_path)
+    engine.add_listener(Broken())
+    engine.add_listener(type("L", (), {"on_finished": lambda self, r: finished.append(r)})())
+    result = finish(engine)
+    assert result.status == "finished" and finished == [result]
+    assert result.n_samples > 20
+    assert sum("display bug" in str(r.exc_info) or "Broken" in r.getMessage() for r in caplog.records) == 1
+    assert_at_rest(machine)
+    assert_file_matches(result)
+
+
 def test_operator_stop_keeps_the_data_and_parks(tmp_path):
     machine = machine_at_start()
-    engine = engine_for(machine, short_method(tmp_path, strain=0.2, cycles=1), tmp_path)
+    engine = inprocess_engine(machine, short_method(tmp_path, strain=0.2, cycles=1), tmp_path)
     listener = At(5.0, lambda: engine.request_stop("stopped by the test"))
     engine.add_listener(listener)
     result = finish(engine)
@@ -122,7 +113,7 @@ def test_operator_stop_keeps_the_data_and_parks(tmp_path):
 
 def test_emergency_stop_latches_and_does_not_park(tmp_path):
     machine = machine_at_start()
-    engine = engine_for(machine, short_method(tmp_path, strain=0.2, cycles=1), tmp_path)
+    engine = inprocess_engine(machine, short_method(tmp_path, strain=0.2, cycles=1), tmp_path)
     stops_before = []
 
     def estop():
@@ -182,7 +173,7 @@ def test_the_drive_reaching_its_travel_limit_ends_the_run(tmp_path):
 
 
 def test_load_cell_overload_stops_without_parking(tmp_path):
-    machine = machine_at_start(faults=["overload@30"])
+    machine = machine_at_start(faults=["overload@12"])
     _, result = run(machine, short_method(tmp_path, strain=0.3, cycles=1), tmp_path)
     assert result.status == "aborted" and result.end == "overload"
     assert result.reason.startswith("load cell overload (over-range)")
@@ -193,7 +184,7 @@ def test_load_cell_overload_stops_without_parking(tmp_path):
 
 
 def test_a_stalled_crosshead_is_a_fault_named_by_the_drive(tmp_path):
-    machine = machine_at_start(faults=["stall@30"])
+    machine = machine_at_start(faults=["stall@12"])
     _, result = run(machine, short_method(tmp_path, strain=0.3, cycles=1), tmp_path)
     assert result.status == "aborted" and result.end == "fault"
     assert "stall" in result.reason, result.reason
@@ -237,7 +228,7 @@ def test_status_polls_failing_in_a_row_end_the_run_and_are_said(tmp_path):
 
 def test_a_stop_that_is_not_acknowledged_falls_back_to_the_emergency_stop(tmp_path):
     machine = machine_at_start()
-    engine = engine_for(machine, short_method(tmp_path, strain=0.2, cycles=1), tmp_path)
+    engine = inprocess_engine(machine, short_method(tmp_path, strain=0.2, cycles=1), tmp_path)
 
     def stop_unanswered():
         machine.fail("stop", DeviceTimeout("no reply to stop"), times=100)
@@ -255,7 +246,7 @@ def test_a_stop_that_is_not_acknowledged_falls_back_to_the_emergency_stop(tmp_pa
 
 def test_a_crosshead_not_confirmed_at_rest_is_emergency_stopped_and_said(tmp_path):
     machine = machine_at_start()
-    engine = engine_for(machine, short_method(tmp_path, strain=0.2, cycles=1), tmp_path)
+    engine = inprocess_engine(machine, short_method(tmp_path, strain=0.2, cycles=1), tmp_path)
 
     def stop_unanswered_then_status_lost():
         machine.fail("status", DeviceTimeout("no reply to status"), times=10_000)

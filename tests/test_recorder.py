@@ -11,13 +11,10 @@ import numpy as np
 import pytest
 
 from foamlab import FoamlabError, cli
-from foamlab.acquisition import RunEngine
-from foamlab.methods import load_method
 from foamlab.rundata import Specimen
 from foamlab.storage.recorder import COLUMNS, Recorder, RecordingFailed
 from foamlab.storage.runfile import read_run_file
-from simulator.launch import start_simulator
-from tests.hil_support import SPECIMEN, approach, machine_for, short_method
+from tests.hil_support import finish, inprocess_engine, machine_at_start, short_method
 
 SPEEDUP = 10.0
 
@@ -111,28 +108,19 @@ def test_an_unwritable_folder_is_refused_in_one_line(tmp_path):
             Recorder(locked).check_folder()
 
 
-@pytest.fixture
-def sim():
-    """The simulated machine in this process, Modbus TCP on 127.0.0.1 (free port); always stopped."""
-    running = start_simulator("modbus-tcp", speedup=SPEEDUP)
-    try:
-        yield running
-    finally:
-        running.stop()
+# The engine's storage exits run on the in-process machine, in virtual time (tests/hil_support.py).
 
-
-@pytest.mark.timeout(60)
-def test_disk_full_mid_run_stops_the_crosshead_and_keeps_the_samples(tmp_path, sim):
-    approach(machine_for(sim))
-    method = load_method(short_method(tmp_path, strain=0.2, cycles=1))
+@pytest.mark.timeout(30)
+def test_disk_full_mid_run_stops_the_crosshead_and_keeps_the_samples(tmp_path):
+    machine = machine_at_start()
     written = 40                                 # ~2.5 s of machine time into the first loading
     recorder = Recorder(tmp_path / "runs", opener=full_after(written))
-    engine = RunEngine(machine_for(sim), method, SPECIMEN, tmp_path / "runs", speedup=SPEEDUP,
-                       recorder=recorder)
-    result = engine.run()
+    engine = inprocess_engine(machine, short_method(tmp_path, strain=0.2, cycles=1), tmp_path / "runs",
+                              recorder=recorder)
+    result = finish(engine)
     assert result.status == "aborted" and result.end == "storage"
     assert "\n" not in result.reason and "No space left on device" in result.reason
-    assert not sim.machine.crosshead_status().moving          # stopped (and parked: a sound machine)
+    assert not machine.sim.crosshead_status().moving          # stopped (and parked: a sound machine)
     assert result.park.startswith("parked at")
     on_disk = read_run_file(result.path)
     assert on_disk.status == "aborted" and len(on_disk) == written
@@ -143,30 +131,27 @@ def test_disk_full_mid_run_stops_the_crosshead_and_keeps_the_samples(tmp_path, s
     assert on_disk.displacement_mm[-1] > 0.5     # the run was well under way
 
 
-@pytest.mark.timeout(60)
-def test_a_folder_that_turns_unwritable_before_the_file_opens_stops_the_run(tmp_path, sim):
+@pytest.mark.timeout(30)
+def test_a_folder_that_turns_unwritable_before_the_file_opens_stops_the_run(tmp_path):
     def refused(*args, **kwargs):     # the check passed; by contact the folder is read-only
         raise PermissionError(errno.EACCES, os.strerror(errno.EACCES))
 
-    approach(machine_for(sim))
+    machine = machine_at_start()
     recorder = Recorder(tmp_path / "runs", opener=refused)
-    engine = RunEngine(machine_for(sim), load_method(short_method(tmp_path)), SPECIMEN, tmp_path / "runs",
-                       speedup=SPEEDUP, recorder=recorder)
-    result = engine.run()
+    result = finish(inprocess_engine(machine, short_method(tmp_path), tmp_path / "runs", recorder=recorder))
     assert result.status == "aborted" and result.end == "storage"
     assert "\n" not in result.reason and "Permission denied" in result.reason
     assert result.path is None and result.n_samples == 0
-    assert not sim.machine.crosshead_status().moving and result.park.startswith("parked at")
+    assert not machine.sim.crosshead_status().moving and result.park.startswith("parked at")
 
 
-def test_an_unwritable_folder_refuses_the_run_before_any_motion(tmp_path, sim):
+def test_an_unwritable_folder_refuses_the_run_before_any_motion(tmp_path):
     blocker = tmp_path / "a-file"
     blocker.write_text("not a folder")
-    before = sim.machine.snapshot().position_mm
+    machine = machine_at_start()
     with pytest.raises(FoamlabError, match="cannot write run files in"):
-        RunEngine(machine_for(sim), load_method(short_method(tmp_path)), SPECIMEN, blocker / "runs",
-                  speedup=SPEEDUP)
-    assert sim.machine.snapshot().position_mm == before and not sim.machine.crosshead_status().moving
+        inprocess_engine(machine, short_method(tmp_path), blocker / "runs")
+    assert not machine.requests                  # not a request reached the machine
 
 
 def test_foamlab_run_refuses_an_unwritable_folder_in_one_line(tmp_path, capsys):
