@@ -25,8 +25,8 @@ from pathlib import Path
 from foamlab import FoamlabError
 from foamlab.diagnosis import Diagnosis, diagnose
 from foamlab.diagnosis.store import store_diagnosis
-from foamlab.identification import FitResult, fit_run
-from foamlab.identification.store import store_fit
+from foamlab.identification import FitReport, fit_run
+from foamlab.identification.store import store_fit, stored_fit
 from foamlab.methods import Method, MethodResults, method_of_run
 from foamlab.prediction.forecast import ForecastScores, forecast_scores
 from foamlab.rundata import RunData
@@ -52,7 +52,7 @@ class Analysis:
     path: Path | None = None                   # the foamlab run file (sidecars go beside it)
     method_results: MethodResults | None = None
     method_error: str = ""
-    fit: FitResult | None = None
+    fit: FitReport | None = None
     fit_error: str = ""
     diagnosis: Diagnosis | None = None
     diagnosis_error: str = ""
@@ -100,8 +100,13 @@ def method_stage(a: Analysis, method: Method | None = None, progress: Progress =
 
 
 def fit_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
-    """Identify the model on the run - once: a fit the Analysis already has is kept."""
+    """Identify the model on the run - once: a fit the Analysis already has is kept, and a fit
+    stored beside the run file (identification.store.stored_fit) is read, not made again."""
     if a.fit is not None:
+        return a
+    stored = stored_fit(a.path, a.run) if a.path is not None else None
+    if stored is not None:
+        a.fit, a.fit_path = stored
         return a
     a.fit, a.fit_error = _attempt("fit", lambda: fit_run(
         a.run, progress=lambda stage, fraction: progress(f"fit: {stage}", fraction)))
@@ -133,7 +138,7 @@ def forecast_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
     return a
 
 
-def _diagnose(run: RunData, fit: FitResult, progress: Progress = _quiet) -> Diagnosis:
+def _diagnose(run: RunData, fit: FitReport, progress: Progress = _quiet) -> Diagnosis:
     # The one call into the diagnosis: it extends this fit instead of fitting the run again.
     return diagnose([run], fit=fit, progress=progress)
 

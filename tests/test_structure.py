@@ -118,8 +118,8 @@ def test_shared_orders_are_reported_once(selected):
     run, result = selected
     if not result.orders.shared:
         pytest.skip("the structure chosen has orders of its own per cycle")
-    tied = [p for p in result.parameters.values() if p.same_as]
-    assert tied and all(p.same_as.startswith("beta1_") and p.value == result.value(p.same_as) for p in tied)
+    tied = [p for p in result.parameters.values() if p.tie]
+    assert tied and all(p.tie.startswith("beta1_") and p.value == result.value(p.tie) for p in tied)
     brief = result.brief()
     assert all(f"    {p.name} " not in brief for p in tied)
     again = ModelParameters.from_fit_parameters(result.to_dict()["parameters"])

@@ -122,6 +122,14 @@ class Optimum:
     nfev: int
 
 
+def trust_region(fun: Callable, x0: np.ndarray, jac: Callable, lower: np.ndarray, upper: np.ndarray, *,
+                 max_nfev: int | None = None, ftol: float = 1e-8, xtol: float = 1e-8, gtol: float = 1e-8):
+    """The one call of scipy.optimize.least_squares in identification and analysis: trust-region
+    reflective within the bounds, each parameter scaled by its Jacobian column (scipy's result)."""
+    return least_squares(fun, x0, jac=jac, bounds=(lower, upper), method="trf", x_scale="jac",
+                         max_nfev=max_nfev, ftol=ftol, xtol=xtol, gtol=gtol)
+
+
 def varpro(model: ExtendedModel, nu0: np.ndarray, keep: list[np.ndarray] | None = None,
            max_nfev: int | None = None) -> Optimum:
     """Variable projection on nu (trust-region reflective, Kaufman's Jacobian)."""
@@ -131,8 +139,7 @@ def varpro(model: ExtendedModel, nu0: np.ndarray, keep: list[np.ndarray] | None 
     r0 = fun(nu0)
     # stop when a step gains less than a tenth of the noise variance: below what the data resolve
     ftol = max(0.1 / max(len(r0), 1), 1e-10)
-    res = least_squares(fun, nu0, jac=jac, bounds=(lo, hi), x_scale="jac", method="trf",
-                        xtol=1e-8, ftol=ftol, max_nfev=max_nfev)
+    res = trust_region(fun, nu0, jac, lo, hi, xtol=1e-8, ftol=ftol, max_nfev=max_nfev)
     sol = model.solve(res.x, keep)
     # standard errors of the effect parameters (linear parameters profiled out)
     r = res.fun

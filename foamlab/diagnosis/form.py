@@ -19,7 +19,7 @@ from foamlab.analysis.solve import Fit
 from foamlab.diagnosis.evidence import DELTA_BIC_MIN
 from foamlab.identification.fit import fit_prepared
 from foamlab.identification.forms import core_fit_of
-from foamlab.identification.result import FitResult
+from foamlab.identification.result import FitReport
 from foamlab.model.layout import RESIDUAL_FORMS
 
 NAME = "residual_form"
@@ -50,11 +50,11 @@ class FormFinding:
                 "parameters": {}, "rank": 1, "named": True}
 
 
-def base_form_reason(fit: FitResult) -> str:
+def base_form_reason(fit: FitReport) -> str:
     return fit.form_choice.reason() if fit.form_choice else f"{fit.params.residual_form} residual form"
 
 
-def check_other_form(fit: FitResult, progress=None) -> tuple[FitResult, FormFinding | None]:
+def check_other_form(fit: FitReport, progress=None) -> tuple[FitReport, FormFinding | None]:
     """For a fit in a form the user named: the other form fitted too; when it predicts held-out
     blocks better with very strong evidence (the rules of any extension), it becomes the base
     and the finding says so. Returns (the base to diagnose on, the finding or None)."""

@@ -11,7 +11,8 @@ from foamlab.analysis.solve import Fit, polish
 from foamlab.diagnosis.core import NEAR_NOISE, diagnose_prepared
 from foamlab.diagnosis.form import NAME, base_form_reason, check_other_form
 from foamlab.diagnosis.result import Diagnosis
-from foamlab.identification import FitResult, fit_run
+from foamlab.identification import FitReport, fit_run
+from foamlab.identification.fit import resumed
 from foamlab.identification.statistics import information_criteria
 from foamlab.rundata import RunData
 
@@ -20,7 +21,7 @@ Progress = Callable[[str, float], None]
 FIT_SHARE = 0.15
 
 
-def diagnose(runs: list[RunData], fit: FitResult | None = None,
+def diagnose(runs: list[RunData], fit: FitReport | None = None,
              causes: list[str] | None = None, progress: Progress | None = None,
              form: str = "auto") -> Diagnosis:
     """Diagnose one run, or several runs of the same specimen (e.g. at other speeds).
@@ -38,8 +39,8 @@ def diagnose(runs: list[RunData], fit: FitResult | None = None,
     names = _names(runs)
     if fit is None:
         fit = fit_run(runs[0], progress=lambda stage, f: report(f"fit: {stage}", FIT_SHARE * f), form=form)
-    if fit.prepared is None:
-        raise FoamlabError("the fit given carries no prepared run: fit it with foamlab.identification.fit_run")
+    if fit.prepared is None:      # a stored fit: its working state is made again from its parameters
+        fit = resumed(fit, runs[0])
     fit, form_finding = check_other_form(fit, lambda stage, f: report(f"the other residual form: {stage}",
                                                                          FIT_SHARE * f))
     fit.prepared.series.name = names[0]
@@ -67,7 +68,7 @@ def diagnose(runs: list[RunData], fit: FitResult | None = None,
     return d
 
 
-def _diagnose_on(fit: FitResult, rest: list, causes: list[str] | None, progress: Progress) -> Diagnosis:
+def _diagnose_on(fit: FitReport, rest: list, causes: list[str] | None, progress: Progress) -> Diagnosis:
     """The diagnosis from one identification's fit: its core fit as the base of its own run,
     polished on all the runs from its parameters when there are several. The base is the largest
     structure's fit where identification chose a smaller one: a smaller structure drops what its

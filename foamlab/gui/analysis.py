@@ -17,7 +17,7 @@ import numpy as np
 from foamlab import FoamlabError, pipeline
 from foamlab.gui.plots import labels_from_segmentation
 from foamlab.gui.report import headline_names
-from foamlab.identification import FitResult
+from foamlab.identification import FitReport
 from foamlab.importers import load_run
 from foamlab.methods import method_of_run
 from foamlab.rundata import RunData
@@ -106,7 +106,7 @@ def stored_diagnosis(path: str | Path) -> dict | None:
     return None
 
 
-def fit_curve(fit: FitResult) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def fit_curve(fit: FitReport) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The fitted force at the samples the fit used (time, displacement, force): what the plot
     overlays. Samples taken off the sampling schedule are not among them."""
     if fit.run_time_s is None or fit.run_displacement_mm is None:

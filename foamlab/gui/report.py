@@ -3,7 +3,7 @@ data-quality flags, and the expert detail (parameters, Table 5, constraints, war
 diagnosis findings); also what Export CSV writes.
 
 Filled from the typed results (foamlab.methods.MethodResults, foamlab.identification
-FitResult, foamlab.diagnosis Diagnosis) or, for a diagnosis stored beside a run file,
+FitReport, foamlab.diagnosis Diagnosis) or, for a diagnosis stored beside a run file,
 from its JSON form (the `foamlab diagnose --json` contract of docs/DESIGN).
 """
 
@@ -18,7 +18,7 @@ from foamlab.gui.status import Flag
 from foamlab.reporting.series import READABLE
 
 if TYPE_CHECKING:
-    from foamlab.identification import FitResult
+    from foamlab.identification import FitReport
     from foamlab.methods import Method, MethodResults
 
 #: Per-cycle results every method may have, by their names in foamlab.methods: the names the
@@ -139,8 +139,8 @@ class Report:
                         for v in results]
         self.headline = list(headline or [])
 
-    def set_fit(self, fit: "FitResult") -> None:
-        self.parameters = [ParameterRow(p.name, p.value, p.stderr, p.unit or "–", p.varied)
+    def set_fit(self, fit: "FitReport") -> None:
+        self.parameters = [ParameterRow(p.name, p.value, p.stderr, p.unit or "–", p.vary)
                            for p in fit.parameters.values()]
         self.statistics = [(step, st.sse, st.r2, st.adj_r2, st.rmse) for step, st in fit.statistics.items()
                            if st is not None]

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from foamlab.identification.fit import fit_run
-from foamlab.identification.result import FitResult
+from foamlab.identification.result import FitReport
 from foamlab.model.layout import Orders
 from foamlab.rundata import RunData
 
@@ -17,7 +17,7 @@ class OrderFit:
     rmse: float
     aic: float
     bic: float
-    result: FitResult
+    result: FitReport
     best: bool = False
 
 

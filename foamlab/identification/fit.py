@@ -18,7 +18,7 @@ from threadpoolctl import threadpool_limits
 
 from foamlab.analysis.noise import AT_NOISE_RATIO, at_the_noise
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
-from foamlab.analysis.solve import Fit, model_like, polish
+from foamlab.analysis.solve import Fit, model_like, polish, solved_at
 from foamlab.identification.apart import HeldApart, coalesced, hold_apart
 from foamlab.identification.forms import choose as forms_choose
 from foamlab.identification.joint import (
@@ -31,14 +31,15 @@ from foamlab.identification.joint import (
     unpolished,
 )
 from foamlab.identification.paper import paper_steps
-from foamlab.identification.result import FitResult, TurnSamples
+from foamlab.identification.parameters import Parameters
+from foamlab.identification.result import FitReport, FittedSamples, FitWork, TurnSamples
 from foamlab.identification.statistics import (
     GoodnessOfFit,
     autocorrelation_time,
     information_criteria,
     parameter_uncertainty,
 )
-from foamlab.identification.structure import forced, select
+from foamlab.identification.structure import StructureChoice, forced, select
 from foamlab.model import thermodynamic_checks
 from foamlab.model.layout import (
     BETA_HI,
@@ -57,7 +58,7 @@ ZERO_T_VALUE = 1.96
 
 
 def fit_run(run: RunData, orders: Orders | str | tuple | None = None, progress: Progress | None = None,
-            x_scale_mm: float | None = None, form: str = "auto", hold: bool = True) -> FitResult:
+            x_scale_mm: float | None = None, form: str = "auto", hold: bool = True) -> FitReport:
     """Identify the model's parameters from one run (any importer's RunData).
 
     orders: Orders(N, M, P[, C]), 'N,M,P' or a tuple; None (default): LARGEST (3,3,7,3), or 'auto'
@@ -77,8 +78,16 @@ def fit_run(run: RunData, orders: Orders | str | tuple | None = None, progress: 
     return fit_prepared(prepare(run, x_scale_mm=x_scale_mm), orders, progress, form, hold)
 
 
+def resumed(report: FitReport, run: RunData) -> FitReport:
+    """A stored report (FitReport.load) with the working state diagnosis extends: the run prepared
+    again and the analysis core's model at the report's alpha and beta, its linear parameters and
+    contact set solved - nothing searched, the run is not fitted again."""
+    fd = prepare(run, x_scale_mm=report.params.x_scale_mm)
+    return report.with_work(prepared=fd, core_fit=solved_at([fd.series], report.params))
+
+
 def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
-                 progress: Progress | None = None, form: str = "auto", hold: bool = True) -> FitResult:
+                 progress: Progress | None = None, form: str = "auto", hold: bool = True) -> FitReport:
     """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run."""
     select = isinstance(orders, str) and orders.strip().lower() == AUTO_ORDERS
     # one load-unload cycle: the largest structure (23 parameters on one loading and unloading)
@@ -108,13 +117,13 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
         chosen = _fit_placed(fd, replace(orders, form=choice.chosen), True,
                              lambda stage, fraction: report(f"structure: {stage}", (steps - 1 + fraction) / steps),
                              paper, hold=hold)
-        chosen.form_choice, chosen.alternatives = choice, alternatives
-    chosen.elapsed_s = time.perf_counter() - started
-    return chosen
+        chosen = replace(chosen, form_choice=choice).with_work(alternatives=alternatives)
+    # the report of the whole fit: a new frozen record with the whole time (reports are not changed)
+    return replace(chosen, elapsed_s=time.perf_counter() - started)
 
 
 def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progress, paper,
-                rival: float = np.inf, hold: bool = True) -> FitResult:
+                rival: float = np.inf, hold: bool = True) -> FitReport:
     """One form's fit (select: of the structure the data determine, from orders down), with its
     turning points placed where the samples say.
 
@@ -132,13 +141,11 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
         # the turns placed the other way: the structure the data chose, or chosen again (with the
         # turn misplaced, a 28 N miss at one peak sample chose (0, 2): 4 x the noise placed right)
         other = _fit_prepared(fd.other_turns(), orders if select else result.orders, select, progress, hold=hold)
-        if not select:
-            other.structure = result.structure
         where = "between samples" if other.prepared.nodes.between_samples else "at the sample at the extreme"
         if other.rmse < result.rmse:
-            other.notes.append(f"turning points without a stop placed {where}: the samples next to "
-                               f"them fit {result.rmse:.4g} N the other way")
-            return other
+            return replace(other, structure=other.structure if select else result.structure,
+                           notes=other.notes + (f"turning points without a stop placed {where}: the samples next "
+                                                f"to them fit {result.rmse:.4g} N the other way",))
     return result
 
 
@@ -149,7 +156,7 @@ TURN_MISFIT_MULTIPLE = 3.0
 FAR_FROM_NOISE = 1.5
 
 
-def _misfit_at_turns(result: FitResult, fd: PreparedRun) -> tuple[float, float]:
+def _misfit_at_turns(result: FitReport, fd: PreparedRun) -> tuple[float, float]:
     """RMS misfit of the samples within one step of a turn without a stop, and of the samples
     2-6 steps from one (an effect near the turns, e.g. a lag, misfits both alike)."""
     turns = fd.nodes.turns_between
@@ -162,7 +169,7 @@ def _misfit_at_turns(result: FitResult, fd: PreparedRun) -> tuple[float, float]:
 
 
 def _fit_prepared(fd: PreparedRun, orders: Orders, select: bool, progress: Progress | None,
-                  paper=None, rival: float = np.inf, hold: bool = True) -> FitResult:
+                  paper=None, rival: float = np.inf, hold: bool = True) -> FitReport:
     """One form's fit (select: of the structure the data determine). rival: the RMSE another
     form already reached; a first optimum further than RIVAL_RATIO from it gets no extra starts
     (they refine a local optimum's last percent, not a model twice off the data)."""
@@ -177,16 +184,14 @@ def _fit_prepared(fd: PreparedRun, orders: Orders, select: bool, progress: Progr
         if not select:
             search = JointSearch(fd, orders, paper.start, report)
             result = _fit_structure(fd, orders, paper, search, report, rival, hold)
-            result.structure = forced(orders)
         else:
             result = _fit_selected(fd, orders, paper, report, rival, hold)
-        result.elapsed_s = time.perf_counter() - started
     report("done", 1.0)
-    return result
+    return replace(result, elapsed_s=time.perf_counter() - started)
 
 
 def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, rival: float = np.inf,
-                  hold: bool = True) -> FitResult:
+                  hold: bool = True) -> FitReport:
     """The structure the data determine (identification.structure), carried to every sample."""
 
     def core_fit(orders: Orders, optima, given: bool):
@@ -223,20 +228,17 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, riv
     elif polished is None:    # identification's own full-resolution fit is the better (as given)
         polished, base = jf, None
     report("statistics", 0.9)
-    result = _result(fd, chosen.orders, steps, polished, time.perf_counter(), base)
-    if apart is not None:
-        _note_held(result, apart, free)
-    if hold:
-        _warn_cancelling(result, apart)
-    if unreproduced:
-        result.warnings.append("the model's own evaluation (what the simulator runs) does not reproduce this fit "
-                               "within a tenth of its residual")
-    result.structure = selection.choice()
+    largest = None
     first = selection.fitted[0]
     if first is not chosen:     # the largest structure's fit: what diagnosis extends
         own = _from_core(fd, first.joint, first.core) or _from_core(fd, first.joint, first.core, reproduced=False)
-        result.largest = _result(fd, first.orders, paper, own, time.perf_counter(), first.core)
-    return result
+        largest = _result(fd, first.orders, paper, own, time.perf_counter(), first.core)
+    warnings = _cancelling(base, apart) if hold else []
+    if unreproduced:
+        warnings.append("the model's own evaluation (what the simulator runs) does not reproduce this fit "
+                        "within a tenth of its residual")
+    return _result(fd, chosen.orders, steps, polished, time.perf_counter(), base, apart=apart, free=free,
+                   warnings=warnings, structure=selection.choice(), largest=largest)
 
 
 def _real_modes(base: Fit) -> Fit:
@@ -279,7 +281,7 @@ def _polished(fd: PreparedRun, jf: JointFit, search: JointSearch, paper, rival: 
 
 
 def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, report: Progress,
-                   rival: float = np.inf, hold: bool = True) -> FitResult:
+                   rival: float = np.inf, hold: bool = True) -> FitReport:
     """One structure: the search's best optimum polished, then carried to every sample by the
     analysis core."""
     jf = search.fit()
@@ -297,12 +299,8 @@ def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, 
         else:
             base = None
     report("statistics", 0.9)
-    result = _result(fd, orders, paper, jf, time.perf_counter(), base)
-    if apart is not None:
-        _note_held(result, apart, free)
-    if hold:
-        _warn_cancelling(result, apart)
-    return result
+    return _result(fd, orders, paper, jf, time.perf_counter(), base, apart=apart, free=free,
+                   warnings=_cancelling(base, apart) if hold else [], structure=forced(orders))
 
 
 def _held_apart(fd: PreparedRun, jf: JointFit, base: Fit, report: Progress) -> tuple[JointFit | None, HeldApart | None]:
@@ -314,29 +312,20 @@ def _held_apart(fd: PreparedRun, jf: JointFit, base: Fit, report: Progress) -> t
     return (held, apart) if held is not None else (None, None)
 
 
-def _note_held(result: FitResult, apart: HeldApart, free: Fit) -> None:
-    """The held orders said (by their names in the result: canonical order); the free fit kept
-    as diagnosis' base."""
-    result.free_core = free
-    result.notes.append(apart.note({n: float(v) for n, v, varied in zip(result.names, result.values, result.varied)
-                                    if not varied and n.startswith("beta") and n not in result.tied}))
-
-
-def _warn_cancelling(result: FitResult, apart: HeldApart | None) -> None:
+def _cancelling(core: Fit | None, apart: HeldApart | None) -> list[str]:
     """Coalesced residual orders left free (holding them apart fitted worse than BIC_TIE, or a
     pair the hold did not reach) are said: which way that choice falls can turn on the last digit
     of a run's numbers, so the result must say which way it fell."""
-    core = result.core_fit
     if core is None:
-        return
+        return []
     held = apart.held if apart is not None else np.zeros(core.params.layout.n_nonlinear, bool)
     pairs = [(i, j) for i, j in coalesced(core) if not (held[i] and held[j])]
     if not pairs:
-        return
+        return []
     phi = core.model.split(core.nu)[0]
     orders = ", ".join(f"{phi[i]:.4g} / {phi[j]:.4g}" for i, j in pairs)
-    result.warnings.append(f"{len(pairs)} pair(s) of residual terms at nearly one order cancel (beta {orders}): "
-                           "the data determine each pair's sum, not its terms; held apart they fitted worse")
+    return [f"{len(pairs)} pair(s) of residual terms at nearly one order cancel (beta {orders}): "
+            "the data determine each pair's sum, not its terms; held apart they fitted worse"]
 
 
 #: A polished fit further than this from the noise level, with structure left in its
@@ -423,8 +412,65 @@ def _from_core(fd: PreparedRun, jf: JointFit, base: Fit, reproduced: bool = True
     return polished if not reproduced or evaluable(fd, polished_check, rows[checked]) else None
 
 
-def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float,
-            base: Fit | None = None) -> FitResult:
+def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float, base: Fit | None = None, *,
+            apart: HeldApart | None = None, free: Fit | None = None, warnings: list[str] = (),
+            structure: StructureChoice | None = None, largest: FitReport | None = None) -> FitReport:
+    """The report of one structure's fit, built once (reports are frozen): apart, the orders held
+    apart (identification.apart) with free, the fit with them free (diagnosis' base); warnings
+    the fit's loops made; largest, the largest structure's report where another was chosen."""
+    lay = jf.layout
+    params = jf.params
+    # what a load cell would read at every sample: the model's force, the unloaded reading
+    # where the plate is off; exact (the core's columns: the Riemann-Liouville derivative of the
+    # path through its corner nodes) when the core's fit is the result, else the causal
+    # evaluation, which is exact only where no corner lies between samples
+    response = model_response(params, fd)
+    if base is not None:
+        force = base.model.specimen_force(base.nu, base.solution.theta)[0] + jf.contact_zero_N
+    else:
+        force = response.force
+    predicted = _placed_by_force(fd, params, np.maximum(force, jf.contact_zero_N), jf.contact_zero_N, base)
+    y = fd.f[fd.observed]
+    joint = GoodnessOfFit.of(y, predicted[fd.observed], jf.n_free)
+    first, last = int(fd.observed[0]), int(fd.observed[-1]) + 1
+    whole = fd.f[first:last] - predicted[first:last]
+    blocks = np.split(y - predicted[fd.observed], np.flatnonzero(np.diff(fd.observed) > 1) + 1)
+    tau = autocorrelation_time(blocks)
+    parameters, correlation, unc_warnings = _parameters(fd, orders, jf, tau)
+    aic, bic = information_criteria(joint.sse, joint.n, jf.n_free)
+    names, values = parameters.names, parameters.column("value")
+    lower, upper = nonlinear_bounds(orders, lay.C, fd.loading_time_s)
+    out_warnings = list(fd.warnings) + list(paper.warnings) + unc_warnings
+    out_warnings += _bound_warnings(names, values, lay, lower, upper)
+    out_warnings += _zero_warnings(names, values, parameters.column("stderr"), lay)
+    if tau > 2:
+        out_warnings.append(f"residuals are autocorrelated (tau = {tau:.0f} samples): the plain standard "
+                            "errors are optimistic; see the autocorrelation-corrected ones")
+    notes = [f"{p.name} = 0 (fixed): {p.why}" for p in parameters.values() if p.name.startswith("alpha") and not p.vary]
+    held = {p.name: p.value for p in parameters.values() if not p.vary and p.name.startswith("beta") and not p.tie}
+    if apart is not None:
+        notes.append(apart.note(held))
+    statistics = {name: step.stats for name, step in paper.steps.items()}
+    statistics["joint"] = joint
+    samples = FittedSamples(fd.t, fd.run.displacement_mm, fd.f, predicted, response.labels.cycle,
+                            response.labels.direction, np.asarray(fd.observed))
+    return FitReport(
+        source=fd.run.source, orders=orders, params=params, parameters=parameters, correlation=correlation,
+        statistics=statistics, rmse=float(np.sqrt(np.mean(whole ** 2))), noise_N=float(fd.noise_N),
+        constraints=thermodynamic_checks(params), warnings=tuple(out_warnings + list(warnings)), notes=tuple(notes),
+        aic=float(aic), bic=float(bic), n_obs=int(joint.n), n_params=int(jf.n_free),
+        autocorrelation_time=float(tau), contact_zero_N=float(jf.contact_zero_N), status=int(jf.status),
+        message=str(jf.message), samples=samples, turns=_turn_samples(fd.series.used[first:last], whole),
+        structure=structure, starts=tuple(jf.starts), elapsed_s=time.perf_counter() - started,
+        work=FitWork(fd, base, free if apart is not None else None, largest),
+    )
+
+
+def _parameters(fd: PreparedRun, orders: Orders, jf: JointFit, tau: float
+                ) -> tuple[Parameters, np.ndarray, list[str]]:
+    """The parameters with their standard errors (and corrected for the residuals'
+    autocorrelation time tau), bounds, held and tied ones and why; the correlation matrix and
+    the uncertainty's warnings."""
     lay = jf.layout
     params = jf.params
     names = params.names()
@@ -451,56 +497,18 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
     varied = np.ones(len(names), bool)
     varied[nl_idx[jf.fixed_nonlinear]] = False
     # shared orders: a later cycle's beta is the first cycle's (the same parameter, its statistics)
+    tied = {names[i]: names[j] for i, j in lay.tied().items()}
     for i, j in lay.tied().items():
         stderr[i], flat_lower[i], flat_upper[i], varied[i] = stderr[j], flat_lower[j], flat_upper[j], varied[j]
         corr[i, :], corr[:, i] = corr[j, :], corr[:, j]
-    notes = [f"{names[i]} = 0 (fixed): the data do not support an oscillation of damping mode "
-             f"{names[i][5:-3]} (BIC), so it is a real mode" for i in nl_idx[jf.fixed_nonlinear]
-             if names[i].startswith("alpha")]
-
-    # what a load cell would read at every sample: the model's force, the unloaded reading
-    # where the plate is off; exact (the core's columns: the Riemann-Liouville derivative of the
-    # path through its corner nodes) when the core's fit is the result, else the causal
-    # evaluation, which is exact only where no corner lies between samples
-    response = model_response(params, fd)
-    if base is not None:
-        force = base.model.specimen_force(base.nu, base.solution.theta)[0] + jf.contact_zero_N
-    else:
-        force = response.force
-    predicted = _placed_by_force(fd, params, np.maximum(force, jf.contact_zero_N), jf.contact_zero_N, base)
-    y = fd.f[fd.observed]
-    joint = GoodnessOfFit.of(y, predicted[fd.observed], jf.n_free)
-    first, last = int(fd.observed[0]), int(fd.observed[-1]) + 1
-    whole = fd.f[first:last] - predicted[first:last]
-    rmse = float(np.sqrt(np.mean(whole ** 2)))
-    turns = _turn_samples(fd.series.used[first:last], whole)
-    blocks = np.split(y - predicted[fd.observed], np.flatnonzero(np.diff(fd.observed) > 1) + 1)
-    tau = autocorrelation_time(blocks)
-    aic, bic = information_criteria(joint.sse, joint.n, jf.n_free)
-
-    warnings = list(fd.warnings) + list(paper.warnings) + unc.warnings
-    warnings += _bound_warnings(names, values, lay, lower, upper)
-    warnings += _zero_warnings(names, values, stderr, lay)
-    if tau > 2:
-        warnings.append(f"residuals are autocorrelated (tau = {tau:.0f} samples): the plain standard "
-                        "errors are optimistic; see the autocorrelation-corrected ones")
-    statistics = {name: step.stats for name, step in paper.steps.items()}
-    statistics["joint"] = joint
-    return FitResult(
-        params=params, orders=orders, names=names, values=values, stderr=stderr,
-        stderr_autocorr=stderr * np.sqrt(tau), correlation=corr, statistics=statistics,
-        rmse=rmse, turns=turns, constraints=thermodynamic_checks(params), warnings=warnings, notes=notes,
-        aic=aic, bic=bic,
-        n_obs=joint.n, n_params=jf.n_free, autocorrelation_time=tau,
-        contact_zero_N=jf.contact_zero_N, response=response, predicted_force_N=predicted,
-        observed=fd.observed, paper=paper, source=fd.run.source,
-        elapsed_s=time.perf_counter() - started, starts=jf.starts,
-        run_time_s=fd.t, run_displacement_mm=fd.run.displacement_mm, run_force_N=fd.f,
-        lower=flat_lower, upper=flat_upper, varied=varied,
-        status=jf.status, message=jf.message,
-        noise_N=fd.noise_N, prepared=fd, core_fit=base,
-        tied={names[i]: names[j] for i, j in lay.tied().items()},
-    )
+    why = {n: "shared orders: every cycle's order is the first cycle's" for n in tied}
+    for i in nl_idx[jf.fixed_nonlinear]:
+        why[names[i]] = (f"the data do not support an oscillation of damping mode {names[i][5:-3]} (BIC), "
+                         "so it is a real mode" if names[i].startswith("alpha") else
+                         "held apart: free, its term coalesces with another (identification.apart)")
+    parameters = Parameters.of(names, values, stderr, flat_lower, flat_upper, varied, stderr * np.sqrt(tau),
+                               tied, why)
+    return parameters, corr, unc.warnings
 
 
 def _turn_samples(evidence: np.ndarray, residual: np.ndarray) -> TurnSamples:

@@ -9,7 +9,7 @@ counts its difference is n log(RSS ratio), the same ranking on all the samples.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -19,7 +19,7 @@ from foamlab.analysis.heldout import heldout_rmse
 from foamlab.analysis.solve import Fit, at_full_resolution, decimation
 
 if TYPE_CHECKING:
-    from foamlab.identification.result import FitResult
+    from foamlab.identification.result import FitReport
 
 
 @dataclass(frozen=True)
@@ -59,7 +59,7 @@ class FormChoice:
                 f"({mine.heldout_rmse:.4g} N vs {others}; dBIC {self.delta_bic:.1f})")
 
 
-def core_fit_of(result: "FitResult") -> Fit:
+def core_fit_of(result: "FitReport") -> Fit:
     """The analysis core's fit behind a result; when identification kept its own optimum, the
     core's model at those parameters (the linear ones and the contact set solved: what the
     held-out check refits anyway, so no search is needed)."""
@@ -69,7 +69,7 @@ def core_fit_of(result: "FitResult") -> Fit:
     return Fit([], model, np.zeros(0), np.zeros(0), model.solve())
 
 
-def score(result: "FitResult") -> FormScore:
+def score(result: "FitReport") -> FormScore:
     return FormScore(result.params.residual_form, float(result.rmse), heldout_of(core_fit_of(result)),
                      float(result.bic))
 
@@ -82,13 +82,12 @@ def heldout_of(core: Fit) -> float:
     return heldout_rmse(core, coarse)
 
 
-def choose(results: list["FitResult"], forced: bool) -> "FitResult":
+def choose(results: list["FitReport"], forced: bool) -> "FitReport":
     """The result whose form predicts held-out blocks best, with every form's score and the
     others' results attached (the report shows both forms' statistics)."""
     scores = [score(r) for r in results] if len(results) > 1 else [
         FormScore(results[0].params.residual_form, float(results[0].rmse), float("nan"), float(results[0].bic))]
     best = min(range(len(results)), key=lambda i: scores[i].heldout_rmse) if len(results) > 1 else 0
     chosen = results[best]
-    chosen.form_choice = FormChoice(chosen.params.residual_form, tuple(scores), forced)
-    chosen.alternatives = [r for i, r in enumerate(results) if i != best]
-    return chosen
+    return replace(chosen, form_choice=FormChoice(chosen.params.residual_form, tuple(scores), forced)).with_work(
+        alternatives=tuple(r for i, r in enumerate(results) if i != best))

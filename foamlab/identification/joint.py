@@ -21,10 +21,10 @@ from dataclasses import dataclass
 from typing import Callable, Iterable
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from foamlab.analysis.basis import ModelBasis
 from foamlab.analysis.prepared import PreparedRun, model_response
+from foamlab.analysis.solve import trust_region
 from foamlab.identification.paper import alpha_candidates, beta_candidates
 from foamlab.identification.varpro import (
     GreedyBasis,
@@ -494,8 +494,7 @@ def _polish(fd: PreparedRun, lay: Layout, linear: np.ndarray, nonlinear: np.ndar
     p0 = np.concatenate([linear, base[free]] + ([[z0]] if fit_zero else []))
     lo = np.concatenate([np.full(L, -np.inf), lower[free]] + ([[-np.inf]] if fit_zero else []))
     hi = np.concatenate([np.full(L, np.inf), upper[free]] + ([[np.inf]] if fit_zero else []))
-    res = least_squares(fun, p0, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac",
-                        max_nfev=POLISH_NFEV, ftol=1e-10, xtol=1e-10, gtol=1e-12)
+    res = trust_region(fun, p0, jac, lo, hi, max_nfev=POLISH_NFEV, ftol=1e-10, xtol=1e-10, gtol=1e-12)
     lin, nl, zero = unpack(res.x)
     # the canonical order (modes by decay rate, terms by order) permutes parameters;
     # the Jacobian at the solution comes from the solver, its columns permuted alike

@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 
 from foamlab import FoamlabError
-from foamlab.identification.result import FitResult
+from foamlab.identification.result import FitReport
 
 
-def plot_fit(result: FitResult, out: str | Path, title: str | None = None) -> Path:
+def plot_fit(result: FitReport, out: str | Path, title: str | None = None) -> Path:
     """Write a PNG: one column per cycle, force-displacement on top (measured grey,
     fitted: loading / unloading), measured - fitted below."""
     import matplotlib
@@ -19,9 +19,9 @@ def plot_fit(result: FitResult, out: str | Path, title: str | None = None) -> Pa
     import matplotlib.pyplot as plt
 
     out = Path(out)
-    labels = result.response.labels
+    labels = result.samples
     x, f, fit = result.run_displacement_mm, result.run_force_N, result.predicted_force_N
-    n_cycles = len(labels.starts)
+    n_cycles = labels.n_cycles
     observed = np.zeros(len(x), bool)
     observed[result.observed] = True
     fig, axes = plt.subplots(2, n_cycles, figsize=(4.2 * n_cycles, 6.2), squeeze=False,

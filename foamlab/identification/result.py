@@ -1,65 +1,39 @@
-"""FitResult: a fit that reports itself (statistics, standard errors, correlations,
-warnings, information criteria), in the spirit of lmfit's MinimizerResult."""
+"""FitReport: one fit, frozen once it is made, saved and loaded exactly; it reports itself
+(statistics, standard errors, correlations, warnings, information criteria) in the spirit of
+lmfit's MinimizerResult. What the figures show is in it (the fitted force at every sample), so
+the report and the window read a stored fit instead of fitting again."""
 
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from foamlab import FoamlabError
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import Fit
 from foamlab.identification.forms import FormChoice
-from foamlab.identification.paper import PaperResult
+from foamlab.identification.parameters import Parameter, Parameters, unit_of
+from foamlab.identification.record import decode, encode, same
 from foamlab.identification.statistics import GoodnessOfFit
 from foamlab.identification.structure import StructureChoice
-from foamlab.model import ModelParameters, ModelResponse
+from foamlab.model import ModelParameters
 from foamlab.model.layout import Orders
+
+__all__ = ["FitReport", "FitWork", "FittedSamples", "Parameter", "Parameters", "TurnSamples", "unit_of"]
 
 #: The steps of Table 5, plus the joint refinement.
 STEPS = ("damping", "residual", "elastic", "joint")
-
-
-#: Unit of each parameter family (foamlab.model.params), by name prefix.
-UNITS = (("alpha", "1/s"), ("beta", ""), ("k", "N"), ("a", "N/(mm s)"), ("r", "N s^beta/mm"))
 #: The terminal summary lists at most this many warnings (all are in --json and the sidecar).
 SUMMARY_WARNINGS = 3
 #: The RMSE without the turn samples is shown when it is below this share of the whole run's.
 TURNS_SHOWN = 0.9
-
-
-def unit_of(name: str) -> str:
-    return next((unit for prefix, unit in UNITS if name.startswith(prefix)), "")
-
-
-@dataclass(frozen=True)
-class Parameter:
-    """One fitted parameter as lmfit reports it: value, standard error, bounds, varied."""
-
-    name: str
-    value: float
-    stderr: float | None              # None: the data do not determine it
-    lower: float                      # -inf: unbounded
-    upper: float
-    varied: bool                      # False: held fixed (e.g. Im alpha of a real damping mode)
-    unit: str
-    same_as: str | None = None        # a shared order in a later cycle: the parameter it is
-
-    @property
-    def determined(self) -> bool:
-        """Varied, with a standard error, and its 95 % interval excludes zero."""
-        return self.varied and self.stderr is not None and abs(self.value) > 1.96 * self.stderr
-
-    def to_dict(self) -> dict:
-        out = {"value": self.value, "stderr": self.stderr, "lower": _num(self.lower),
-               "upper": _num(self.upper), "varied": self.varied, "unit": self.unit,
-               "determined": self.determined}
-        if self.same_as:
-            out["same_as"] = self.same_as
-        return out
+#: What a sidecar's "report" entry is, and the version of its layout.
+REPORT_FORMAT = "foamlab fit report"
+REPORT_VERSION = 1
 
 
 def _num(v) -> float | None:
@@ -79,62 +53,134 @@ class TurnSamples:
         return {"count": self.count, "rmse_without": _num(self.rmse_without_N), "max_abs": _num(self.max_abs_N)}
 
 
-@dataclass
-class FitResult:
-    params: ModelParameters
+@dataclass(frozen=True, eq=False)
+class FittedSamples:
+    """The run's samples and the force the fit reported at each: what every figure of the fit
+    draws. The prediction is stored as the fit reported it, not re-evaluated from the
+    parameters: until the fit-honesty issue (26) makes the parameters reproduce it, the model's
+    causal evaluation differs from it by about the RMSE on real data."""
+
+    time_s: np.ndarray
+    displacement_mm: np.ndarray
+    force_N: np.ndarray
+    predicted_force_N: np.ndarray  # what the load cell would read: max(model force, unloaded reading)
+    cycle: np.ndarray              # 1-based cycle of each sample (the fit's labels)
+    direction: np.ndarray          # +1 loading, -1 unloading, 0 neither
+    observed: np.ndarray           # indices of the samples the joint fit used
+
+    @property
+    def residual_N(self) -> np.ndarray:
+        return self.force_N - self.predicted_force_N
+
+    @property
+    def n_cycles(self) -> int:
+        return int(self.cycle.max()) if len(self.cycle) else 0
+
+
+@dataclass(frozen=True, eq=False)
+class FitWork:
+    """The fit's working state (not saved): what diagnosis and the forecast extend."""
+
+    prepared: PreparedRun | None = None   # the run as prepared for every fit (foamlab.analysis)
+    core_fit: Fit | None = None           # the analysis core's fit: what diagnosis extends
+    free_core: Fit | None = None          # where orders were held apart (identification.apart): the
+                                          # fit with them free, diagnosis' base (all terms free)
+    largest: "FitReport | None" = None    # the largest structure's fit when another was chosen
+    alternatives: tuple["FitReport", ...] = ()   # the other residual forms' fits
+
+
+@dataclass(frozen=True, eq=False)
+class FitReport:
+    """One fit of the model to one run, built once at its end (identification.fit)."""
+
+    source: str
     orders: Orders
-    names: list[str]                  # flat ModelParameters order
-    values: np.ndarray
-    stderr: np.ndarray                # nan: not determined
-    stderr_autocorr: np.ndarray       # stderr x sqrt(autocorrelation time)
+    params: ModelParameters
+    parameters: Parameters            # flat ModelParameters order: value, stderr, bounds, vary, tie, why
     correlation: np.ndarray           # names x names, nan where not determined
     statistics: dict[str, GoodnessOfFit | None]
     rmse: float                       # whole run: RMS of measured - fitted, every sample of the cycles
+    noise_N: float                    # the load cell's noise level estimated from the run
     constraints: dict[str, bool]
-    warnings: list[str]
+    warnings: tuple[str, ...]
+    notes: tuple[str, ...]            # choices the fit made (e.g. a mode made real)
     aic: float
     bic: float
     n_obs: int
     n_params: int
     autocorrelation_time: float
     contact_zero_N: float             # unloaded load-cell reading (fitted with the rest if used)
-    response: ModelResponse           # the model's components at every sample (foamlab.model.evaluate)
-    predicted_force_N: np.ndarray     # what the load cell would read: max(model force, unloaded reading)
-    observed: np.ndarray              # sample indices the joint fit used
-    paper: PaperResult
-    notes: list[str] = field(default_factory=list)   # choices the fit made (e.g. a mode made real)
-    source: str = ""
+    status: int                       # the final optimizer's (scipy least_squares): > 0 converged
+    message: str
+    samples: FittedSamples
+    turns: TurnSamples | None = None  # the samples at turns the samples cannot place, and the RMSE without them
+    form_choice: FormChoice | None = None    # which residual form, and why (identification.forms)
+    structure: StructureChoice | None = None  # the structures tried and the one chosen (or forced)
+    starts: tuple[str, ...] = ()
     elapsed_s: float = 0.0
-    starts: list[str] = field(default_factory=list)
-    run_time_s: np.ndarray | None = None
-    run_displacement_mm: np.ndarray | None = None
-    run_force_N: np.ndarray | None = None
-    lower: np.ndarray | None = None   # bounds of each parameter in the search (flat order; +-inf: none)
-    upper: np.ndarray | None = None
-    varied: np.ndarray | None = None  # bool, flat order: False for parameters held fixed
-    status: int = 0                   # the final optimizer's (scipy least_squares): > 0 converged
-    message: str = ""
-    noise_N: float = float("nan")     # the load cell's noise level estimated from the run
-    prepared: PreparedRun | None = None   # the run as prepared for every fit (foamlab.analysis)
-    core_fit: Fit | None = None           # the analysis core's fit: what diagnosis extends
-    free_core: Fit | None = None          # where orders were held apart (identification.apart): the
-                                          # fit with them free, diagnosis' base (all terms free)
-    form_choice: FormChoice | None = None  # which residual form, and why (identification.forms)
-    alternatives: list["FitResult"] = field(default_factory=list)   # the other forms' fits
-    structure: StructureChoice | None = None   # the structures tried and the one chosen (or forced)
-    tied: dict[str, str] = field(default_factory=dict)   # shared orders: later cycle's beta -> first's
-    largest: "FitResult | None" = None   # the largest structure's fit when another was chosen (diagnosis' base)
-    turns: TurnSamples | None = None     # the samples at turns the samples cannot place, and the RMSE without them
+    work: FitWork | None = field(default=None, compare=False, repr=False, metadata={"saved": False})
+
+    def __eq__(self, other: object) -> bool:
+        """Field by field (arrays by value); the working state is not part of the record."""
+        return isinstance(other, FitReport) and same(self, other)
+
+    __hash__ = None
+
+    def with_work(self, **changes) -> "FitReport":
+        """The same report with its working state changed (a new object: reports are frozen)."""
+        return replace(self, work=replace(self.work or FitWork(), **changes))
 
     # -- views -----------------------------------------------------------------------
     @property
-    def predicted(self) -> np.ndarray:
-        return self.predicted_force_N
+    def names(self) -> list[str]:
+        return self.parameters.names
+
+    @property
+    def values(self) -> np.ndarray:
+        return self.parameters.column("value")
+
+    @property
+    def stderr(self) -> np.ndarray:
+        return self.parameters.column("stderr")
+
+    @property
+    def stderr_autocorr(self) -> np.ndarray:
+        return self.parameters.column("stderr_ac")
+
+    @property
+    def varied(self) -> np.ndarray:
+        return self.parameters.column("vary", bool)
+
+    @property
+    def tied(self) -> dict[str, str]:
+        return self.parameters.tied
+
+    @property
+    def predicted_force_N(self) -> np.ndarray:
+        return self.samples.predicted_force_N
+
+    predicted = predicted_force_N
+
+    @property
+    def run_time_s(self) -> np.ndarray:
+        return self.samples.time_s
+
+    @property
+    def run_displacement_mm(self) -> np.ndarray:
+        return self.samples.displacement_mm
+
+    @property
+    def run_force_N(self) -> np.ndarray:
+        return self.samples.force_N
+
+    @property
+    def observed(self) -> np.ndarray:
+        return self.samples.observed
 
     @property
     def residual_N(self) -> np.ndarray:
         """Measured minus fitted force at every sample of the run."""
-        return self.run_force_N - self.predicted_force_N
+        return self.samples.residual_N
 
     @property
     def success(self) -> bool:
@@ -142,20 +188,30 @@ class FitResult:
         return self.status > 0
 
     @property
-    def parameters(self) -> dict[str, Parameter]:
-        n = len(self.names)
-        lower = self.lower if self.lower is not None else np.full(n, -np.inf)
-        upper = self.upper if self.upper is not None else np.full(n, np.inf)
-        varied = self.varied if self.varied is not None else np.ones(n, bool)
-        return {name: Parameter(name, float(v), _num(s), float(lo), float(hi), bool(var), unit_of(name),
-                                self.tied.get(name))
-                for name, v, s, lo, hi, var in zip(self.names, self.values, self.stderr, lower, upper, varied)}
+    def prepared(self) -> PreparedRun | None:
+        return self.work.prepared if self.work else None
+
+    @property
+    def core_fit(self) -> Fit | None:
+        return self.work.core_fit if self.work else None
+
+    @property
+    def free_core(self) -> Fit | None:
+        return self.work.free_core if self.work else None
+
+    @property
+    def largest(self) -> "FitReport | None":
+        return self.work.largest if self.work else None
+
+    @property
+    def alternatives(self) -> tuple["FitReport", ...]:
+        return self.work.alternatives if self.work else ()
 
     def value(self, name: str) -> float:
-        return float(self.values[self.names.index(name)])
+        return self.parameters[name].value
 
     def standard_error(self, name: str) -> float | None:
-        return _num(self.stderr[self.names.index(name)])
+        return self.parameters[name].stderr
 
     # -- JSON ---------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -193,24 +249,23 @@ class FitResult:
         return json.dumps(self.to_dict(), indent=indent)
 
     def sidecar_dict(self) -> dict:
-        """What is stored beside the run: the JSON object plus the model (so the file
-        loads with ModelParameters.load as a simulator specimen) and the rest."""
+        """What is stored beside the run: the JSON object, the model (so the file loads with
+        ModelParameters.load as a simulator specimen) and the whole report, exactly ("report":
+        what FitReport.load reads back)."""
         out = self.to_dict()
-        corr = [[_num(c) for c in row] for row in self.correlation]
         out.update({
             "model": self.params.to_dict(),
             "orders": {"N": self.orders.N, "M": self.orders.M, "P": self.orders.P, "C": self.orders.C,
                        "form": self.orders.form, "shared": self.orders.shared},
-            "stderr_autocorrelation_corrected": {n: _num(s) for n, s in zip(self.names, self.stderr_autocorr)},
+            "stderr_autocorrelation_corrected": {p.name: p.stderr_ac for p in self.parameters.values()},
             "autocorrelation_time": _num(self.autocorrelation_time),
-            "correlation": {"names": self.names, "matrix": corr},
-            "warnings": list(self.warnings),
-            "notes": list(self.notes),
+            "correlation": {"names": self.names, "matrix": [[_num(c) for c in row] for row in self.correlation]},
             "aic": _num(self.aic), "bic": _num(self.bic),
             "n_obs": self.n_obs, "n_params": self.n_params,
             "contact_zero_N": _num(self.contact_zero_N),
             "source": self.source,
             "elapsed_s": _num(self.elapsed_s),
+            "report": {"format": REPORT_FORMAT, "version": REPORT_VERSION, **encode(self)},
         })
         return out
 
@@ -218,9 +273,31 @@ class FitResult:
         """Write the sidecar JSON (atomically: a reader never sees half a file)."""
         path = Path(path)
         tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(self.sidecar_dict(), indent=2), encoding="utf-8")
+        tmp.write_text(json.dumps(self.sidecar_dict(), indent=1), encoding="utf-8")
         tmp.replace(path)
         return path
+
+    @classmethod
+    def from_sidecar(cls, data: dict) -> "FitReport":
+        """The report a sidecar holds (its working state is not stored: None)."""
+        record = data.get("report") if isinstance(data, dict) else None
+        if not isinstance(record, dict) or record.get("format") != REPORT_FORMAT:
+            raise FoamlabError("fit file holds no fit report (made by an older foamlab): fit the run again")
+        if record.get("version") != REPORT_VERSION:
+            raise FoamlabError(f"fit report version {record.get('version')!r}: this foamlab reads {REPORT_VERSION}")
+        return decode(cls, record)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "FitReport":
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise FoamlabError(f"{path}: cannot read the fit ({exc})") from None
+        try:
+            return cls.from_sidecar(data)
+        except FoamlabError as exc:
+            raise FoamlabError(f"{path}: {exc}") from None
 
     # -- text ---------------------------------------------------------------------------
     def brief(self) -> str:
@@ -241,7 +318,7 @@ class FitResult:
         if self.structure is not None:
             lines.append(f"  structure: {self.structure.why}"
                          + (f" ({len(self.structure.candidates)} tried, see --full)" if self.structure.candidates else ""))
-        own = [p for p in self.parameters.values() if not p.same_as]
+        own = [p for p in self.parameters.values() if not p.tie]
         params = [p for p in own if p.determined]
         hidden = len(own) - len(params)
         shared = " (each order beta1_m is every cycle's: shared orders)" if self.tied else ""
@@ -250,7 +327,7 @@ class FitResult:
                      f"{shared}:")
         for p in params:
             lines.append(f"    {p.name:<11}{p.value:>13.5g} +/- {p.stderr:<10.2g} {p.unit}")
-        held = [p for p in own if not p.varied and p.name.startswith("beta")]
+        held = [p for p in own if not p.vary and p.name.startswith("beta")]
         if held:       # identification.apart
             lines.append("  orders held apart, not fitted (their terms coalesce; the data determine their sum): "
                          + ", ".join(f"{p.name} {p.value:.3g}" for p in held))
@@ -325,9 +402,7 @@ class FitResult:
         return lines
 
     def _fixed_names(self) -> set[str]:
-        if self.varied is not None:
-            return {n for n, v in zip(self.names, self.varied) if not v}
-        return {note.split(" ", 1)[0] for note in self.notes if "(fixed)" in note}
+        return {p.name for p in self.parameters.values() if not p.vary}
 
     def __str__(self) -> str:
         return self.summary()

@@ -555,7 +555,7 @@ def _column_of_name(lay: Layout, name: str) -> int:
 
 
 def _nonlinear_names(lay: Layout) -> list[str]:
-    """As FitResult names them (a shared order by its first cycle's name)."""
+    """As FitReport names them (a shared order by its first cycle's name)."""
     names = [f"alpha{i + 1}_{part}" for i in range(lay.N) for part in ("re", "im")]
     cycles = 1 if lay.shared else lay.C
     return names + [f"beta{c + 1}_{m + 1}" for c in range(cycles) for m in range(lay.M)]

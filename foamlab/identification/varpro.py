@@ -1,4 +1,5 @@
-"""Variable projection (Golub-Pereyra, Kaufman's Jacobian) on scipy.optimize.least_squares.
+"""Variable projection (Golub-Pereyra, Kaufman's Jacobian) on scipy.optimize.least_squares
+(through analysis.solve.trust_region, the one call of it).
 
 For a model y ~ Phi(theta) c, linear in c, the best c for given theta is a linear
 least-squares solve, so only theta is searched by the trust-region method ('trf',
@@ -15,7 +16,8 @@ from typing import Callable
 
 import numpy as np
 import scipy.linalg
-from scipy.optimize import least_squares
+
+from foamlab.analysis.solve import trust_region
 
 #: Singular values below this fraction of the largest (column-scaled design) are
 #: treated as zero: that combination of columns is not determined by the data.
@@ -153,9 +155,8 @@ class SeparableProblem:
         if len(theta0) == 0:
             sol = self.solve(theta0)
             return SeparableFit(theta0, sol.coef, sol.residual, 1, 1, "linear only")
-        res = least_squares(self.residual, theta0, jac=self.jacobian, bounds=(lower, upper),
-                            method="trf", x_scale="jac", max_nfev=max_nfev, ftol=ftol,
-                            xtol=xtol, gtol=1e-12)
+        res = trust_region(self.residual, theta0, self.jacobian, lower, upper, max_nfev=max_nfev, ftol=ftol,
+                           xtol=xtol, gtol=1e-12)
         sol = self.solve(res.x)
         return SeparableFit(res.x, sol.coef, sol.residual, int(res.nfev), int(res.status),
                             str(res.message))

@@ -26,7 +26,7 @@ import numpy as np
 
 from foamlab import FoamlabError
 from foamlab.analysis.prepared import PreparedRun, prepare
-from foamlab.identification import FitResult
+from foamlab.identification import FitReport
 from foamlab.identification.fit import fit_prepared
 from foamlab.methods import PlannedStep
 from foamlab.model import HistoryLabels, ModelParameters, evaluate, label_history
@@ -192,7 +192,7 @@ def make_forecast(prefix: RunData, plan: list[PlannedStep], after_cycle: int, sa
                     time.perf_counter() - started, float(sampling_hz), by_step)
 
 
-def neighbours_spread(fd: PreparedRun, main: FitResult, force: np.ndarray, t: np.ndarray, x: np.ndarray,
+def neighbours_spread(fd: PreparedRun, main: FitReport, force: np.ndarray, t: np.ndarray, x: np.ndarray,
                       labels: HistoryLabels) -> np.ndarray:
     """Largest |difference| between `force` (the `main` fit's) and the NEIGHBOURS' forecasts, of
     those that fit the prepared prefix `fd` within FIT_GATE x the noise (the others describe
@@ -210,7 +210,7 @@ def neighbours_spread(fd: PreparedRun, main: FitResult, force: np.ndarray, t: np
     return spread
 
 
-def check_fit(fit: FitResult, after_cycle: int) -> None:
+def check_fit(fit: FitReport, after_cycle: int) -> None:
     """Refuse (one line, why) to forecast from a fit that does not describe its own cycles."""
     r = fit.residual_N[fit.observed]
     spread = 1.4826 * float(np.median(np.abs(r - np.median(r)))) if len(r) else math.inf
@@ -222,7 +222,7 @@ def check_fit(fit: FitResult, after_cycle: int) -> None:
                            "something: see the diagnosis after the run)")
 
 
-def prediction_sigma(fit: FitResult, t: np.ndarray, x: np.ndarray, n_data: int, n_cycles: int) -> np.ndarray:
+def prediction_sigma(fit: FitReport, t: np.ndarray, x: np.ndarray, n_data: int, n_cycles: int) -> np.ndarray:
     """1-sigma uncertainty of the fitted model's force along the history (t, x), whose first
     `n_data` samples are the fitted data: the parameter part and the unseen cycles' part."""
     step = max(1, int(math.ceil(len(t) / BAND_POINTS)))
@@ -240,7 +240,7 @@ def prediction_sigma(fit: FitResult, t: np.ndarray, x: np.ndarray, n_data: int, 
     return np.interp(t, td, np.hypot(parameter, unseen))
 
 
-def _jacobian(fit: FitResult, t, x, labels, base) -> np.ndarray:
+def _jacobian(fit: FitReport, t, x, labels, base) -> np.ndarray:
     """d force / d parameter (flat ModelParameters order) by forward differences; zero for the
     parameters the fit held fixed."""
     params = fit.params
@@ -340,7 +340,7 @@ def forecast_scores(run: RunData, method=None) -> ForecastScores:
     return out
 
 
-def _identified(prefix: RunData, after_cycle: int) -> tuple[PreparedRun, FitResult]:
+def _identified(prefix: RunData, after_cycle: int) -> tuple[PreparedRun, FitReport]:
     """The model identified on `prefix`, checked to describe its cycles, and the prepared run
     (once: a forecast's neighbours fit the same one)."""
     fd = prepare(prefix)

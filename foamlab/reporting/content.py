@@ -4,11 +4,10 @@ pipeline's Analysis (method results, fit, diagnosis) and the schedule statistics
 The analysis comes from the caller (the window's Analysis), else from the pipeline's stages
 (foamlab.pipeline: the run is fitted once and diagnosed with that fit). A diagnosis stored
 beside a foamlab run file (<run>.diagnosis.json) is used instead of diagnosing again when it
-is current: not older than the run file and made on the same fit - the fit sidecar is not
-older either and has the RMSE of the fit made now (the fit is deterministic; ~1 s). The fit
-itself is always at hand as a FitResult: its figure needs the fitted force at every sample,
-which the sidecar does not hold (the stored parameters evaluated causally differ from the
-fit by about its RMSE on real data: that figure would not be the fit).
+is current: not older than the fit stored beside the run (<run>.fit.json), which the pipeline's
+fit stage reads instead of fitting again; the stored FitReport holds the fitted force at every
+sample, so the fit's figures are the stored fit's. A run without a current stored fit is fitted
+once (the report says so).
 """
 
 from __future__ import annotations
@@ -27,9 +26,6 @@ from foamlab.storage.runfile import is_run_file
 
 #: Header / metadata keys a run file may carry its schedule's missed deadlines under.
 MISSED_KEYS = ("missed", "missed_samples", "samples_missed", "missed_deadlines")
-#: The fit made now and the stored one are the same fit when their RMSEs agree this closely.
-SAME_FIT_RTOL = 1e-6
-
 
 @dataclass(frozen=True)
 class ScheduleSummary:
@@ -142,18 +138,6 @@ def _read_json(path: Path) -> dict | None:
     return data if isinstance(data, dict) else None
 
 
-def current_fit_sidecar(path: Path, fit) -> Path | None:
-    """The run's fit sidecar when it holds the fit made now (and is not older than the run)."""
-    side = sidecar_path(path, "fit")
-    data = _read_json(side) if side.is_file() else None
-    if data is None or fit is None or side.stat().st_mtime < path.stat().st_mtime:
-        return None
-    stored = _number(data.get("rmse"))
-    if stored is None or not math.isclose(stored, fit.rmse, rel_tol=SAME_FIT_RTOL, abs_tol=1e-12):
-        return None
-    return side
-
-
 def current_diagnosis(path: Path, fit_side: Path | None) -> StoredDiagnosis | None:
     """The stored diagnosis of this fit: beside a current fit sidecar, not older than it."""
     side = sidecar_path(path, "diagnosis")
@@ -208,10 +192,12 @@ def gather(path: str | Path, analysis: pipeline.Analysis | None = None, *, metho
 def _fit_and_diagnose(c: ReportContent, diagnose: bool, store: bool, progress: pipeline.Progress) -> None:
     a = c.analysis
     ours = _is_run_file(c.path)
+    had_fit = a.fit is not None
     pipeline.fit_stage(a, progress)
+    if a.fit is not None and not had_fit and a.fit_path is None:
+        c.notes.append("fitted now: no current fit was stored beside the run")
     if ours and a.fit is not None:
-        fit_side = current_fit_sidecar(c.path, a.fit)
-        a.fit_path = a.fit_path or fit_side
+        fit_side = a.fit_path if a.fit_path is not None and a.fit_path.is_file() else None
         if diagnose and a.diagnosis is None:
             c.stored_diagnosis = current_diagnosis(c.path, fit_side)
             if c.stored_diagnosis is not None:

@@ -111,7 +111,7 @@ def diagnosis(d, fit_result, verdict: str, folder: Path, notes: list[str]) -> tu
 def residuals(result, verdict: str, out: Path) -> Path:
     """Measured - fitted per cycle over displacement and in time, noise band shaded."""
     plt = _plt()
-    labels = result.response.labels
+    labels = result.samples
     obs = np.zeros(len(result.run_force_N), bool)
     obs[result.observed] = True
     r = result.residual_N
