@@ -63,8 +63,13 @@ class At:
 
 def test_a_run_finishes_keeps_every_deadline_and_parks(tmp_path):
     machine = machine_at_start()
-    engine, result = run(machine, short_method(tmp_path, strain=0.05, speed=100.0, cycles=2), tmp_path)
+    progress = []
+    engine, result = run(machine, short_method(tmp_path, strain=0.05, speed=100.0, cycles=2), tmp_path,
+                         type("P", (), {"on_progress": lambda self, p: progress.append(p)})())
     assert result.status == "finished" and result.end == "finished", result.reason
+    # progress on the run's clock: every 0.25 s of machine time through ~8.7 s, then 1
+    fractions = [p.fraction for p in progress if p.state == "running"]
+    assert 30 <= len(fractions) <= 40 and fractions == sorted(fractions) and progress[-1].fraction == 1.0
     assert result.park == f"parked at {START_MM:.3f} mm"
     assert machine.sim.position_mm() == pytest.approx(START_MM, abs=0.003)
     assert result.missed == 0 and result.safety == ""

@@ -108,7 +108,7 @@ class RunEngine:
                                 on_sample=lambda s: self._report_progress(s.displacement_mm, s.force_N),
                                 clock=clock)
         self._progress = ProgressReporter(self._listeners, self.plan, method.n_cycles, self.speedup,
-                                          progress_interval_s)
+                                          progress_interval_s, clock.now)
         self._connected_once = False
 
     # -- public API ------------------------------------------------------------------

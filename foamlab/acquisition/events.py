@@ -11,7 +11,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from foamlab.acquisition.schedule import ScheduleStats
 from foamlab.methods import PlannedStep
@@ -88,16 +88,17 @@ class ProgressReporter:
     """Progress of the method's plan for the listeners, at most every `interval_s` (wall)."""
 
     def __init__(self, listeners: "Listeners", plan: list[PlannedStep], n_cycles: int, speedup: float,
-                 interval_s: float):
+                 interval_s: float, clock: Callable[[], float] = time.monotonic):
         self.listeners, self.plan, self.n_cycles = listeners, plan, n_cycles
         self.speedup, self.interval_s = speedup, interval_s
         self.nominal_s = sum(p.duration_s for p in plan)
         self._last = -math.inf
+        self._clock = clock     # the run's (acquisition.clock): virtual time gives the same progress
 
     def report(self, step: PlannedStep | None, in_step_s: float, disp: float, force: float, state: str,
                fraction: float | None = None, immediate: bool = False) -> None:
         """`in_step_s`: machine time since `step` began; `fraction` overrides the plan's."""
-        now = time.monotonic()
+        now = self._clock()
         if not immediate and now - self._last < self.interval_s:
             return
         self._last = now
