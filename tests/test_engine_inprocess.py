@@ -267,3 +267,24 @@ def test_a_crosshead_not_confirmed_at_rest_is_emergency_stopped_and_said(tmp_pat
     assert_at_rest(machine)
     assert machine.sim.crosshead_status().emergency_stop
     assert_file_matches(result)
+
+
+def test_the_in_process_machine_answers_as_a_driver():
+    machine = machine_at_start(noise_sigma_N=0.0)
+    machine.crosshead.move_to(START_MM + 1.0, 60.0)
+    machine.clock.advance(0.5)
+    sample = machine.read_sample()                  # force and position at one instant of the machine
+    assert sample.position_mm == machine.sim.snapshot().position_mm and sample.time == machine.clock.now()
+    assert machine.crosshead.status().moving
+    machine.fail("status", DeviceTimeout("no reply to status"))
+    with pytest.raises(DeviceTimeout, match="no reply to status"):
+        machine.crosshead.status()
+    assert machine.crosshead.status().moving        # the scripted failure was used up
+    with pytest.raises(ValueError, match="unknown request 'bogus'"):
+        machine.fail("bogus", DeviceTimeout("x"))
+    machine.crosshead.emergency_stop()
+    status = machine.crosshead.status()
+    assert status.emergency_stopped and status.fault and machine.crosshead.fault_reason() == "emergency"
+    machine.crosshead.move_to(START_MM, 60.0)       # refused while latched, as a drive ignores it
+    assert not machine.crosshead.status().moving
+    assert machine.requests["status"] == 5 and machine.requests["move"] == 2
