@@ -120,3 +120,13 @@ def test_a_stored_fit_resumed_for_diagnosis_is_not_searched_again(fitted, no_fit
     assert again == report and again.core_fit is not None
     # the core's model at the stored alpha and beta, its linear parameters solved: the fit's RMSE
     assert again.core_fit.rmse == pytest.approx(report.core_fit.rmse, rel=1e-3)
+
+
+def test_a_selected_structure_round_trips_with_every_candidate(tmp_path):
+    """One cycle: the structure the data determine is selected (identification.structure), so the
+    report carries the candidates tried, their orders and the largest structure's own report."""
+    report = fit_run(im.generate(im.REGIME_B, 5, cycles=1).to_rundata())
+    assert report.structure.candidates and report.largest is not None
+    loaded = FitReport.load(report.save(tmp_path / "one.fit.json"))
+    assert loaded == report and loaded.structure.candidates == report.structure.candidates
+    assert loaded.structure.chosen == report.orders and loaded.largest is None

@@ -273,7 +273,11 @@ class FitReport:
         """Write the sidecar JSON (atomically: a reader never sees half a file)."""
         path = Path(path)
         tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(self.sidecar_dict(), indent=1), encoding="utf-8")
+        data = self.sidecar_dict()
+        record = data.pop("report")
+        # the readable part indented, the record (thousands of samples) one number after another
+        text = json.dumps(data, indent=1)[:-2] + ',\n "report": ' + json.dumps(record, separators=(",", ":")) + "\n}"
+        tmp.write_text(text, encoding="utf-8")
         tmp.replace(path)
         return path
 
