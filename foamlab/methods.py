@@ -20,6 +20,7 @@ loses contact on unloading / height), plus named values such as ISO 3386-1 CV40
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -295,14 +296,37 @@ def load_method(name_or_path: str | Path = DEFAULT_METHOD, methods_dir: str | Pa
 
 #: Header key of a foamlab run file: the method file the run was made with (acquisition.engine).
 METHOD_FILE_KEY = "method_file"
+#: Header key of a foamlab run file: the method itself, as method_record() gives it.
+METHOD_KEY = "method_definition"
+
+
+def method_record(method: Method) -> dict[str, Any]:
+    """The resolved method as plain data (JSON in the run file's header): read back by
+    method_from_record, it is the method the run was made with, wherever its file went."""
+    return dataclasses.asdict(method)
+
+
+def method_from_record(record: Any) -> Method:
+    """The Method of a method_record (FoamlabError, one line, when it is not one)."""
+    try:
+        data = dict(record)
+        data["contact"] = ContactSearch(**data["contact"])
+        data["steps"] = tuple(Step(**s) for s in data["steps"])
+        data["values"] = tuple(ValueSpec(**v) for v in data.get("values", ()))
+        data["per_cycle"] = tuple(data.get("per_cycle", ()))
+        return Method(**data)
+    except (TypeError, KeyError, ValueError) as exc:
+        raise FoamlabError(f"the method recorded with the run is not readable ({exc})") from None
 
 
 def method_of_run(run: RunData) -> Method:
-    """The method a run was made with: the file recorded with it while that file still holds a
-    method of the run's name, else the built-in method of that name. A run made with a method
-    file that is not built in had no method results after the run (the name alone found nothing)."""
+    """The method a run was made with: the one recorded in the run file (a run foamlab made
+    records it), else the file recorded with it while that file still holds a method of the
+    run's name, else the built-in method of that name."""
     if not run.method:
         raise FoamlabError("no test method recorded with the run")
+    if run.metadata.get(METHOD_KEY):
+        return method_from_record(run.metadata[METHOD_KEY])
     recorded = str(run.metadata.get(METHOD_FILE_KEY) or "")
     if recorded and Path(recorded).is_file():
         try:
@@ -512,26 +536,35 @@ class CycleSpan:
 PLATEAU_MM = 0.005
 
 
-def cycle_spans(method: Method, run: RunData) -> list[CycleSpan]:
-    """Split a run made with `method` into its cycles, using the method's targets.
+def _peak_tolerance_mm(peak_mm: float) -> float:
+    """A programmed peak is reached within this (the contact zero and noise)."""
+    return max(0.02, 0.002 * peak_mm)
 
-    The run follows a known plan, so a cycle is found where the displacement
-    reaches the programmed peak (within max(0.02 mm, 0.2 %) for the contact zero
-    and noise) and comes back to zero; these are not generic turning points (see
-    foamlab.segmentation for runs of unknown origin). Cycles the run did not reach
-    are left out; an aborted cycle is returned with `complete=False`.
+
+def cycle_spans(method: Method, run: RunData) -> list[CycleSpan]:
+    """Split a run made with `method` into its cycles.
+
+    A run foamlab recorded has its cycles in its labels (RunData.segments: each sample's
+    step and cycle as the engine ran them). A run without them (an export of another
+    machine's software run with this method) follows a known plan all the same, so a cycle
+    is found where the displacement reaches the programmed peak (within max(0.02 mm, 0.2 %))
+    and comes back to zero: the plan places a dwell's ends to the sample, which generic
+    turning points (foamlab.segmentation) do not. Either way cycles the run did not reach
+    are left out and an aborted cycle is returned with `complete=False`.
     """
     height = run.specimen.height_mm
+    if len(run) == 0 or not height:
+        return []
+    if run.has_labels:
+        return _labelled_spans(method, run, height)
     x = run.displacement_mm
     n = len(x)
     spans: list[CycleSpan] = []
-    if n == 0 or not height:
-        return spans
     i = 0
     for cycle in range(1, method.n_cycles + 1):
         steps = [s for s in method.steps if s.cycle == cycle]
         peak = max(s.strain for s in steps if s.action == "compress") * height
-        tol = max(0.02, 0.002 * peak)
+        tol = _peak_tolerance_mm(peak)
         reached = np.flatnonzero(x[i:] >= peak - tol)
         if len(reached) == 0:
             break
@@ -551,6 +584,28 @@ def cycle_spans(method: Method, run: RunData) -> list[CycleSpan]:
         i = end
         if i >= n:
             break
+    return spans
+
+
+def _labelled_spans(method: Method, run: RunData, height: float) -> list[CycleSpan]:
+    """cycle_spans of a run with the engine's labels: its cycles and holds as segments() has them."""
+    seg = run.segments()
+    x, n = run.displacement_mm, len(run)
+    spans: list[CycleSpan] = []
+    for cycle in seg.cycles:
+        steps = [s for s in method.steps if s.cycle == cycle.number and s.action == "compress"]
+        if not steps:
+            continue
+        peak = max(s.strain for s in steps) * height
+        tol = _peak_tolerance_mm(peak)
+        top = cycle.loading.stop - 1            # a compress step ends at its target
+        if x[top] < peak - tol:
+            break                               # the run stopped before the peak
+        hold = next(((a, b) for a, b in seg.holds if a == top + 1), (top + 1, top + 1))
+        end = cycle.unloading.stop if cycle.unloading is not None else n
+        complete = cycle.unloading is not None and bool(x[end - 1] <= tol)
+        spans.append(CycleSpan(cycle.number, (cycle.loading.start, top + 1), hold, (top, end),
+                               float(x[top]), complete))
     return spans
 
 

@@ -30,8 +30,8 @@ from foamlab.identification.store import store_fit, stored_fit
 from foamlab.methods import Method, MethodResults, method_of_run
 from foamlab.prediction.forecast import ForecastScores, forecast_scores
 from foamlab.rundata import RunData
+from foamlab.runformat import is_run_file_path
 from foamlab.storage.catalog import CATALOG_NAME, Catalog
-from foamlab.storage.runfile import is_run_file
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +146,7 @@ def _diagnose(run: RunData, fit: FitReport, progress: Progress = _quiet) -> Diag
 def files_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
     """Write the fit and the diagnosis beside the run file (foamlab run files only: a vendor
     export opened for a look is not ours to add to); what is written already is left alone."""
-    if a.path is None or not is_ours(a.path):
+    if a.path is None or not is_run_file_path(a.path):
         return a
     progress("files", 0.0)
     try:
@@ -164,7 +164,7 @@ def files_stage(a: Analysis, progress: Progress = _quiet) -> Analysis:
 def catalog_stage(a: Analysis, folder: str | Path | None = None, progress: Progress = _quiet) -> Analysis:
     """Index the run, its fit and its diagnosis in `folder`'s catalog (default: the run's folder).
     Idempotent: run it after each stage whose result should be listed."""
-    if a.path is None or not is_ours(a.path):
+    if a.path is None or not is_run_file_path(a.path):
         return a
     progress("catalog", 0.0)
     folder = Path(folder) if folder is not None else a.path.parent
@@ -203,12 +203,3 @@ def analyse(run: RunData, path: str | Path | None = None, *, method: Method | No
             diagnose_stage(a, progress)
     files_stage(a, progress)
     return catalog_stage(a, folder, progress)
-
-
-def is_ours(path: Path) -> bool:
-    """A foamlab run file (its analyses may be written beside it; a vendor export is not ours)."""
-    try:
-        with open(path, encoding="utf-8-sig", errors="replace") as fh:
-            return is_run_file(fh.readline())
-    except OSError:
-        return False

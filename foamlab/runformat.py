@@ -10,13 +10,23 @@ from __future__ import annotations
 
 import json
 import math
+import re
+from pathlib import Path
 from typing import Any
 
 from foamlab.rundata import Specimen
 
 MAGIC = "# foamlab run file v1"
 BASE_COLUMNS = ("time_s", "displacement_mm", "force_N")
+#: Each sample's method step (0-based index in the plan) and cycle (1-based): RunData.step / .cycle.
+LABEL_COLUMNS = ("step", "cycle")
 META_PREFIX = "meta."
+#: Metadata keys of what the engine knew of the run: the machine profile's name (header), the
+#: schedule's statistics and how the run ended (trailer; `abort_reason` says why).
+PROFILE_KEY = "machine_profile"
+SCHEDULE_KEY = "schedule"
+END_KEY = "end"
+_KEY_VALUE = re.compile(r"^#\s*([A-Za-z_][\w.\-]*)\s*:\s?(.*)$")
 
 #: Header keys that map onto RunData fields (the rest is metadata).
 RUN_FIELDS = ("method", "machine", "started_at", "finished_at", "status", "abort_reason")
@@ -26,7 +36,24 @@ NO_TRAILER_REASON = "the file has no status line: the run was interrupted (or is
 
 
 def is_run_file(first_line: str) -> bool:
+    """The first line of a foamlab run file (what a reader already holds)."""
     return first_line.lstrip("\ufeff").startswith("# foamlab run file")
+
+
+def is_run_file_path(path: str | Path) -> bool:
+    """A foamlab run file on disk: its analyses may be kept beside it, it is catalogued; a
+    vendor export is not ours. An unreadable file is not one."""
+    try:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:
+            return is_run_file(fh.readline())
+    except OSError:
+        return False
+
+
+def header_value(line: str) -> tuple[str, str] | None:
+    """(key, value) of a ``# key: value`` line, None for any other line."""
+    m = _KEY_VALUE.match(line)
+    return (m.group(1), m.group(2).strip()) if m else None
 
 
 def runfile_fields(header: dict[str, str]) -> dict[str, Any]:

@@ -129,6 +129,8 @@ class Segmentation:
     contact_zero_N: float = 0.0         # unloaded load-cell reading
     contact_threshold_N: float = 0.0    # force at or below this = no contact
     first_contact: int | None = None    # first sample in contact, None if never
+    notes: tuple[str, ...] = ()         # where the engine's labels and the displacement disagree
+    labelled: bool = False              # the half-cycles are the engine's labels
 
     @property
     def n_cycles(self) -> int:
@@ -174,13 +176,26 @@ class Segmentation:
 
 
 def segment(run: Samples) -> Segmentation:
-    """Turning points, cycles, contact loss and first-cycle linear region of a run."""
+    """Turning points, cycles, contact loss and first-cycle linear region of a run.
+
+    The half-cycles are the engine's labels where the run has them (``run.step`` and
+    ``run.cycle``, a run foamlab acquired), found in the displacement otherwise (a vendor
+    file). Where both exist and disagree the labels are kept and ``notes`` says so."""
     # absurd magnitudes (1e300) overflow in squares; the result is still defined
     with np.errstate(over="ignore", invalid="ignore"):
-        return _segment(run)
+        x, f = _checked(run)
+        scale = _scale(x)
+        step, cycle = getattr(run, "step", None), getattr(run, "cycle", None)
+        if step is None or cycle is None:
+            halves, turning, holds = _found_halves(x, scale)
+            notes: tuple[str, ...] = ()
+        else:
+            halves, turning, holds = _labelled_halves(x, np.asarray(step), np.asarray(cycle), scale)
+            notes = _disagreement(x, scale, halves)
+        return _assemble(run, x, f, scale, halves, turning, holds, notes)
 
 
-def _segment(run: Samples) -> Segmentation:
+def _checked(run: Samples) -> tuple[np.ndarray, np.ndarray]:
     x = np.asarray(run.displacement_mm, dtype=float)
     f = np.asarray(run.force_N, dtype=float)
     n = len(x)
@@ -188,7 +203,25 @@ def _segment(run: Samples) -> Segmentation:
         raise FoamlabError(f"run has {n} samples: too few to find a half-cycle")
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(f))):
         raise FoamlabError("run has NaN or infinite displacement/force values")
+    return x, f
 
+
+class _Scale(NamedTuple):
+    """What the displacement says about itself: its noise and stroke, the reversal that counts
+    (hysteresis), the smoothing window, the smoothed displacement and the holds."""
+
+    noise: float
+    stroke: float
+    hysteresis: float
+    step: int                            # decimation of the first pass
+    coarse_pivots: list[tuple[int, bool]]
+    window: int
+    smooth: np.ndarray
+    holds: list[tuple[int, int]]
+
+
+def _scale(x: np.ndarray) -> _Scale:
+    n = len(x)
     noise_x = _noise_sigma(x)
     lo, hi = np.percentile(x, [0.1, 99.9]) if n >= 1000 else (x.min(), x.max())
     stroke = float(hi - lo)
@@ -197,40 +230,39 @@ def _segment(run: Samples) -> Segmentation:
             f"no motion: the displacement spans {stroke:.4g} mm, within its noise "
             f"({noise_x:.2g} mm); no half-cycle to analyse")
     hysteresis = max(HYSTERESIS_FRACTION_OF_STROKE * stroke, HYSTERESIS_NOISE_MULTIPLE * noise_x)
-
     # First pass on a decimated copy (bounded cost on long runs), to learn how long
     # a half-cycle is and so choose the smoothing window from the data.
     step = max(1, n // 20000)
-    coarse = x[::step]
-    coarse_pivots = _zigzag(coarse, hysteresis)
-    edges = np.concatenate(([0], np.asarray([p for p, _ in coarse_pivots], dtype=int) * step,
-                            [n - 1]))
+    coarse_pivots = _zigzag(x[::step], hysteresis)
+    edges = np.concatenate(([0], np.asarray([p for p, _ in coarse_pivots], dtype=int) * step, [n - 1]))
     shortest_half = int(np.min(np.diff(edges))) if len(edges) > 1 else n
     window = _odd(np.clip(shortest_half // 50, 5, 401), n)
-
     xs = _smooth(x, window)
     speed = np.abs(_smooth(x, window, deriv=1))
-    moving_speed = float(np.percentile(speed, 95))
-    is_hold = speed < HOLD_SPEED_FRACTION * moving_speed
+    is_hold = speed < HOLD_SPEED_FRACTION * float(np.percentile(speed, 95))
     holds = [(a, b) for a, b in _true_spans(is_hold) if b - a >= window]
+    return _Scale(noise_x, stroke, float(hysteresis), step, coarse_pivots, window, xs, holds)
 
+
+def _found_halves(x: np.ndarray, sc: _Scale) -> tuple[list[HalfCycle], np.ndarray, list[tuple[int, int]]]:
+    """Half-cycles found in the displacement alone (a run without the engine's labels)."""
+    n, window, holds = len(x), sc.window, sc.holds
     turning: list[int] = []
     # Place each reversal on the extreme of the smoothed displacement nearby, then
     # on the raw extreme within a few samples of it: smoothing rounds a sharp
     # reversal off by a sample or so, and the peak force belongs to the loading.
     radius = max(2, window // 8)
-    for p, is_max in coarse_pivots:
-        centre = p * step
-        a, b = max(0, centre - 2 * step - window), min(n, centre + 2 * step + window + 1)
+    for p, is_max in sc.coarse_pivots:
+        centre = p * sc.step
+        a, b = max(0, centre - 2 * sc.step - window), min(n, centre + 2 * sc.step + window + 1)
         pick = np.argmax if is_max else np.argmin
-        smooth_at = a + int(pick(xs[a:b]))
+        smooth_at = a + int(pick(sc.smooth[a:b]))
         a, b = max(0, smooth_at - radius), min(n, smooth_at + radius + 1)
         turning.append(a + int(pick(x[a:b])))
     turning_arr = np.asarray(sorted(set(turning)), dtype=int)
 
     # Half-cycle boundaries, with holds at the boundaries taken out.
-    first = 0
-    last = n  # exclusive
+    first, last = 0, n  # last exclusive
     for a, b in holds:
         if a == 0:
             first = b - 1       # motion starts at the end of the initial hold
@@ -250,48 +282,127 @@ def _segment(run: Samples) -> Segmentation:
     bounds = [(a, b) for a, b in bounds if b - a >= 2]
     if not bounds:
         raise FoamlabError("no half-cycle: the displacement never moves monotonically")
-
     halves: list[HalfCycle] = []
     cycle_no = 0
-    leading_unloading = None
     for a, b in bounds:
-        direction = LOADING if xs[b - 1] > xs[a] else UNLOADING
-        if direction == LOADING:
-            cycle_no += 1
+        direction = LOADING if sc.smooth[b - 1] > sc.smooth[a] else UNLOADING
+        cycle_no += direction == LOADING
         halves.append(HalfCycle(int(a), int(b), direction, cycle_no))
+    return halves, turning_arr, list(holds)
+
+
+@dataclass(frozen=True)
+class LabelSettings:
+    """How the engine's labels become half-cycles, and when the displacement's own
+    segmentation is said to disagree with them."""
+
+    #: A labelled step that moves the plate less than this fraction of the stroke (or than the
+    #: reversal noise allows, HYSTERESIS_NOISE_MULTIPLE) is a hold: a dwell, whose position
+    #: stands still to the encoder's resolution.
+    hold_fraction_of_stroke: float = 0.01
+    #: Disagreement: another number of cycles, or a cycle boundary further apart than this
+    #: many samples or this many smoothing windows (which moves found boundaries at a hold by
+    #: about half of itself). On the engine's runs both agree to a sample (3-20 cycles, 16 Hz).
+    tolerance_samples: int = 5
+    tolerance_windows: float = 1.0
+
+
+LABELS = LabelSettings()
+
+
+def _labelled_halves(x: np.ndarray, step: np.ndarray, cycle: np.ndarray, sc: _Scale,
+                     settings: LabelSettings = LABELS,
+                     ) -> tuple[list[HalfCycle], np.ndarray, list[tuple[int, int]]]:
+    """Half-cycles from the engine's labels: each run of one step is a loading, an unloading
+    or a hold by how far the plate moved in it (a step's own samples say which, no method
+    needed). Consecutive half-cycles share their turning sample, as found ones do: the last
+    sample of a step starts the next half-cycle (the last sample of a hold, across one)."""
+    still = max(HYSTERESIS_NOISE_MULTIPLE * sc.noise, settings.hold_fraction_of_stroke * sc.stroke)
+    changes = np.flatnonzero(np.diff(step) != 0) + 1
+    starts = np.concatenate(([0], changes))
+    stops = np.concatenate((changes, [len(x)]))
+    halves: list[HalfCycle] = []
+    holds: list[tuple[int, int]] = []
+    for a, b in zip(starts.tolist(), stops.tolist()):
+        begin = max(a - 1, 0)
+        moved = x[b - 1] - x[begin]
+        if step[a] < 0 or abs(moved) <= still:
+            holds.append((a, b))
+            continue
+        direction = LOADING if moved > 0 else UNLOADING
+        if halves and halves[-1].direction == direction:     # two steps one way (a hold between)
+            halves[-1] = HalfCycle(halves[-1].start, b, direction, halves[-1].cycle)
+            continue
+        halves.append(HalfCycle(begin, b, direction, int(cycle[a])))
+    if not halves:
+        raise FoamlabError("no half-cycle: the labelled steps never move the plate")
+    turning = np.asarray([h.stop - 1 for h in halves[:-1]], dtype=int)    # a step ends at its target
+    return halves, turning, holds
+
+
+def _disagreement(x: np.ndarray, sc: _Scale, labelled: list[HalfCycle],
+                  check: LabelSettings = LABELS) -> tuple[str, ...]:
+    """One note when segmenting the displacement would give other cycles than the labels."""
+    try:
+        found, _, _ = _found_halves(x, sc)
+    except FoamlabError as exc:
+        return (f"the engine's cycle labels are kept; the displacement alone finds none ({exc})",)
+    mine, theirs = _cycles(labelled)[0], _cycles(found)[0]
+    if len(mine) != len(theirs):
+        return (f"the engine's labels are kept: {len(mine)} cycles; segmenting the displacement "
+                f"would find {len(theirs)}",)
+    tolerance = max(check.tolerance_samples, int(check.tolerance_windows * sc.window))
+    offsets = [abs(a - b) for m, t in zip(mine, theirs)
+               for a, b in ((m.start, t.start), (m.loading.stop, t.loading.stop), (m.stop, t.stop))]
+    worst = max(offsets, default=0)
+    if worst > tolerance:
+        return (f"the engine's labels are kept: segmenting the displacement would move a cycle "
+                f"boundary by {worst} samples (more than {tolerance})",)
+    return ()
+
+
+def _cycles(halves: list[HalfCycle]) -> tuple[list[Cycle], HalfCycle | None]:
+    """Cycle k: the k-th loading and the unloading after it; an unloading before any loading
+    is the leading one."""
     cycles: list[Cycle] = []
+    leading = None
     for i, half in enumerate(halves):
-        if half.direction == UNLOADING and half.cycle == 0:
-            leading_unloading = half
+        if half.direction == UNLOADING and not cycles and i == 0:
+            leading = half
         elif half.direction == LOADING:
             nxt = halves[i + 1] if i + 1 < len(halves) else None
             unloading = nxt if nxt is not None and nxt.direction == UNLOADING else None
             cycles.append(Cycle(half.cycle, half, unloading))
+    return cycles, leading
+
+
+def _assemble(run: Samples, x: np.ndarray, f: np.ndarray, sc: _Scale, halves: list[HalfCycle],
+              turning: np.ndarray, holds: list[tuple[int, int]], notes: tuple[str, ...]) -> Segmentation:
+    cycles, leading_unloading = _cycles(halves)
     if not cycles and leading_unloading is None:
         raise FoamlabError("no half-cycle found in the displacement")
-
-    in_stroke = np.zeros(n, dtype=bool)
-    in_stroke[bounds[0][0]:bounds[-1][1]] = True
-    contact = _contact(x, f, window, in_stroke)
-
+    in_stroke = np.zeros(len(x), dtype=bool)
+    in_stroke[halves[0].start:halves[-1].stop] = True
+    contact = _contact(x, f, sc.window, in_stroke)
     linear = None
     if cycles:
-        linear = _linear_region(x, f, cycles[0].loading, contact, window,
-                                motion_tolerance=max(5 * noise_x, 1e-3 * stroke))
-
+        linear = _linear_region(x, f, cycles[0].loading, contact, sc.window,
+                                motion_tolerance=max(5 * sc.noise, 1e-3 * sc.stroke))
     return Segmentation(
         run=run,
-        turning_points=turning_arr,
+        turning_points=turning,
         cycles=cycles,
         contact_lost=contact.lost,
         first_cycle_linear_region=linear,
-        holds=[(a, b) for a, b in holds],
+        holds=holds,
         leading_unloading=leading_unloading,
-        stroke_mm=stroke,
-        hysteresis_mm=float(hysteresis),
+        stroke_mm=sc.stroke,
+        hysteresis_mm=sc.hysteresis,
         contact_zero_N=contact.zero,
         contact_threshold_N=contact.threshold,
         first_contact=contact.first,
+        notes=notes,
+        labelled=getattr(run, "step", None) is not None,
     )
 
 

@@ -118,6 +118,7 @@ def test_a_stored_fit_resumed_for_diagnosis_is_not_searched_again(fitted, no_fit
     run_file, side, report = fitted
     again = resumed(FitReport.load(side), load_run(run_file))
     assert again == report and again.core_fit is not None
+    assert again.prepared.nodes.between_samples == report.prepared.nodes.between_samples
     # the core's model at the stored alpha and beta, its linear parameters solved: the fit's RMSE
     assert again.core_fit.rmse == pytest.approx(report.core_fit.rmse, rel=1e-3)
 

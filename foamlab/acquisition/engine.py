@@ -22,6 +22,7 @@ The analysis of the run (method results, fit, diagnosis) is foamlab.pipeline's, 
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import logging
 import math
@@ -40,8 +41,9 @@ from foamlab.acquisition.safety import (AT_TARGET_MM, STOP_CONFIRM_S, Limits, St
                                         check_crosshead_status, check_safe_to_tare, fault_name, park)
 from foamlab.acquisition.sampling import Sampler
 from foamlab.acquisition.schedule import CpuWakeupLatency, raise_thread_priority
-from foamlab.methods import METHOD_FILE_KEY, Method, PlannedStep
+from foamlab.methods import METHOD_FILE_KEY, METHOD_KEY, Method, PlannedStep, method_record
 from foamlab.rundata import Specimen
+from foamlab.runformat import END_KEY, PROFILE_KEY, SCHEDULE_KEY
 from foamlab.storage.recorder import Recorder, RecordingFailed
 from foamlab.storage.runfile import now_iso
 
@@ -74,7 +76,8 @@ class RunEngine:
         self.progress_interval_s = float(progress_interval_s)
         self.manage_connection = connect
         profile = getattr(machine, "profile", None) or {}     # drivers built from a profile carry it
-        self.machine_name = machine_name or profile.get("name") or type(machine).__name__
+        self.profile_name = str(profile.get("name") or "")
+        self.machine_name = machine_name or self.profile_name or type(machine).__name__
         if not (self.speedup > 0 and math.isfinite(self.speedup)):
             raise FoamlabError(f"speedup must be a positive number, got {speedup!r}")
         if not specimen.height_mm or not specimen.height_mm > 0:
@@ -301,8 +304,11 @@ class RunEngine:
             "start_position_mm": round(self._start_position, 4), "limits": self.limits.describe(),
             "nominal_duration_s": round(self.nominal_s, 3), "scheduling": self.scheduling,
         }
-        if self.method.source:      # a method file that is not built in is found again by it
+        if self.method.source:      # where the method came from (the method itself is the next key)
             header[METHOD_FILE_KEY] = str(Path(self.method.source).resolve())
+        header[METHOD_KEY] = method_record(self.method)
+        if self.profile_name:
+            header[PROFILE_KEY] = self.profile_name
         return header
 
     def _run_step(self, planned: PlannedStep) -> None:
@@ -382,19 +388,15 @@ class RunEngine:
             status = FINISHED if end == END_FINISHED else ABORTED
             if status == ABORTED:
                 log.info("run aborted: %s (%s)", reason, stop_note)
-            finished_at = now_iso()
-            self.recorder.finish(status, reason, safety=safety)
+            timing = self._sampler.stats()
+            self.recorder.finish(status, reason, safety=safety,
+                                 facts={SCHEDULE_KEY: dataclasses.asdict(timing), END_KEY: end})
             park_note = "not parked"
             if self._stopper.link_alive and end in PARK_AFTER and self._start_position is not None:
                 park_note = self._park()
             elif end not in PARK_AFTER:
                 park_note = f"not parked after {end}: {stop_note}"
-            run = self.recorder.run_data(
-                status=status, reason=reason, finished_at=finished_at, specimen=self.specimen,
-                method=self.method.name, machine=self.machine_name,
-                metadata={"sampling_hz": self.method.sampling_hz, "speedup": self.speedup,
-                          "contact_position_mm": self._contact, "preload_N": self.method.contact.preload_N})
-            timing = self._sampler.stats()
+            run = self.recorder.run_data()      # the file's facts, as load_run reads them
             result = RunResult(self.recorder.path, status, reason, len(self.recorder), timing.missed, end,
                                park_note, self._contact, timing, run, safety)
             if status == FINISHED:

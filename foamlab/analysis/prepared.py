@@ -36,7 +36,7 @@ from foamlab.model.response import paper_residual
 from foamlab.model.components import elastic_force
 from foamlab.model.effects import estimate_velocity, loading_rate
 from foamlab.rundata import RunData
-from foamlab.segmentation import HalfCycle, Segmentation, segment
+from foamlab.segmentation import HalfCycle, Segmentation
 
 #: The decimated fit keeps about this many samples per half-cycle (the curves are
 #: smooth over a half-cycle; the final polish and the statistics use every sample).
@@ -260,9 +260,8 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
     if hi - lo <= max(FLAT_FORCE_NOISE_MULTIPLE * noise, 1e-9 * max(1.0, abs(hi))):
         raise FoamlabError(f"force is flat: it spans {hi - lo:.3g} N, within its noise ({noise:.2g} N); "
                            "the specimen was not loaded or the force channel is not connected")
-    seg = segment(run)
-    cycles = seg.cycles
-    halves = seg.half_cycles
+    seg = run.segments()
+    cycles, halves = seg.cycles, seg.half_cycles
     if not cycles or cycles[0].unloading is None:
         have = ", ".join(h.label for h in halves) or "none"
         raise FoamlabError(f"no complete cycle: identification needs at least one loading and its "
@@ -285,18 +284,14 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
         raise FoamlabError(f"only {int(contact.sum())} samples in contact with the specimen; "
                            "nothing to identify")
 
-    dt = np.diff(run.time_s)
-    native = float(np.median(dt))
+    native = float(np.median(np.diff(run.time_s)))
     half_samples = min(len(h) for h in own_halves)
     q = max(1, half_samples // FIT_SAMPLES_PER_HALF_CYCLE, len(observed) // FIT_ROWS_MAX)
     in_contact = observed[contact]
     # decimated rows: the samples nearest to the operators' grid (every q-th sample
     # from the first cycle's start on a regular clock), plus the turning points
     fit_step = native * q
-    t0 = run.time_s[minima[0]]
-    grid_t = t0 + fit_step * np.arange(int((run.time_s[-1] - t0) / fit_step) + 1)
-    nearest = np.clip(np.searchsorted(run.time_s, grid_t), 1, n - 1)
-    nearest -= (grid_t - run.time_s[nearest - 1]) < (run.time_s[nearest] - grid_t)
+    nearest = _nearest_on_grid(run.time_s, run.time_s[minima[0]], fit_step)
     corners = np.unique(np.asarray(maxima + minima + dwell_starts))
     fit_rows = np.intersect1d(np.union1d(nearest, corners), in_contact)
     # half-cycles as the model switches them: (cycle, direction) of the labels
@@ -308,7 +303,7 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
     x_scale = float(x_scale_mm) if x_scale_mm else float(np.max(np.abs(xs)))
     if not x_scale > 0:
         raise FoamlabError("displacement never leaves zero: nothing to identify")
-    warnings = []
+    warnings = list(seg.notes)
     if seg.leading_unloading is not None:
         warnings.append("the run starts with an unloading (before the first loading); it is left out")
     n_res = sum(1 for c in cycles if c.unloading is not None)
@@ -338,6 +333,14 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
 OFF_SCHEDULE, RARE_OFF_SCHEDULE = 0.5, 0.02
 
 
+def _nearest_on_grid(t: np.ndarray, t0: float, step: float) -> np.ndarray:
+    """Index of the sample nearest to each instant t0 + k * step up to the last sample."""
+    grid_t = t0 + step * np.arange(int((t[-1] - t0) / step) + 1)
+    nearest = np.clip(np.searchsorted(t, grid_t), 1, len(t) - 1)
+    nearest -= (grid_t - t[nearest - 1]) < (t[nearest] - grid_t)
+    return nearest
+
+
 def on_schedule(run: RunData) -> tuple[RunData, int]:
     """The run without the samples taken off its sampling schedule, and how many there were.
 
@@ -359,9 +362,7 @@ def on_schedule(run: RunData) -> tuple[RunData, int]:
     bad[:-1] |= off
     if not bad.any() or bad.mean() > RARE_OFF_SCHEDULE:
         return run, 0
-    keep = ~bad
-    return replace(run, time_s=t[keep], displacement_mm=np.asarray(run.displacement_mm)[keep],
-                   force_N=np.asarray(run.force_N)[keep]), int(bad.sum())
+    return run.take(~bad), int(bad.sum())
 
 
 def _series(run: RunData, name: str, labels: HistoryLabels, nodes: PathNodes,

@@ -74,8 +74,10 @@ def _fill(row: BatchRow, a: pipeline.Analysis) -> None:
     run = a.run
     row.specimen, row.started_at, row.status = run.specimen.label, run.started_at, run.status
     row.samples = len(run)
+    cycle_notes: tuple[str, ...] = ()
     try:
-        row.cycles = run.segments().n_cycles
+        seg = run.segments()
+        row.cycles, cycle_notes = seg.n_cycles, seg.notes
     except Exception:   # the fit says why a run cannot be segmented
         row.cycles = 0
     if run.status == "aborted":
@@ -91,7 +93,7 @@ def _fill(row: BatchRow, a: pipeline.Analysis) -> None:
         row.parameters = {n: float(v) for n, v in zip(a.fit.names, a.fit.values)}
     if a.diagnosis is not None:
         _fill_diagnosis(row, a)
-    row.note = "; ".join(e for e in (a.files_error,) if e)
+    row.note = "; ".join(e for e in (*cycle_notes, a.files_error) if e)
 
 
 def _fill_diagnosis(row: BatchRow, a: pipeline.Analysis) -> None:

@@ -78,6 +78,7 @@ def load_for_display(path: str | Path) -> Loaded:
         segmentation = run.segments()
         cycles, phases = labels_from_segmentation(segmentation, len(run))
         n_cycles = segmentation.n_cycles
+        note = "; ".join(segmentation.notes)
     except FoamlabError as exc:
         note = f"no cycles found: {exc}"
     analysis = pipeline.Analysis(run, Path(path))

@@ -23,6 +23,7 @@ from foamlab.gui.report import Report
 from foamlab.gui.results import ResultsPanel
 from foamlab.gui.status import end_message, missed_flag
 from foamlab.gui.units import UnitsChoice
+from foamlab.runformat import is_run_file_path
 
 log = logging.getLogger(__name__)
 
@@ -336,7 +337,7 @@ class RunDisplay(QtWidgets.QWidget):
         path = a.path if a is not None else None
         if path is None:
             return self.out_dir / "report.pdf"
-        return default_report_path(path, pipeline.is_ours(path))
+        return default_report_path(path, is_run_file_path(path))
 
     def write_report(self, out: Path) -> None:
         """The shown run's test report (foamlab.reporting) on the analysis thread, with what the

@@ -81,8 +81,11 @@ def fit_run(run: RunData, orders: Orders | str | tuple | None = None, progress: 
 def resumed(report: FitReport, run: RunData) -> FitReport:
     """A stored report (FitReport.load) with the working state diagnosis extends: the run prepared
     again and the analysis core's model at the report's alpha and beta, its linear parameters and
-    contact set solved - nothing searched, the run is not fitted again."""
+    contact set solved - nothing searched, the run is not fitted again. Its turns are placed as
+    the fit placed them."""
     fd = prepare(run, x_scale_mm=report.params.x_scale_mm)
+    if fd.nodes.between_samples != report.turns_between_samples:
+        fd = fd.other_turns()
     return report.with_work(prepared=fd, core_fit=solved_at([fd.series], report.params))
 
 
@@ -462,6 +465,7 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
         autocorrelation_time=float(tau), contact_zero_N=float(jf.contact_zero_N), status=int(jf.status),
         message=str(jf.message), samples=samples, turns=_turn_samples(fd.series.used[first:last], whole),
         structure=structure, starts=tuple(jf.starts), elapsed_s=time.perf_counter() - started,
+        turns_between_samples=bool(fd.nodes.between_samples),
         work=FitWork(fd, base, free if apart is not None else None, largest),
     )
 

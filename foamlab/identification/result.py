@@ -118,6 +118,7 @@ class FitReport:
     structure: StructureChoice | None = None  # the structures tried and the one chosen (or forced)
     starts: tuple[str, ...] = ()
     elapsed_s: float = 0.0
+    turns_between_samples: bool = True   # turns without a stop placed between samples (else at one)
     work: FitWork | None = field(default=None, compare=False, repr=False, metadata={"saved": False})
 
     def __eq__(self, other: object) -> bool:

@@ -7,17 +7,16 @@ project's own run files (foamlab.storage.runfile) are a superset of this format.
 
 from __future__ import annotations
 
-import re
+import numpy as np
 
 from foamlab import FoamlabError
 from foamlab.importers._table import Rows, check_samples, parse_rows
 from foamlab.importers._text import TextFile
 from foamlab.rundata import RunData
-from foamlab.runformat import BASE_COLUMNS, NO_TRAILER_REASON, runfile_fields
+from foamlab.runformat import BASE_COLUMNS, LABEL_COLUMNS, NO_TRAILER_REASON, header_value, runfile_fields
 
 FORMAT = "plain CSV"
 HEADER = ",".join(BASE_COLUMNS)
-_KEY_VALUE = re.compile(r"^#\s*([A-Za-z_][\w.\-]*)\s*:\s?(.*)$")
 
 
 def header_fields(line: str) -> list[str]:
@@ -41,9 +40,9 @@ def parse(text_file: TextFile, run_file: bool = False) -> RunData:
     header_index = 0
     for header_index, line in enumerate(lines):
         if line.startswith("#"):
-            m = _KEY_VALUE.match(line)
-            if m:
-                header[m.group(1)] = m.group(2).strip()
+            item = header_value(line)
+            if item:
+                header[item[0]] = item[1]
             elif line.strip("# ") and not line.startswith("# foamlab run file"):
                 comments.append(line.lstrip("# ").rstrip())
             continue
@@ -59,9 +58,9 @@ def parse(text_file: TextFile, run_file: bool = False) -> RunData:
         raise FoamlabError(f"{source}: no header row '{HEADER}' (only comments)")
     rows, trailer_lines = Rows.select(lines, header_index + 1, comments=True)
     for _, line in trailer_lines:  # e.g. the run file's status trailer
-        m = _KEY_VALUE.match(line)
-        if m:
-            header[m.group(1)] = m.group(2).strip()
+        item = header_value(line)
+        if item:
+            header[item[0]] = item[1]
     finished = "status" in header
     metadata_extra: dict = {}
     if run_file and not finished and len(rows) and not text_file.ends_with_newline:
@@ -71,10 +70,13 @@ def parse(text_file: TextFile, run_file: bool = False) -> RunData:
             metadata_extra["dropped_partial_line"] = line_no
     if not len(rows):
         raise FoamlabError(f"{source}: no data rows after the header row")
-    data = parse_rows(rows, source=source, sep=",", decimal=".", ncols=len(names),
-                      wanted={c: i for i, c in enumerate(BASE_COLUMNS)}, required=BASE_COLUMNS,
-                      ends_with_newline=text_file.ends_with_newline)
+    wanted = {c: i for i, c in enumerate(BASE_COLUMNS)}
+    wanted.update({c: names.index(c, 3) for c in LABEL_COLUMNS if c in names[3:]})
+    data = parse_rows(rows, source=source, sep=",", decimal=".", ncols=len(names), wanted=wanted,
+                      required=BASE_COLUMNS, ends_with_newline=text_file.ends_with_newline)
     check_samples(source, data["time_s"], rows)
+    # the engine's step and cycle of each sample (a foamlab run); a column with gaps is not labels
+    labelled = all(c in data and np.all(np.isfinite(data[c])) for c in LABEL_COLUMNS)
     fields = runfile_fields(header)
     metadata = fields.pop("metadata")
     if run_file and not finished:
@@ -89,8 +91,9 @@ def parse(text_file: TextFile, run_file: bool = False) -> RunData:
         metadata["extra_columns"] = names[3:]
     if comments:
         metadata["comments"] = comments
+    labels = {c: data[c].astype(int) for c in LABEL_COLUMNS} if labelled else {}
     return RunData(data["time_s"], data["displacement_mm"], data["force_N"],
-                   source=source, metadata=metadata, **fields)
+                   source=source, metadata=metadata, **labels, **fields)
 
 
 def read(text_file: TextFile) -> RunData:

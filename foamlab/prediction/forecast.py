@@ -316,15 +316,15 @@ class ForecastScores:
 
 def forecast_scores(run: RunData, method=None) -> ForecastScores:
     """Offline: each cycle after the first MIN_CYCLES predicted from the cycles before it
-    (cycles found by foamlab.segmentation), as the live prediction does during a run."""
+    (the run's cycles: RunData.segments), as the live prediction does during a run."""
     seg = run.segments()
     cycles = [c for c in seg.cycles if c.unloading is not None]
-    out = ForecastScores()
+    out = ForecastScores(note="; ".join(seg.notes))
     if len(cycles) <= MIN_CYCLES:
         out.note = f"a forecast needs {MIN_CYCLES} cycles before the one it predicts; the run has {len(cycles)}"
         return out
     hz = run.sampling_hz
-    notes = []
+    notes = list(seg.notes)
     for cycle in cycles[MIN_CYCLES:MIN_CYCLES + MAX_OFFLINE_SCORES]:
         prefix = run.slice(0, cycle.start)
         try:

@@ -21,11 +21,9 @@ from pathlib import Path
 from foamlab import FoamlabError, __version__, pipeline
 from foamlab.methods import Method, load_method, method_of_run
 from foamlab.rundata import RunData
+from foamlab.runformat import SCHEDULE_KEY, is_run_file_path
 from foamlab.storage.catalog import sidecar_path
-from foamlab.storage.runfile import is_run_file
 
-#: Header / metadata keys a run file may carry its schedule's missed deadlines under.
-MISSED_KEYS = ("missed", "missed_samples", "samples_missed", "missed_deadlines")
 
 @dataclass(frozen=True)
 class ScheduleSummary:
@@ -96,12 +94,11 @@ def schedule_summary(run: RunData, method: Method | None) -> ScheduleSummary:
     if method is not None and run.specimen.height_mm:
         expected = method.expected_samples(run.specimen.height_mm)
     missed, source = None, ""
-    for key in MISSED_KEYS:
-        value = _number(run.metadata.get(key))
-        if value is not None:
-            missed, source = int(value), "recorded in the run file"
-            break
-    if missed is None and hz and n > 1:
+    recorded = run.metadata.get(SCHEDULE_KEY)       # the engine's count, in a foamlab run file's trailer
+    value = _number(recorded.get("missed")) if isinstance(recorded, dict) else None
+    if value is not None:
+        missed, source = int(value), "recorded in the run file"
+    elif hz and n > 1:
         # deadlines between the first and the last sample, less the samples: a sample stamped a
         # little off its deadline moves no count (a gap test would), a skipped deadline does
         deadlines = int(round(duration * hz)) + 1
@@ -119,15 +116,6 @@ def _number(v) -> float | None:
 
 def _quiet(stage: str, fraction: float) -> None:
     pass
-
-
-def _is_run_file(path: Path) -> bool:
-    """A foamlab run file (sidecars may go beside it); an export opened for a report is not ours."""
-    try:
-        with open(path, encoding="utf-8-sig", errors="replace") as fh:
-            return is_run_file(fh.readline())
-    except OSError:
-        return False
 
 
 def _read_json(path: Path) -> dict | None:
@@ -191,7 +179,7 @@ def gather(path: str | Path, analysis: pipeline.Analysis | None = None, *, metho
 
 def _fit_and_diagnose(c: ReportContent, diagnose: bool, store: bool, progress: pipeline.Progress) -> None:
     a = c.analysis
-    ours = _is_run_file(c.path)
+    ours = is_run_file_path(c.path)
     had_fit = a.fit is not None
     pipeline.fit_stage(a, progress)
     if a.fit is not None and not had_fit and a.fit_path is None:

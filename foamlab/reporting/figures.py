@@ -40,14 +40,17 @@ def _guarded(what: str, notes: list[str], draw, out: Path) -> Path | None:
 
 
 def curves(run, folder: Path, notes: list[str]) -> Path | None:
-    return _guarded("curves", notes, lambda out: draw_curves(run, out), folder / "curves.png")
+    return _guarded("curves", notes, lambda out: draw_curves(run, out, notes), folder / "curves.png")
 
 
-def draw_curves(run, out: Path) -> Path:
+def draw_curves(run, out: Path, notes: list[str] | None = None) -> Path:
     """Force-displacement per cycle (loading solid, unloading dashed) and force-time with the
-    displacement on a second axis (the layout of `foamlab show --plot`, without its markers)."""
+    displacement on a second axis (the layout of `foamlab show --plot`, without its markers).
+    Where the run's labels and its displacement disagree on the cycles, `notes` is told."""
     plt = _plt()
     seg = run.segments()
+    if notes is not None:
+        notes.extend(n for n in seg.notes if n not in notes)
     fig, (ax_fx, ax_ft) = plt.subplots(1, 2, figsize=(11, 4.0))
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for cycle in seg.cycles:

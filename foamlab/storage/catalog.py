@@ -24,7 +24,7 @@ from typing import Any, Callable, Iterator
 
 from foamlab import FoamlabError
 from foamlab.rundata import RunData
-from foamlab.runformat import is_run_file
+from foamlab.runformat import is_run_file_path
 
 CATALOG_NAME = "catalog.sqlite"
 SIDECAR_KINDS = ("fit", "diagnosis")
@@ -105,11 +105,7 @@ class SidecarTarget:
 
 def sidecar_target(run_path: str | Path, kind: str, out_dir: str | Path | None = None) -> SidecarTarget:
     run_path = Path(run_path)
-    try:
-        with open(run_path, encoding="utf-8-sig", errors="replace") as fh:
-            ours = is_run_file(fh.readline())
-    except OSError:
-        ours = False
+    ours = is_run_file_path(run_path)
     if out_dir is not None:
         out = Path(out_dir)
         if not out.is_dir():
@@ -369,17 +365,7 @@ class Catalog:
 
 
 def _run_files(folder: Path) -> Iterator[Path]:
-    from foamlab.storage.runfile import MAGIC  # noqa: PLC0415
-
-    magic = MAGIC.encode()
-    for path in sorted(folder.rglob("*.csv")):
-        try:
-            with open(path, "rb") as fh:
-                head = fh.read(len(magic) + 3).lstrip(b"\xef\xbb\xbf")
-        except OSError:
-            continue
-        if head.startswith(magic):
-            yield path
+    return (path for path in sorted(folder.rglob("*.csv")) if is_run_file_path(path))
 
 
 def _read_json(path: Path) -> dict:

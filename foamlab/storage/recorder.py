@@ -5,7 +5,9 @@ It owns the run file's name (``<date-time>_<specimen>_<method>.csv``, never over
 its ``#`` header (what the engine says describes the run), one line per sample with the step
 and cycle each sample belongs to as columns, the flush of every line (a crash of the process
 loses nothing) and the fsync on its own thread (a power cut loses at most FSYNC_INTERVAL_S;
-the disk never delays a sample), and the arrays that become the run's RunData.
+the disk never delays a sample), and the arrays that become the run's RunData. That RunData is
+made of the lines the file holds (header, labels, trailer), read as load_run reads them: the
+run analysed straight after acquisition is the run read back from its file.
 
 A full disk or a folder that became unwritable raises RecordingFailed (one line) from
 ``record``: the engine then stops the machine. Every sample already written stays in the file,
@@ -29,7 +31,8 @@ import numpy as np
 
 from foamlab import FoamlabError
 from foamlab.rundata import RunData, Specimen
-from foamlab.storage.runfile import RunWriter, now_iso
+from foamlab.runformat import NO_TRAILER_REASON, header_value, runfile_fields
+from foamlab.storage.runfile import RunWriter, now_iso, trailer_lines
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +103,7 @@ class Recorder:
         self.failure = ""                   # why the file stopped taking samples ("" while it does)
         self.written = 0                    # samples that reached the file
         self._writer: RunWriter | None = None
+        self._lines: list[str] = []         # the header and trailer lines, as the file has them
         self._syncer: FileSyncer | None = None
         self._time: list[float] = []
         self._disp: list[float] = []
@@ -145,6 +149,7 @@ class Recorder:
         except FoamlabError as exc:
             raise RecordingFailed(str(exc)) from None
         self.path = path
+        self._lines = list(self._writer.header)
         self._syncer = FileSyncer(path)
         return path
 
@@ -187,30 +192,37 @@ class Recorder:
         return np.asarray(self._step, int), np.asarray(self._cycle, int)
 
     # -- after the run -------------------------------------------------------------------
-    def finish(self, status: str, reason: str, safety: str = "") -> None:
-        """Write the status trailer and close. Never raises (the run's end must go on)."""
+    def finish(self, status: str, reason: str, safety: str = "", facts: dict[str, Any] | None = None) -> None:
+        """Write the status trailer (with `facts`: runfile.trailer_lines) and close. Never raises
+        (the run's end must go on)."""
         if self._syncer is not None:
             self._syncer.close()
             self._syncer = None
         if self._writer is None or self._writer.closed:
             return
         try:
-            self._writer.finish(status, reason, safety)
+            self._writer.finish(status, reason, safety, facts)
+            self._lines += self._writer.trailer
         except (OSError, FoamlabError) as exc:
             log.error("could not close the run file %s: %s", self.path, exc)
-            self._salvage(status, reason)
+            self._salvage(status, reason, facts)
 
-    def run_data(self, *, status: str, reason: str, finished_at: str, specimen: Specimen, method: str,
-                 machine: str, metadata: dict[str, Any]) -> RunData | None:
-        """The samples as RunData (None when no file was opened: the run ended before it began)."""
+    def run_data(self) -> RunData | None:
+        """The run as its file holds it (None when no file was opened: the run ended before it
+        began): the samples with their labels, and the header and trailer lines read as
+        load_run reads them."""
         if self.path is None:
             return None
+        header = dict(item for item in map(header_value, self._lines) if item)
+        fields = runfile_fields(header)
+        if "status" not in header:          # no trailer reached the disk: the file reads so
+            fields.update(status="aborted", abort_reason=NO_TRAILER_REASON)
+        fields["metadata"].update({"format": "foamlab run file", "extra_columns": list(COLUMNS[3:])})
         return RunData(np.asarray(self._time), np.asarray(self._disp), np.asarray(self._force),
-                       specimen=specimen, method=method, machine=machine, started_at=self.started_at,
-                       finished_at=finished_at, status=status, abort_reason=reason, source=str(self.path),
-                       metadata=metadata)
+                       step=np.asarray(self._step, int), cycle=np.asarray(self._cycle, int),
+                       source=str(self.path), **fields)
 
-    def _salvage(self, status: str = "aborted", reason: str = "") -> None:
+    def _salvage(self, status: str = "aborted", reason: str = "", facts: dict[str, Any] | None = None) -> None:
         """After a failed write: close, cut the file back to its last whole line, add the trailer
         if the disk takes it. Best effort, never raises: the samples written are what matters."""
         writer, self._writer = self._writer, None
@@ -228,11 +240,10 @@ class Recorder:
             cut = size - len(tail) + tail.rfind(b"\n") + 1
             if cut < size:
                 os.ftruncate(fd, cut)
-            trailer = f"# finished_at: {now_iso()}\n# status: {status}\n"
-            if status == "aborted":
-                trailer += f"# abort_reason: {' '.join((reason or self.failure).splitlines())}\n"
-            os.pwrite(fd, trailer.encode("utf-8"), cut)
+            lines = trailer_lines(status, reason or self.failure, facts=facts)
+            os.pwrite(fd, ("\n".join(lines) + "\n").encode("utf-8"), cut)
             os.fsync(fd)
+            self._lines += lines
         except OSError as exc:              # a full disk may refuse even the trailer: reads as aborted
             log.error("run file %s: trailer not written: %s", self.path, exc)
         finally:

@@ -13,6 +13,11 @@ Layout (pandas ``read_csv(path, comment='#')`` and any spreadsheet open it)::
     ...                                 (one line per sample, flushed as it arrives)
     # finished_at: 2025-01-01T10:12:00+01:00
     # status: finished                  (or aborted, with # abort_reason: ...)
+    # meta.schedule: {"missed": 0, ...}  (what the engine knew at the end: runformat's keys)
+
+A run the engine recorded also has the columns ``step,cycle`` (each sample's labels, read
+back as RunData.step / .cycle) and in its header the method itself (methods.METHOD_KEY)
+and the machine profile's name.
 
 Durability: every line is flushed to the OS when written, so a crash of the
 process loses at most the sample in flight; os.fsync runs at most every
@@ -38,6 +43,7 @@ from foamlab.importers._text import read_text
 from foamlab.rundata import RunData, Specimen
 from foamlab.runformat import (
     BASE_COLUMNS,
+    LABEL_COLUMNS,
     MAGIC,
     META_PREFIX,
     SPECIMEN_FIELDS,
@@ -87,10 +93,24 @@ def header_lines(header: dict[str, Any]) -> list[str]:
     lines = [MAGIC]
     for key, value in items.items():
         lines.append(f"# {key}: {_one_line(value)}")
-    for key, value in metadata.items():
-        lines.append(f"# {META_PREFIX}{_one_line(key).replace(':', '_')}: "
-                     f"{json.dumps(_json_safe(value), ensure_ascii=False)}")
-    return lines
+    return lines + _meta_lines(metadata)
+
+
+def _meta_lines(metadata: dict[str, Any]) -> list[str]:
+    return [f"# {META_PREFIX}{_one_line(key).replace(':', '_')}: "
+            f"{json.dumps(_json_safe(value), ensure_ascii=False)}" for key, value in metadata.items()]
+
+
+def trailer_lines(status: str, reason: str = "", safety: str = "", finished_at: str = "",
+                  facts: dict[str, Any] | None = None) -> list[str]:
+    """The ``#`` lines closing a run file: finished_at, status, abort_reason, safety, then
+    `facts` known only at the end (the schedule's statistics, how the run ended) as metadata."""
+    lines = [f"# finished_at: {finished_at or now_iso()}", f"# status: {status}"]
+    if reason or status == "aborted":
+        lines.append(f"# abort_reason: {_one_line(reason) or 'not given'}")
+    if safety:
+        lines.append(f"# safety: {_one_line(safety)}")
+    return lines + _meta_lines(facts or {})
 
 
 def _json_safe(value: Any) -> Any:
@@ -148,8 +168,9 @@ class RunWriter:
             raise FoamlabError(f"{self.path}: already exists; a run file is never overwritten") from None
         except OSError as exc:
             raise FoamlabError(f"{self.path}: cannot create the run file ({exc.strerror or exc})") from None
-        lines = header_lines(header) + [",".join(columns)]
-        self._file.write("\n".join(lines) + "\n")
+        self.header = header_lines(header)      # as written: the recorder's RunData is made of them
+        self.trailer: list[str] = []
+        self._file.write("\n".join(self.header + [",".join(columns)]) + "\n")
         self._sync()
 
     def write_sample(self, time_s: float, displacement_mm: float, force_N: float,
@@ -170,22 +191,20 @@ class RunWriter:
                 os.fsync(self._file.fileno())
                 self._last_sync = time.monotonic()
 
-    def finish(self, status: str = "finished", reason: str = "", safety: str = "") -> None:
-        """Write the trailer (finished_at, status, abort_reason, safety) and close. Idempotent.
+    def finish(self, status: str = "finished", reason: str = "", safety: str = "",
+               facts: dict[str, Any] | None = None) -> None:
+        """Write the trailer (trailer_lines) and close. Idempotent.
 
         `safety`: what went wrong bringing the machine to rest (a stop not acknowledged, a
-        crosshead not confirmed at rest, failed status polls), kept with the run it concerns."""
+        crosshead not confirmed at rest, failed status polls), kept with the run it concerns.
+        `facts`: what is known only at the end (runformat's SCHEDULE_KEY and END_KEY)."""
         if status not in ("finished", "aborted"):
             raise ValueError(f"status must be 'finished' or 'aborted', not {status!r}")
         with self._lock:
             if self.closed:
                 return
-            trailer = [f"# finished_at: {now_iso()}", f"# status: {status}"]
-            if reason or status == "aborted":
-                trailer.append(f"# abort_reason: {_one_line(reason) or 'not given'}")
-            if safety:
-                trailer.append(f"# safety: {_one_line(safety)}")
-            self._file.write("\n".join(trailer) + "\n")
+            self.trailer = trailer_lines(status, reason, safety, facts=facts)
+            self._file.write("\n".join(self.trailer) + "\n")
             self._sync()
             self._file.close()
             self.closed = True
@@ -227,9 +246,12 @@ def write_run_file(path: str | Path, run: RunData, extra: dict[str, Any] | None 
     if len(run) > 1:
         header["sampling_hz"] = round(run.sampling_hz, 6)
     header.update(extra or {})
-    writer = RunWriter(path, header, columns=BASE_COLUMNS, fsync_interval_s=math.inf)
-    for t, x, f in zip(run.time_s.tolist(), run.displacement_mm.tolist(), run.force_N.tolist()):
-        writer._file.write(f"{_format(t)},{_format(x)},{_format(f)}\n")
+    columns = BASE_COLUMNS + (LABEL_COLUMNS if run.has_labels else ())
+    writer = RunWriter(path, header, columns=columns, fsync_interval_s=math.inf)
+    arrays = [run.time_s.tolist(), run.displacement_mm.tolist(), run.force_N.tolist()]
+    if run.has_labels:
+        arrays += [run.step.tolist(), run.cycle.tolist()]
+    writer._file.writelines(",".join(_format(v) for v in row) + "\n" for row in zip(*arrays))
     writer.n_samples = len(run)
     status = run.status if run.status in ("finished", "aborted") else "finished"
     writer.finish(status, run.abort_reason)
