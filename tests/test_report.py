@@ -184,7 +184,7 @@ def test_schedule_statistics_from_the_header_else_counted_from_the_time_stamps()
     jittered = pipeline.RunData(t + np.where(np.arange(157) % 7 == 3, 0.02, 0.0), np.zeros(157), np.zeros(157),
                                 metadata={"sampling_hz": 16.0})
     assert schedule_summary(jittered, None).missed == 3           # a sample stamped off its deadline is no miss
-    run.metadata["schedule"] = {"missed": 5}                                    # what the engine counted, when the file has it
+    run.metadata["schedule"] = {"missed": 5}                       # what the engine counted, when the file has it
     assert schedule_summary(run, None).missed == 5
     assert schedule_summary(run, None).missed_source == "recorded in the run file"
 
