@@ -131,3 +131,20 @@ def test_a_selected_structure_round_trips_with_every_candidate(tmp_path):
     loaded = FitReport.load(report.save(tmp_path / "one.fit.json"))
     assert loaded == report and loaded.structure.candidates == report.structure.candidates
     assert loaded.structure.chosen == report.orders and loaded.largest is None
+
+
+def test_a_stored_fit_is_diagnosed_without_identifying_the_run_again(fitted, monkeypatch):
+    """The report's diagnosis stage of a run whose fit is stored but not its diagnosis: the base
+    is the stored fit's (resumed), the run is not identified again."""
+    import foamlab.diagnosis.run as diagnosis_run
+    from foamlab.diagnosis import diagnose
+
+    run_file, side, report = fitted
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the run was identified again although its fit is stored")
+
+    monkeypatch.setattr(diagnosis_run, "fit_run", refuse)
+    d = diagnose([load_run(run_file)], fit=FitReport.load(side))
+    assert d.verdict
+    assert d.base.rmse <= 1.01 * report.core_fit.rmse      # the stored fit's model, not a worse one
