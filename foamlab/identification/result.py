@@ -366,15 +366,15 @@ class FitReport:
         lines.append("[[Parameters]] (value, standard error, relative; 'ac' = corrected for "
                      f"residual autocorrelation, tau = {self.autocorrelation_time:.1f})")
         lines.append(f"    {'name':<11}{'value':>14}{'stderr':>12}{'rel':>9}{'stderr ac':>12}")
-        for n, v, s, sa in zip(self.names, self.values, self.stderr, self.stderr_autocorr):
-            if n in self.tied:
-                lines.append(f"    {n:<11}{v:>14.6g}{'= ' + self.tied[n] + ' (shared orders)':>33}")
-            elif n in self._fixed_names():
-                why = "(fixed: real mode)" if n.startswith("alpha") else "(held apart: see notes)"
-                lines.append(f"    {n:<11}{v:>14.6g}{why:>33}")
-            elif math.isfinite(s):
+        for p in self.parameters.values():
+            n, v, s, sa = p.name, p.value, p.stderr, p.stderr_ac
+            if p.tie:
+                lines.append(f"    {n:<11}{v:>14.6g}  = {p.tie} (shared orders)")
+            elif not p.vary:
+                lines.append(f"    {n:<11}{v:>14.6g}  held: {p.why}")
+            elif s is not None:
                 rel = f"{abs(s / v) * 100:8.1f}%" if v != 0 else f"{'-':>9}"
-                lines.append(f"    {n:<11}{v:>14.6g}{s:>12.3g}{rel}{sa:>12.3g}")
+                lines.append(f"    {n:<11}{v:>14.6g}{s:>12.3g}{rel}{sa if sa is not None else math.nan:>12.3g}")
             else:
                 lines.append(f"    {n:<11}{v:>14.6g}{'(not determined)':>33}")
         lines.append(f"    {'x_scale_mm':<11}{self.params.x_scale_mm:>14.6g}{'(fixed)':>12}")
@@ -405,9 +405,6 @@ class FitReport:
             mark = "  (kept)" if sc.form == choice.chosen else ""
             lines.append(f"    {sc.form:<10}{sc.rmse:>10.4g}{sc.heldout_rmse:>10.4g}{sc.bic - mine.bic:>10.1f}{mark}")
         return lines
-
-    def _fixed_names(self) -> set[str]:
-        return {p.name for p in self.parameters.values() if not p.vary}
 
     def __str__(self) -> str:
         return self.summary()
