@@ -17,6 +17,7 @@ examples:
   foamlab diagnose Specimen_RawData_6.csv --json    # {"verdict": ..., "findings": [{"effect", "gain": {...}}, ...]}
   foamlab diagnose slow.csv fast.csv                # runs of one specimen at two speeds (rate_dependence)
   foamlab diagnose run.csv --report out/            # out/index.html with the figures
+  foamlab diagnose run.csv --full                   # ...and the thresholds it decided by
   foamlab diagnose run.csv --suggest                # a close call? the next test, as ./suggested-run.toml
   foamlab diagnose run.csv --suggest next.toml      # ...written to next.toml; then: foamlab run --method next.toml
 
@@ -42,6 +43,8 @@ def register(subparsers) -> None:
     p.add_argument("paths", nargs="+", metavar="PATH", help="data file(s) of the run(s)")
     p.add_argument("--json", action="store_true",
                    help="print one JSON object: verdict and findings (best first; effect, gain)")
+    p.add_argument("--full", action="store_true",
+                   help="also print the thresholds the diagnosis decided by (docs/settings.md)")
     p.add_argument("--report", metavar="DIR", help="write an HTML report with figures into DIR")
     p.add_argument("--causes", metavar="NAME[,NAME...]",
                    help="test only these causes (default: all, as listed under 'verdict' below)")
@@ -111,6 +114,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"foamlab diagnose: {note}", file=sys.stderr)
     else:
         print(summary(result))
+        if args.full:
+            print("settings (foamlab.diagnosis.settings; why each: docs/settings.md):")
+            print("\n".join("  " + line for line in result.settings.lines()))
         if suggestion is not None:
             print("\n".join(suggestion.lines()))
         for note in notes:

@@ -5,7 +5,7 @@ round of the search (``Procedure.round``) runs these stages:
 
 1. search (extend.py): every applicable cause fitted on the decimated runs as an extension
    of the current model - screened with the base's alpha/beta held, probed jointly, and
-   the JOINT_CANDIDATES best fitted jointly to convergence; a cause the base imitates
+   the settings' joint_candidates best fitted jointly to convergence; a cause the base imitates
    (Cause.imitated_by_base) always, and from several starts (extend.multistart) where that shows it;
 2. compare (evidence.compare): Delta BIC and the likelihood-ratio p-value of each, on one
    prewhitened scale (an AR(p) filter fitted to the best model's residuals);
@@ -18,7 +18,7 @@ round of the search (``Procedure.round``) runs these stages:
    evidence, not pinned at a limit, effect determined, explains the structure, held-out
    prediction better; the best candidate passing all is a finding.
 
-Every other cause is tried again on top of a finding (up to MAX_FINDINGS), until the model
+Every other cause is tried again on top of a finding (up to settings.max_findings), until the model
 leaves white residuals at the noise level; findings are listed best first (what each removed). Verdict: `none` when
 nothing passes and the base residuals are white; the first finding when the extension
 leaves white residuals or explains most of the structure above the noise; `unexplained`
@@ -38,15 +38,12 @@ from foamlab.analysis.noise import WHITE_P, series_noise_sigma, whiteness
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import (
     POLISH_NFEV,
-    SEARCH_SAMPLES,
     Fit,
     at_full_resolution,
     decimation,
 )
 from foamlab.diagnosis.causes import CAUSES, Cause
 from foamlab.diagnosis.evidence import (
-    DELTA_BIC_MIN,
-    EXPLAINED_SHARE_MIN,
     compare,
     explained_share,
     explains,
@@ -68,42 +65,25 @@ from foamlab.diagnosis.extend import (
 )
 from foamlab.diagnosis.residuals import analyse
 from foamlab.diagnosis.result import Candidate, Diagnosis
-
-#: Candidates (by Delta BIC) that get the held-out check in each round.
-HELDOUT_CANDIDATES = 3
-MAX_FINDINGS = 3
-#: After a finding, white residuals with a variance within NEAR_NOISE of the noise variance, or
-#: any within AT_NOISE, are not searched further (what is left is the fit's own imperfection).
-NEAR_NOISE, AT_NOISE = 0.1, 0.005
-#: Candidates (by the screening's gain) refitted with the base model's alpha/beta free.
-JOINT_CANDIDATES = 2
-#: ...and of those, this many carried to full resolution (the others are judged on the search's samples).
-FULL_CANDIDATES = 2
-#: A candidate whose likelihood-ratio gain over the base the fair comparison improved is above
-#: this is not refitted from that base (Procedure.refit_from_new_base): no rule turns on the rest.
-DECISIVE_CHI2 = 100.0
-#: Samples per run an effect the base imitates is fitted on from several starts (Procedure._imitated).
-MULTISTART_SAMPLES = int(1.6 * SEARCH_SAMPLES)
-#: ...when the search's single joint fit shows it (Delta BIC > 0) within this fraction of the
-#: round's best: the several starts raised it 2.1 x at most (compliance 9.7 -> 20.4, docs/analysis.md).
-MULTISTART_REACH = 0.3
-
+from foamlab.diagnosis.settings import DEFAULT, DiagnosisSettings
 
 def diagnose_prepared(runs: list[PreparedRun], base: Fit, causes: list[str] | None = None,
-                      progress: Callable[[str, float], None] | None = None) -> Diagnosis:
+                      progress: Callable[[str, float], None] | None = None,
+                      settings: DiagnosisSettings = DEFAULT) -> Diagnosis:
     """Diagnose prepared runs (the first the reference) from a base model fitted on all of them
     (identification's core fit for one run, analysis.solve.polish for several). progress:
     called with (stage, fraction 0..1)."""
     with threadpool_limits(1, user_api="blas"):    # small dense solves: threads only contend
-        return Procedure(runs, base, causes, progress).run()
+        return Procedure(runs, base, causes, progress, settings).run()
 
 
 class Procedure:
     """One diagnosis: the runs, the model found so far, and what each round decided."""
 
     def __init__(self, runs: list[PreparedRun], base: Fit, causes: list[str] | None,
-                 progress: Callable[[str, float], None] | None = None):
+                 progress: Callable[[str, float], None] | None = None, settings: DiagnosisSettings = DEFAULT):
         self.started = time.perf_counter()
+        self.settings = settings
         self.report = progress or (lambda stage, fraction: None)
         self.round_no = 0
         self.ref, self.series = runs[0], [r.series for r in runs]
@@ -147,12 +127,12 @@ class Procedure:
         "Two causes")."""
         c = self.current
         excess = c.rss / (c.n * self.sigma ** 2) - 1
-        return bool(self.findings) and (excess < AT_NOISE or (
-            excess < NEAR_NOISE and whiteness(c.solution.residual).min_p >= WHITE_P))
+        return bool(self.findings) and (excess < self.settings.at_noise or (
+            excess < self.settings.near_noise and whiteness(c.solution.residual).min_p >= WHITE_P))
 
     # -- the procedure
     def run(self) -> Diagnosis:
-        for _ in range(MAX_FINDINGS):
+        for _ in range(self.settings.max_findings):
             if not self.remaining or self._done():
                 break
             self.round_no += 1
@@ -186,20 +166,21 @@ class Procedure:
         alone = without(self.series, self.current, 0)
         on_top = Candidate(first.cause, self.current, alone)
         compare([on_top], alone)
-        if on_top.delta_bic > DELTA_BIC_MIN:
+        if on_top.delta_bic > self.settings.delta_bic_min:
             return
         c = Candidate(second.cause, alone, self.base)
         compare([c], self.base)
         c.share = explained_share(c, self.base, self.sigma)
         c.coarse_fit = self._coarse(alone)
-        c.reason = (rule_evidence(c) or rule_not_pinned(c) or rule_effect_determined(c)
+        c.reason = (rule_evidence(c, self.settings) or rule_not_pinned(c)
+                    or rule_effect_determined(c, self.settings)
                     or rule_heldout(c, self.base, self._coarse(self.base)))
-        if c.reason or not explains(c):
+        if c.reason or not explains(c, self.settings):
             return
         c.passed = True
         first.passed = False
         first.reason = (f"partial, made redundant by {second.name}: without it the final model is as good "
-                        f"(delta BIC {on_top.delta_bic:.1f} <= {DELTA_BIC_MIN:g})")
+                        f"(delta BIC {on_top.delta_bic:.1f} <= {self.settings.delta_bic_min:g})")
         self.findings, self.current, self.first_partial = [c], alone, []
         self.tested.append([c])
 
@@ -227,14 +208,14 @@ class Procedure:
         probes.sort(key=lambda f: f.rss)
         self._progress("fitting the strongest candidates jointly", 0.8)
         fits = [fit_joint(self.coarse, f, current_coarse)
-                if i < JOINT_CANDIDATES or f.causes[-1].imitated_by_base else f
+                if i < self.settings.joint_candidates or f.causes[-1].imitated_by_base else f
                 for i, f in enumerate(probes)]
         coarse_cands = [Candidate(f.causes[-1], f, current_coarse) for f in fits]
         compare(coarse_cands, current_coarse)
         coarse_cands.sort(key=lambda c: -c.delta_bic)
         cands = []
         self.shown = set()
-        reach = MULTISTART_REACH * max((c.delta_bic for c in coarse_cands), default=0.0)
+        reach = self.settings.multistart_reach * max((c.delta_bic for c in coarse_cands), default=0.0)
         for i, c in enumerate(coarse_cands):
             if (c.cause.always_multistart and not self.findings) or (
                     c.cause.imitated_by_base and 0 < c.delta_bic and (c.delta_bic >= reach or i == 0)):
@@ -245,7 +226,8 @@ class Procedure:
                 self.shown.add(c.cause)
                 fit = self._imitated(c.cause, self.current, c.fit, c.cause.multistart_sizes or MULTISTART_SIZES)
                 cands.append(Candidate(c.cause, fit, self.current, coarse_fit=self._coarse(fit)))
-            elif (i < FULL_CANDIDATES and c.delta_bic > 0) or c.delta_bic > DELTA_BIC_MIN:
+            elif ((i < self.settings.full_candidates and c.delta_bic > 0)
+                  or c.delta_bic > self.settings.delta_bic_min):
                 cands.append(Candidate(c.cause, self._full(c.fit), self.current, coarse_fit=c.fit))
             else:    # keeps its decimated-scale evidence (weaker than it would be at full scale)
                 c.coarse_fit = c.fit
@@ -255,9 +237,9 @@ class Procedure:
     def _imitated(self, cause: type[Cause], current: Fit, start: Fit | None = None,
                   sizes: tuple[float, ...] = MULTISTART_SIZES) -> Fit:
         """An effect the base imitates, fitted from several starts (extend.multistart) on the runs
-        decimated to about MULTISTART_SAMPLES (the search's decimation loses part of its handle,
+        decimated to about settings.multistart_samples (the search's decimation loses part of its handle,
         the samples at high force), then polished on every sample."""
-        k = max(1, round(max(len(s) for s in self.series) / MULTISTART_SAMPLES))
+        k = max(1, round(max(len(s) for s in self.series) / self.settings.multistart_samples))
         fine = [s.decimated(k) for s in self.series] if k > 1 else self.series
         on = current if k == 1 else at_full_resolution(current, fine)
         found = multistart(fine, on, [c.cause for c in self.findings] + [cause], start, sizes)
@@ -283,7 +265,7 @@ class Procedure:
         that improved the current model (which then replaces it)."""
         improved = False
         for c in polished:
-            if c.delta_bic > DELTA_BIC_MIN:
+            if c.delta_bic > self.settings.delta_bic_min:
                 alt = without(self.series, c.fit)
                 if alt.rss < self.current.rss:
                     self.current, improved = alt, True
@@ -300,7 +282,7 @@ class Procedure:
         cur = self.current
         for i, c in enumerate(sorted(polished, key=lambda c: -c.delta_bic)):
             below = c.fit.rss < cur.rss
-            if below and cur.n * np.log(cur.rss / c.fit.rss) > DECISIVE_CHI2:
+            if below and cur.n * np.log(cur.rss / c.fit.rss) > self.settings.decisive_chi2:
                 pass    # its own gain over the new base decides already: a refit changes no rule
             # a strong candidate still below the new base is refitted too: its gain over the old
             # base may be mostly the base's (alpha/beta it found by luck), and its effect's own
@@ -311,9 +293,9 @@ class Procedure:
                 if c.fit.rss >= self.current.rss or again.rss < c.fit.rss:
                     c.fit = again
                 c.coarse_fit = self._coarse(c.fit)
-            elif not below or i < FULL_CANDIDATES:
+            elif not below or i < self.settings.full_candidates:
                 again = fit_joint(self.coarse, screen(self.coarse, current_coarse, accepted + [c.cause]),
-                                  current_coarse, None if i < FULL_CANDIDATES else PROBE_NFEV)
+                                  current_coarse, None if i < self.settings.full_candidates else PROBE_NFEV)
                 full = self._full(again)
                 if c.fit.rss >= self.current.rss or full.rss < c.fit.rss:
                     c.coarse_fit, c.fit = again, full
@@ -334,18 +316,19 @@ class Procedure:
             if chosen is not None:
                 c.reason = "not checked: a stronger candidate passed"
                 continue
-            if c.delta_bic > DELTA_BIC_MIN and c.before is not self.current:
+            if c.delta_bic > self.settings.delta_bic_min and c.before is not self.current:
                 # strong on the search's samples: judge it at full resolution
                 c.fit, c.before = self._full(c.coarse_fit), self.current
                 compare([c], self.current)
-            c.reason = rule_evidence(c) or rule_not_pinned(c) or rule_effect_determined(c)
+            c.reason = (rule_evidence(c, self.settings) or rule_not_pinned(c)
+                        or rule_effect_determined(c, self.settings))
             if c.reason:
                 continue
-            if checked >= HELDOUT_CANDIDATES:
+            if checked >= self.settings.heldout_candidates:
                 c.reason = "weaker than the candidates checked on held-out data"
                 continue
             c.share = explained_share(c, self.current, self.sigma)
-            c.reason = rule_explains(c, first_round=not self.findings)
+            c.reason = rule_explains(c, self.settings, first_round=not self.findings)
             if c.reason:
                 continue
             checked += 1
@@ -356,10 +339,10 @@ class Procedure:
             c.reason = rule_heldout(c, self.current, current_coarse)
             if c.reason:
                 continue
-            if not explains(c):
+            if not explains(c, self.settings):
                 # real but partial: a part of the structure, reported, never the verdict
                 c.reason = (f"partial: explains {c.share:.0%} of the structure left "
-                            f"(< {EXPLAINED_SHARE_MIN:.0%}); held-out RMSE lower")
+                            f"(< {self.settings.explained_share_min:.0%}); held-out RMSE lower")
                 self.partial.append(c)
                 continue
             c.passed = True
@@ -374,7 +357,7 @@ class Procedure:
         excess = base.rss - base.n * self.sigma ** 2
         removed = base.rss - final.rss
         share = 1.0 if removed >= excess else max(removed, 0.0) / excess
-        if findings and final_analysis.whiteness.min_p < WHITE_P and share < EXPLAINED_SHARE_MIN:
+        if findings and final_analysis.whiteness.min_p < WHITE_P and share < self.settings.explained_share_min:
             # provisional findings that together still leave most of the structure: partial only
             partial, findings, final = self.first_partial or findings, [], base
             final_analysis = base_analysis
@@ -391,4 +374,5 @@ class Procedure:
             base=base, final=final, base_analysis=base_analysis, final_analysis=final_analysis,
             final_whiteness=final_analysis.whiteness, explained_share=float(share), noise_sigma=self.sigma,
             series=self.series, params=base.params, seconds=time.perf_counter() - self.started,
+            settings=self.settings,
         )

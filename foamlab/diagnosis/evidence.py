@@ -13,18 +13,7 @@ from foamlab.analysis.heldout import heldout_rmse
 from foamlab.analysis.noise import WHITE_P, ArWhitener, whiteness
 from foamlab.analysis.solve import Fit
 from foamlab.diagnosis.result import Candidate
-
-#: A candidate must improve BIC (prewhitened residuals) by more than this ("very strong" evidence).
-DELTA_BIC_MIN = 10.0
-#: ...and its effect's (first) parameter must lie this many standard errors from zero: on clean
-#: recordings the base's alpha/beta can improve in an extension's fit, at its effect's expense
-#: (docs/findings.md, "The acceptance rules").
-EFFECT_Z_MIN = 3.0
-#: Share of the structure left above the noise an extension must explain to be named when
-#: its residuals are still not white; at least PARTIAL_SHARE_MIN to be reported as partial.
-EXPLAINED_SHARE_MIN = 0.5
-PARTIAL_SHARE_MIN = 0.1
-
+from foamlab.diagnosis.settings import DiagnosisSettings
 
 def _before_with_contact_of(before: Fit, fit: Fit) -> Solution:
     """The model without the candidate's effect, solved from the candidate's contact set (the
@@ -65,20 +54,21 @@ def compare(cands: list[Candidate], before: Fit) -> None:
 
 # ----------------------------------------------------------------------------- acceptance rules
 
-def rule_evidence(c: Candidate) -> str:
-    return "" if c.delta_bic > DELTA_BIC_MIN else f"delta BIC {c.delta_bic:.1f} <= {DELTA_BIC_MIN:g}"
+def rule_evidence(c: Candidate, s: DiagnosisSettings) -> str:
+    """Very strong evidence: Delta BIC (prewhitened residuals) above s.delta_bic_min."""
+    return "" if c.delta_bic > s.delta_bic_min else f"delta BIC {c.delta_bic:.1f} <= {s.delta_bic_min:g}"
 
 
 def rule_not_pinned(c: Candidate) -> str:
     return f"{c.pinned}: the data ask for more than this cause can be" if c.pinned else ""
 
 
-def rule_effect_determined(c: Candidate) -> str:
+def rule_effect_determined(c: Candidate, s: DiagnosisSettings) -> str:
     """The fit improves, but is the effect itself determined? The base model's alpha/beta can
-    take its place (its standard error is that of the joint fit)."""
+    take its place (its standard error is that of the joint fit; docs/findings.md)."""
     z = c.z_score
-    return "" if z >= EFFECT_Z_MIN else \
-        f"effect not determined: {z:.2g} standard errors from zero (< {EFFECT_Z_MIN:g})"
+    return "" if z >= s.effect_z_min else \
+        f"effect not determined: {z:.2g} standard errors from zero (< {s.effect_z_min:g})"
 
 
 def explained_share(c: Candidate, current: Fit, sigma: float) -> float:
@@ -87,17 +77,17 @@ def explained_share(c: Candidate, current: Fit, sigma: float) -> float:
     return 1.0 if left <= 0 else min((current.rss - c.fit.rss) / left, 1.0)
 
 
-def explains(c: Candidate) -> bool:
+def explains(c: Candidate, s: DiagnosisSettings) -> bool:
     """Most of the structure left, or white residuals: a cause, not a sliver of something else."""
-    return c.share >= EXPLAINED_SHARE_MIN or whiteness(c.fit.solution.residual).min_p >= WHITE_P
+    return c.share >= s.explained_share_min or whiteness(c.fit.solution.residual).min_p >= WHITE_P
 
 
-def rule_explains(c: Candidate, first_round: bool) -> str:
+def rule_explains(c: Candidate, s: DiagnosisSettings, first_round: bool) -> str:
     """Named causes must explain the structure; in the first round a real part of it (at least
-    PARTIAL_SHARE_MIN) may be reported as partial."""
-    if explains(c) or (first_round and c.share >= PARTIAL_SHARE_MIN):
+    s.partial_share_min) may be reported as partial."""
+    if explains(c, s) or (first_round and c.share >= s.partial_share_min):
         return ""
-    return f"explains {c.share:.0%} of the structure left (< {EXPLAINED_SHARE_MIN:.0%})"
+    return f"explains {c.share:.0%} of the structure left (< {s.explained_share_min:.0%})"
 
 
 def rule_heldout(c: Candidate, current: Fit, current_coarse: Fit) -> str:

@@ -16,7 +16,7 @@ import numpy as np
 from foamlab.analysis.heldout import heldout_rmse
 from foamlab.analysis.noise import ArWhitener
 from foamlab.analysis.solve import Fit
-from foamlab.diagnosis.evidence import DELTA_BIC_MIN
+from foamlab.diagnosis.settings import DEFAULT, DiagnosisSettings
 from foamlab.identification.fit import fit_prepared
 from foamlab.identification.forms import core_fit_of
 from foamlab.identification.result import FitReport
@@ -54,7 +54,8 @@ def base_form_reason(fit: FitReport) -> str:
     return fit.form_choice.reason() if fit.form_choice else f"{fit.params.residual_form} residual form"
 
 
-def check_other_form(fit: FitReport, progress=None) -> tuple[FitReport, FormFinding | None]:
+def check_other_form(fit: FitReport, progress=None,
+                     settings: DiagnosisSettings = DEFAULT) -> tuple[FitReport, FormFinding | None]:
     """For a fit in a form the user named: the other form fitted too; when it predicts held-out
     blocks better with very strong evidence (the rules of any extension), it becomes the base
     and the finding says so. Returns (the base to diagnose on, the finding or None)."""
@@ -67,6 +68,6 @@ def check_other_form(fit: FitReport, progress=None) -> tuple[FitReport, FormFind
     whitener = ArWhitener.fit(min(before, after, key=lambda f: f.rss).solution.used_residuals)
     wb, wa = whitener.apply(before.solution.used_residuals), whitener.apply(after.solution.used_residuals)
     delta_bic = float(len(wb) * np.log((wb @ wb) / max(float(wa @ wa), 1e-300)))
-    if delta_bic > DELTA_BIC_MIN and heldout_rmse(after) < heldout_rmse(before):
+    if delta_bic > settings.delta_bic_min and heldout_rmse(after) < heldout_rmse(before):
         return other, FormFinding(other_form, asked, before, after, delta_bic)
     return fit, None

@@ -13,6 +13,7 @@ from foamlab.analysis.noise import Whiteness
 from foamlab.analysis.solve import Fit
 from foamlab.diagnosis.causes import Cause
 from foamlab.diagnosis.residuals import ResidualAnalysis
+from foamlab.diagnosis.settings import DEFAULT, DiagnosisSettings
 from foamlab.model import ModelParameters
 
 if TYPE_CHECKING:
@@ -101,6 +102,7 @@ class Diagnosis:
     notes: list[str] = field(default_factory=list)
     base_form_reason: str = ""                  # which residual form the base uses, and why
     form_finding: "FormFinding | None" = None   # the other form is what the base got wrong
+    settings: DiagnosisSettings = DEFAULT       # the thresholds it was decided by
 
     def to_dict(self) -> dict:
         """The JSON object of `foamlab diagnose --json` (see docs/DESIGN: verdict, findings)."""

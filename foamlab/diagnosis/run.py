@@ -8,9 +8,10 @@ from foamlab import FoamlabError
 from foamlab.analysis.noise import WHITE_P
 from foamlab.analysis.prepared import prepare
 from foamlab.analysis.solve import Fit, polish
-from foamlab.diagnosis.core import NEAR_NOISE, diagnose_prepared
+from foamlab.diagnosis.core import diagnose_prepared
 from foamlab.diagnosis.form import NAME, base_form_reason, check_other_form
 from foamlab.diagnosis.result import Diagnosis
+from foamlab.diagnosis.settings import DEFAULT, DiagnosisSettings
 from foamlab.identification import FitReport, fit_run
 from foamlab.identification.fit import resumed
 from foamlab.identification.statistics import information_criteria
@@ -23,7 +24,7 @@ FIT_SHARE = 0.15
 
 def diagnose(runs: list[RunData], fit: FitReport | None = None,
              causes: list[str] | None = None, progress: Progress | None = None,
-             form: str = "auto") -> Diagnosis:
+             form: str = "auto", settings: DiagnosisSettings = DEFAULT) -> Diagnosis:
     """Diagnose one run, or several runs of the same specimen (e.g. at other speeds).
 
     fit: identification's fit of the first run (the reference speed), as the run's own
@@ -32,6 +33,7 @@ def diagnose(runs: list[RunData], fit: FitReport | None = None,
     progress: called with (stage, fraction 0..1) as the work advances.
     form: the residual form of the base when it is fitted here ('auto': the data choose).
     A base in a form the user named is checked against the other form first (diagnosis.form).
+    settings: the thresholds (foamlab.diagnosis.settings; docs/settings.md).
     """
     report = progress or (lambda stage, fraction: None)
     if not runs:
@@ -42,11 +44,11 @@ def diagnose(runs: list[RunData], fit: FitReport | None = None,
     if fit.prepared is None:      # a stored fit: its working state is made again from its parameters
         fit = resumed(fit, runs[0])
     fit, form_finding = check_other_form(fit, lambda stage, f: report(f"the other residual form: {stage}",
-                                                                         FIT_SHARE * f))
+                                                                         FIT_SHARE * f), settings)
     fit.prepared.series.name = names[0]
     rest = [prepare(r, name=n) for r, n in zip(runs[1:], names[1:])]
     start = FIT_SHARE if progress else 0.0
-    d = _diagnose_on(fit, rest, causes, lambda stage, f: report(stage, start + (1.0 - start) * f))
+    d = _diagnose_on(fit, rest, causes, lambda stage, f: report(stage, start + (1.0 - start) * f), settings)
     d.base_form_reason = base_form_reason(fit)
     other = fit.alternatives[0] if fit.alternatives and form_finding is None else None
     if other is not None and d.verdict != "none" and not _at_the_noise(d):
@@ -55,7 +57,8 @@ def diagnose(runs: list[RunData], fit: FitReport | None = None,
         # unless the extended model leaves only noise, the other form's base is diagnosed too
         # and the better extended model kept
         other.prepared.series.name = names[0]
-        d2 = _diagnose_on(other, rest, causes, lambda stage, f: report(f"{other.params.residual_form} form: {stage}", f))
+        d2 = _diagnose_on(other, rest, causes, lambda stage, f: report(f"{other.params.residual_form} form: {stage}", f),
+                          settings)
         if bic(d2.final) < bic(d.final):
             d2.base_form_reason = (f"{other.params.residual_form} residual form: with the extension found it "
                                    f"explains the run better (BIC {bic(d2.final):.1f} vs {bic(d.final):.1f} in the "
@@ -68,7 +71,8 @@ def diagnose(runs: list[RunData], fit: FitReport | None = None,
     return d
 
 
-def _diagnose_on(fit: FitReport, rest: list, causes: list[str] | None, progress: Progress) -> Diagnosis:
+def _diagnose_on(fit: FitReport, rest: list, causes: list[str] | None, progress: Progress,
+                 settings: DiagnosisSettings) -> Diagnosis:
     """The diagnosis from one identification's fit: its core fit as the base of its own run,
     polished on all the runs from its parameters when there are several. The base is the largest
     structure's fit where identification chose a smaller one: a smaller structure drops what its
@@ -82,13 +86,13 @@ def _diagnose_on(fit: FitReport, rest: list, causes: list[str] | None, progress:
         base = fit.free_core or fit.core_fit
     else:
         base = polish([p.series for p in prepared], fit.params)
-    return diagnose_prepared(prepared, base, causes, progress=progress)
+    return diagnose_prepared(prepared, base, causes, progress=progress, settings=settings)
 
 
 def _at_the_noise(d: Diagnosis) -> bool:
     """The findings leave white residuals or residual variance near the noise's."""
     return bool(d.findings) and (d.final_whiteness.min_p >= WHITE_P
-                                 or d.final.rmse ** 2 < (1 + NEAR_NOISE) * d.noise_sigma ** 2)
+                                 or d.final.rmse ** 2 < (1 + d.settings.near_noise) * d.noise_sigma ** 2)
 
 
 def bic(fit: Fit) -> float:

@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 
-from foamlab.diagnosis.evidence import DELTA_BIC_MIN
 from foamlab.diagnosis.result import Candidate, Diagnosis
 from foamlab.methods import (
     DEFAULT_METHOD,
@@ -162,7 +161,7 @@ def close_call(d: Diagnosis) -> tuple[str, tuple[Contender, Contender]] | None:
     first = d.tested[0] if d.tested else []
     named = {c.name for c in d.findings}
     ranked = sorted((c for c in first if np.isfinite(c.delta_bic)), key=lambda c: -c.delta_bic)
-    if ranked and ranked[0].delta_bic > DELTA_BIC_MIN:
+    if ranked and ranked[0].delta_bic > d.settings.delta_bic_min:
         best = ranked[0]
         # rivals: fitted against the same model, not a second finding of this diagnosis
         rivals = [c for c in ranked[1:] if c.before is best.before and not {best.name, c.name} <= named]

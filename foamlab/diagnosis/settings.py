@@ -1,0 +1,49 @@
+"""The diagnosis's thresholds in one frozen object, passed explicitly (DEFAULT unless given).
+
+Each value's reason and the measurement behind it: docs/settings.md. `foamlab diagnose
+--full` prints the values a diagnosis used.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+from foamlab.analysis.solve import SEARCH_SAMPLES
+
+
+def _setting(default, meaning: str, **kw):
+    return field(default=default, metadata={"meaning": meaning}, **kw)
+
+
+@dataclass(frozen=True)
+class DiagnosisSettings:
+    """Acceptance rules (evidence.py) and the search's budget (core.py)."""
+
+    # -- acceptance rules
+    delta_bic_min: float = _setting(10.0, "a candidate improves the prewhitened BIC by more than this")
+    effect_z_min: float = _setting(3.0, "its effect lies this many standard errors from zero")
+    explained_share_min: float = _setting(0.5, "share of the structure above the noise a named cause explains")
+    partial_share_min: float = _setting(0.1, "share a first-round cause explains to be reported as partial")
+    # -- when to stop
+    max_findings: int = _setting(3, "causes found on top of each other at most")
+    near_noise: float = _setting(0.1, "white residuals within this of the noise variance end the search")
+    at_noise: float = _setting(0.005, "any residuals within this of the noise variance end the search")
+    # -- the search's budget
+    heldout_candidates: int = _setting(3, "candidates (by Delta BIC) given the held-out check per round")
+    joint_candidates: int = _setting(2, "candidates refitted with the base's alpha/beta free")
+    full_candidates: int = _setting(2, "of those, carried to full resolution")
+    decisive_chi2: float = _setting(100.0, "likelihood-ratio gain above which a candidate is not refitted "
+                                           "from the fair comparison's base")
+    multistart_samples: int = _setting(int(1.6 * SEARCH_SAMPLES), "samples per run a cause the base imitates "
+                                                                  "is fitted on from several starts")
+    multistart_reach: float = _setting(0.3, "several starts when its joint fit is within this fraction of "
+                                            "the round's best Delta BIC")
+
+    def lines(self) -> list[str]:
+        """`name = value  (meaning)`, one line each, in declaration order."""
+        width = max(len(f.name) for f in fields(self))
+        return [f"{f.name:<{width}} = {getattr(self, f.name):<8g} {f.metadata['meaning']}" for f in fields(self)]
+
+
+#: The values every diagnosis uses unless given others.
+DEFAULT = DiagnosisSettings()

@@ -1,0 +1,53 @@
+"""Settings in the open: the diagnosis decides by the settings object it is given, and
+`foamlab diagnose --full` prints the values it used."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from foamlab import cli
+from foamlab.diagnosis import diagnose
+from foamlab.diagnosis.settings import DEFAULT, DiagnosisSettings
+from foamlab.diagnosis.synthetic import hidden_effect_run
+
+pytestmark = pytest.mark.timeout(300)
+
+
+@pytest.fixture(scope="module")
+def softened():
+    # a clear hidden effect (tests/test_diagnosis_cli.py names it with the default settings)
+    return hidden_effect_run({"cycle_softening": 0.05}, sampling_hz=1.0, seed=3)
+
+
+def test_settings_are_frozen_records_with_a_meaning_each():
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        DEFAULT.delta_bic_min = 0.0
+    for f in dataclasses.fields(DiagnosisSettings):
+        assert f.metadata["meaning"], f.name
+    assert dataclasses.replace(DEFAULT, max_findings=1) != DEFAULT
+
+
+def test_the_diagnosis_decides_by_the_settings_given(softened):
+    named = diagnose([softened])
+    assert named.verdict == "cycle_softening" and named.settings is DEFAULT
+    # evidence out of reach: the same run, nothing named
+    strict = DiagnosisSettings(delta_bic_min=1e12)
+    held_back = diagnose([softened], causes=["cycle_softening"], settings=strict)
+    assert held_back.settings is strict
+    assert held_back.verdict != "cycle_softening" and not held_back.findings
+    assert any("delta BIC" in c.reason and "1e+12" in c.reason for c in held_back.tested[0])
+
+
+def test_diagnose_full_prints_the_settings(softened, tmp_path, capsys):
+    path = tmp_path / "soft.csv"
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write("time_s,displacement_mm,force_N\n")
+        for t, x, f in zip(softened.time_s, softened.displacement_mm, softened.force_N):
+            fh.write(f"{t:.5f},{x:.6f},{f:.5f}\n")
+    assert cli.main(["diagnose", str(path), "--full", "--causes", "cycle_softening", "--no-store"]) == 0
+    out = capsys.readouterr().out
+    for f in dataclasses.fields(DiagnosisSettings):
+        line = next(ln for ln in out.splitlines() if ln.strip().startswith(f.name + " "))
+        assert float(line.split("=", 1)[1].split()[0]) == getattr(DEFAULT, f.name)
