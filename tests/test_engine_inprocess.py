@@ -15,8 +15,7 @@ import pytest
 from drivers.base import DeviceTimeout
 from foamlab import pipeline
 from foamlab.acquisition import Limits
-from foamlab.acquisition.safety import MAX_FAILED_STATUS_POLLS
-from foamlab.acquisition.sampling import MAX_FAILED_READS
+from foamlab.acquisition.settings import DEFAULT
 from foamlab.storage.runfile import read_run_file
 from simulator.inprocess import InProcessMachine
 from tests.hil_support import SPECIMEN, START_MM, finish, inprocess_engine, machine_at_start, short_method
@@ -211,7 +210,7 @@ def test_one_lost_reading_is_a_missed_deadline_and_the_run_goes_on(tmp_path):
 
 def test_readings_lost_in_a_row_end_the_run(tmp_path):
     machine = machine_at_start()
-    lost = At(1.0, lambda: machine.fail("read", DeviceTimeout("no reply to a reading"), MAX_FAILED_READS + 1))
+    lost = At(1.0, lambda: machine.fail("read", DeviceTimeout("no reply to a reading"), DEFAULT.max_failed_reads + 1))
     _, result = run(machine, short_method(tmp_path, strain=0.2, cycles=1), tmp_path, lost)
     assert result.status == "aborted" and result.end == "fault"
     assert result.reason == "device not answering: no reply to a reading"
@@ -222,11 +221,11 @@ def test_readings_lost_in_a_row_end_the_run(tmp_path):
 
 def test_status_polls_failing_in_a_row_end_the_run_and_are_said(tmp_path):
     machine = machine_at_start()
-    lost = At(1.0, lambda: machine.fail("status", DeviceTimeout("no reply to status"), MAX_FAILED_STATUS_POLLS))
+    lost = At(1.0, lambda: machine.fail("status", DeviceTimeout("no reply to status"), DEFAULT.max_failed_status_polls))
     _, result = run(machine, short_method(tmp_path, strain=0.2, cycles=1), tmp_path, lost)
     assert result.status == "aborted" and result.end == "fault"
-    assert result.reason.startswith(f"crosshead status unreadable ({MAX_FAILED_STATUS_POLLS} polls in a row)")
-    assert result.safety.startswith(f"{MAX_FAILED_STATUS_POLLS} crosshead status poll(s) failed")
+    assert result.reason.startswith(f"crosshead status unreadable ({DEFAULT.max_failed_status_polls} polls in a row)")
+    assert result.safety.startswith(f"{DEFAULT.max_failed_status_polls} crosshead status poll(s) failed")
     assert_at_rest(machine)
     assert_file_matches(result)
 

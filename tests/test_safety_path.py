@@ -13,7 +13,8 @@ import pytest
 from drivers.base import CrossheadStatus, DeviceRefused, DeviceTimeout
 from foamlab.acquisition.engine import safety_note
 from foamlab.acquisition.events import RunAborted
-from foamlab.acquisition.safety import MAX_FAILED_STATUS_POLLS, CrossheadWatch, Stopper
+from foamlab.acquisition.safety import CrossheadWatch, Stopper
+from foamlab.acquisition.settings import DEFAULT, AcquisitionSettings
 from foamlab.storage.runfile import RunWriter, read_run_file
 
 
@@ -50,21 +51,21 @@ class Machine:
 
 
 MOVING = CrossheadStatus(moving=True)
+#: The stop confirmed (or not) within 50 ms instead of the default's seconds.
+QUICK_CONFIRM = AcquisitionSettings(stop_confirm_s=0.05)
 
 
-def test_a_crosshead_still_moving_after_the_stop_is_said_and_emergency_stopped(monkeypatch):
-    monkeypatch.setattr("foamlab.acquisition.safety.STOP_CONFIRM_S", 0.05)
+def test_a_crosshead_still_moving_after_the_stop_is_said_and_emergency_stopped():
     crosshead = ScriptedCrosshead(status=[MOVING] * 1000)
-    note = Stopper(Machine(crosshead), threading.Event()).confirm_at_rest()
+    note = Stopper(Machine(crosshead), threading.Event(), settings=QUICK_CONFIRM).confirm_at_rest()
     assert note.startswith("crosshead not confirmed at rest") and "still reports motion" in note
     assert "emergency stop sent" in note and crosshead.calls[-1] == "estop"
 
 
-def test_an_unreadable_status_after_the_stop_is_said_not_taken_for_rest(monkeypatch):
-    monkeypatch.setattr("foamlab.acquisition.safety.STOP_CONFIRM_S", 0.05)
+def test_an_unreadable_status_after_the_stop_is_said_not_taken_for_rest():
     crosshead = ScriptedCrosshead(status=[DeviceTimeout("no reply to status")] * 1000,
                                   estop=[DeviceTimeout("no reply to e-stop")])
-    note = Stopper(Machine(crosshead), threading.Event()).confirm_at_rest()
+    note = Stopper(Machine(crosshead), threading.Event(), settings=QUICK_CONFIRM).confirm_at_rest()
     assert "status unreadable: no reply to status" in note and "emergency stop failed: no reply to e-stop" in note
 
 
@@ -92,15 +93,16 @@ def test_the_device_refusing_a_status_poll_ends_the_run_at_once():
 
 
 def test_failed_status_polls_are_counted_said_and_end_the_run_when_they_persist():
-    failures = [DeviceTimeout(f"no reply {i}") for i in range(MAX_FAILED_STATUS_POLLS)]
+    failures = [DeviceTimeout(f"no reply {i}") for i in range(DEFAULT.max_failed_status_polls)]
     watch = CrossheadWatch(Machine(ScriptedCrosshead(status=[failures[0], CrossheadStatus(), *failures])))
     assert watch.read() is None                         # one failure: counted, the run goes on
     assert watch.read() == CrossheadStatus()
-    for _ in range(MAX_FAILED_STATUS_POLLS - 1):
+    for _ in range(DEFAULT.max_failed_status_polls - 1):
         assert watch.read() is None
-    with pytest.raises(RunAborted, match=f"unreadable \\({MAX_FAILED_STATUS_POLLS} polls in a row\\)"):
+    with pytest.raises(RunAborted, match=f"unreadable \\({DEFAULT.max_failed_status_polls} polls in a row\\)"):
         watch.read()
-    assert watch.note().startswith(f"{MAX_FAILED_STATUS_POLLS + 1} crosshead status poll(s) failed, first: no reply 0")
+    polls = DEFAULT.max_failed_status_polls + 1
+    assert watch.note().startswith(f"{polls} crosshead status poll(s) failed, first: no reply 0")
 
 
 def test_the_safety_note_is_in_the_run_file_trailer(tmp_path):
@@ -111,3 +113,11 @@ def test_the_safety_note_is_in_the_run_file_trailer(tmp_path):
     writer.finish("aborted", "device not answering", safety="crosshead not confirmed at rest within 2 s")
     run = read_run_file(path)
     assert run.status == "aborted" and run.metadata["safety"] == "crosshead not confirmed at rest within 2 s"
+
+
+def test_the_watch_obeys_the_settings_it_is_given():
+    # acquisition.settings passed explicitly: one failed poll ends the run when the settings say so
+    strict = AcquisitionSettings(max_failed_status_polls=1)
+    watch = CrossheadWatch(Machine(ScriptedCrosshead(status=[DeviceTimeout("no reply")])), settings=strict)
+    with pytest.raises(RunAborted, match=r"unreadable \(1 polls in a row\)"):
+        watch.read()

@@ -37,10 +37,11 @@ from foamlab.acquisition.events import (ABORTED, CONNECTING, CONTACT_SEARCH, END
                                         END_FINISHED, END_LIMIT, END_LINK, END_STOP, END_STORAGE, FINISHED,
                                         IDLE, PARK_AFTER, PARKING, RUNNING, STOPPING, TARING, Listeners,
                                         ProgressReporter, RunAborted, RunResult)
-from foamlab.acquisition.safety import (AT_TARGET_MM, STOP_CONFIRM_S, Limits, StallWatch, Stopper,
+from foamlab.acquisition.safety import (Limits, StallWatch, Stopper,
                                         check_crosshead_status, check_safe_to_tare, fault_name, park)
 from foamlab.acquisition.sampling import Sampler
 from foamlab.acquisition.schedule import CpuWakeupLatency, raise_thread_priority
+from foamlab.acquisition.settings import DEFAULT, AcquisitionSettings
 from foamlab.methods import METHOD_FILE_KEY, METHOD_KEY, Method, PlannedStep, method_record
 from foamlab.rundata import Specimen
 from foamlab.runformat import END_KEY, PROFILE_KEY, SCHEDULE_KEY
@@ -49,10 +50,6 @@ from foamlab.storage.runfile import now_iso
 
 log = logging.getLogger(__name__)
 
-#: The position is this close to a move's target before the drive is asked whether it arrived.
-NEAR_TARGET_MM = 0.05
-#: Attempts for an idempotent command whose reply was lost (after the driver's retries).
-COMMAND_ATTEMPTS = 3
 
 
 class RunEngine:
@@ -64,13 +61,16 @@ class RunEngine:
     and disconnects itself). `recorder`: where the samples go (default: a Recorder on
     `out_dir`). A folder the recorder cannot write refuses the run here, before any motion.
     `clock`: what the run waits by (a virtual clock for the in-process machine: acquisition.clock).
+    `settings`: the acquisition's thresholds (acquisition.settings; docs/settings.md).
     """
 
     def __init__(self, machine: Machine, method: Method, specimen: Specimen, out_dir: str | Path,
                  limits: Limits | None = None, speedup: float = 1.0, progress_interval_s: float = 0.25,
                  *, connect: bool = True, machine_name: str | None = None, run_name: str | None = None,
-                 realtime: bool = True, recorder: Recorder | None = None, clock: RunClock = WALL_CLOCK):
+                 realtime: bool = True, recorder: Recorder | None = None, clock: RunClock = WALL_CLOCK,
+                 settings: AcquisitionSettings = DEFAULT):
         self.machine, self.method, self.specimen = machine, method, specimen
+        self.settings = settings
         self.speedup = float(speedup)
         self.clock = clock
         self.progress_interval_s = float(progress_interval_s)
@@ -101,7 +101,7 @@ class RunEngine:
         self._stop_reason = ""
         self._thread: threading.Thread | None = None
         self._result: RunResult | None = None
-        self._stopper = Stopper(machine, self._estop, clock)
+        self._stopper = Stopper(machine, self._estop, clock, settings)
         # filled by the worker
         self._start_position: float | None = None
         self._contact: float | None = None
@@ -109,7 +109,7 @@ class RunEngine:
         self._sampler = Sampler(machine, self.limits, self.recorder, self._listeners, period_s=self.period_s,
                                 speedup=self.speedup, wake=self._wake, check_flags=self._check_flags,
                                 on_sample=lambda s: self._report_progress(s.displacement_mm, s.force_N),
-                                clock=clock)
+                                clock=clock, settings=settings)
         self._progress = ProgressReporter(self._listeners, self.plan, method.n_cycles, self.speedup,
                                           progress_interval_s, clock.now)
         self._connected_once = False
@@ -236,17 +236,18 @@ class RunEngine:
             what = "emergency stop" if status.emergency_stopped else f"fault ({fault_name(self.machine)})"
             raise RunAborted(END_FAULT, f"the crosshead has a latched {what}: reset it before starting a run")
         if status.moving:
-            command(crosshead.stop)
+            self._command(crosshead.stop)
             self._wait_at_rest()
         self._start_position = crosshead.read_position()
         lim = self.limits
         if not lim.travel_upper_mm <= self._start_position <= lim.travel_lower_mm:
             raise RunAborted(END_LIMIT, f"the crosshead is at {self._start_position:.3f} mm, outside the travel "
                                         f"limits [{lim.travel_upper_mm:g}, {lim.travel_lower_mm:g}] mm")
-        command(crosshead.set_travel_limits, lim.travel_upper_mm, lim.travel_lower_mm)
+        self._command(crosshead.set_travel_limits, lim.travel_upper_mm, lim.travel_lower_mm)
         self._set_state(TARING)
-        command(check_safe_to_tare, self.machine)   # never tare a squeezed specimen (issue 18)
-        command(self.machine.load_cell.tare)
+        # never tare a squeezed specimen (issue 18)
+        self._command(check_safe_to_tare, self.machine, "tare", self.settings)
+        self._command(self.machine.load_cell.tare)
 
     def _contact_search(self) -> None:
         """Jog down until the force reaches the preload; that position is displacement 0."""
@@ -256,7 +257,7 @@ class RunEngine:
         self._sampler.restart(self._interrupted())
         self._report_progress(0.0, 0.0, immediate=True)
         reach = min(self._start_position + contact.max_search_mm, self.limits.travel_lower_mm)
-        command(crosshead.jog, +1, contact.search_speed_mm_min)
+        self._command(crosshead.jog, +1, contact.search_speed_mm_min)
         previous = None
         while True:
             sample = self._sampler.take(record=False)
@@ -264,7 +265,7 @@ class RunEngine:
                 continue
             position, force = sample
             if force >= contact.preload_N:
-                command(crosshead.stop)
+                self._command(crosshead.stop)
                 # the preload was crossed between the previous sample and this one
                 if previous is not None and force > previous[1]:
                     frac = (contact.preload_N - previous[1]) / (force - previous[1])
@@ -273,8 +274,8 @@ class RunEngine:
                     self._contact = position
                 self._sampler.contact = self._contact
                 break
-            if position >= reach - AT_TARGET_MM:
-                command(crosshead.stop)
+            if position >= reach - self.settings.at_target_mm:
+                self._command(crosshead.stop)
                 raise RunAborted(END_LIMIT, f"no contact: the force stayed below the {contact.preload_N:g} N "
                                             f"preload down to {position:.2f} mm")
             previous = sample
@@ -285,7 +286,7 @@ class RunEngine:
                                         f"limit {self.limits.travel_lower_mm:g} mm (contact at {self._contact:.2f} mm)")
 
     def _wait_at_rest(self) -> None:
-        deadline = self.clock.now() + STOP_CONFIRM_S + 5.0 / self.speedup
+        deadline = self.clock.now() + self.settings.stop_confirm_s + 5.0 / self.speedup
         while self.clock.now() < deadline:
             self._check_flags()
             status = self.machine.crosshead.status()
@@ -317,7 +318,7 @@ class RunEngine:
         target = self._contact + planned.end_mm
         if step.action != "dwell":
             sent = self.clock.now()
-            command(self.machine.crosshead.move_to, target, step.speed_mm_min)
+            self._command(self.machine.crosshead.move_to, target, step.speed_mm_min)
             self._sampler.waited_for_device(self.clock.now() - sent)
         # the run's own schedule (and machine clock) starts when the first step is under way;
         # the contact search had its own, whose samples are not part of the run
@@ -328,22 +329,22 @@ class RunEngine:
             while True:
                 if self._sampler.take(record=True) is not None and self.recorder.last[0] - start_s >= step.duration_s:
                     return
-        watch = StallWatch(step.speed_mm_min, start_s, planned.duration_s)
+        watch = StallWatch(step.speed_mm_min, start_s, planned.duration_s, self.settings)
         previous = math.inf
         while True:
             sample = self._sampler.take(record=True)
             if sample is None:
                 continue
             position = sample[0]
-            if abs(position - target) <= NEAR_TARGET_MM:
+            if abs(position - target) <= self.settings.near_target_mm:
                 # Done once the drive is at rest there (reversing a crosshead that is still
                 # decelerating would overshoot) AND a recorded sample shows where it stopped: on
                 # the target, or - for a drive that settles within its in-position window -
                 # twice at the same place.
                 status = self._sampler.read_status()
                 if status is not None and not status.moving and (
-                        abs(position - target) <= AT_TARGET_MM
-                        or (status.in_position and abs(position - previous) <= AT_TARGET_MM)):
+                        abs(position - target) <= self.settings.at_target_mm
+                        or (status.in_position and abs(position - previous) <= self.settings.at_target_mm)):
                     return
             previous = position
             problem = watch.check(self.recorder.last[0], position, target)
@@ -359,6 +360,9 @@ class RunEngine:
                               self._state, fraction, immediate)
 
     # -- ending ------------------------------------------------------------------------
+    def _command(self, action: Callable, *args) -> None:
+        command(action, *args, attempts=self.settings.command_attempts)
+
     def _park(self) -> str:
         """Back to the start position; a new stop request or a limit halts it."""
         self._set_state(PARKING)
@@ -426,21 +430,21 @@ def safety_note(stop_note: str, rest_note: str, status_note: str) -> str:
     return "; ".join(p for p in parts if p)
 
 
-def command(action: Callable, *args) -> None:
+def command(action: Callable, *args, attempts: int = DEFAULT.command_attempts) -> None:
     """Send an idempotent command (move, jog, stop, tare, limits), retried on a lost reply.
 
     The driver already retried the request itself; a command whose reply went missing may
     still have been done, and sending it again does the same thing. A lost link is not
     retried here (cleanup reconnects).
     """
-    for attempt in range(COMMAND_ATTEMPTS):
+    for attempt in range(attempts):
         try:
             action(*args)
             return
         except DeviceConnectionLost:
             raise
         except DeviceError as exc:
-            if attempt == COMMAND_ATTEMPTS - 1:
+            if attempt == attempts - 1:
                 raise
             log.warning("%s failed (%s); sending it again", getattr(action, "__name__", "command"), exc)
 

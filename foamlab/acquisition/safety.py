@@ -11,7 +11,7 @@ force wrong by that load: issue 18's e-stop at 43 mm (~56 N), reset and Start ta
 the squeezed block, and the free crosshead then read -51 N. So a tare is refused, with
 the reason in words, when
 
-- the load cell does not read its unloaded level: |net force| above UNLOADED_FRACTION
+- the load cell does not read its unloaded level: |net force| above settings.unloaded_fraction
   of the cell's capacity (the net force is relative to the last tare, taken in air), or
 - the crosshead stands below (positions grow downwards) the point where the plate last
   touched a specimen on this machine, when that point is known (remember_contact()).
@@ -34,27 +34,9 @@ from drivers.base import CrossheadStatus, DeviceConnectionLost, DeviceError, Dev
 from foamlab import FoamlabError
 from foamlab.acquisition.clock import WALL_CLOCK, RunClock
 from foamlab.acquisition.events import END_ESTOP, END_FAULT, END_LIMIT, END_OVERLOAD, RunAborted
+from foamlab.acquisition.settings import DEFAULT, AcquisitionSettings
 
 log = logging.getLogger(__name__)
-
-#: A move is complete when the drive is at rest and in position (or this close to the
-#: target: drives report um)...
-AT_TARGET_MM = 0.003
-#: Crosshead status is read between samples when there is slack, at most this often (wall s)...
-STATUS_INTERVAL_S = 0.1
-#: ...and at least this often even without slack (wall s; may cost a sample, counted as missed).
-STATUS_FORCED_INTERVAL_S = 1.0
-#: Stall: over this window (machine s) the crosshead moved < STALL_FRACTION of the commanded travel.
-STALL_WINDOW_S = 1.0
-STALL_FRACTION = 0.2
-#: How long to wait for the crosshead to come to rest after a stop (wall s).
-STOP_CONFIRM_S = 2.0
-#: How long cleanup keeps trying to send stop / emergency stop over a failing link (wall s).
-STOP_RETRY_S = 3.0
-#: Status polls that may fail in a row (each already retried by the driver) before the run stops:
-#: a device without a host watchdog relies on the engine noticing a dead link (docs/devices.md).
-MAX_FAILED_STATUS_POLLS = 2
-
 
 @dataclass(frozen=True)
 class Limits:
@@ -90,13 +72,15 @@ class Limits:
         return (f"force {self.force_N:g} N, travel [{self.travel_upper_mm:g}, {self.travel_lower_mm:g}] mm, "
                 f"speed {self.max_speed_mm_min:g} mm/min")
 
-    def check_sample(self, position: float, force: float, load_cell_status) -> None:
+    def check_sample(self, position: float, force: float, load_cell_status,
+                     settings: AcquisitionSettings = DEFAULT) -> None:
         """Raise RunAborted when a sample is over a limit (or the load cell is over range)."""
         if load_cell_status is not None and load_cell_status.over_range:
             raise RunAborted(END_OVERLOAD, f"load cell overload (over-range) at {force:.1f} N")
         if force >= self.force_N:
             raise RunAborted(END_LIMIT, f"force limit {self.force_N:g} N reached ({force:.1f} N)")
-        if position > self.travel_lower_mm + AT_TARGET_MM or position < self.travel_upper_mm - AT_TARGET_MM:
+        tolerance = settings.at_target_mm
+        if position > self.travel_lower_mm + tolerance or position < self.travel_upper_mm - tolerance:
             raise RunAborted(END_LIMIT, f"travel limit: crosshead at {position:.3f} mm, outside "
                                         f"[{self.travel_upper_mm:g}, {self.travel_lower_mm:g}] mm")
 
@@ -104,25 +88,29 @@ class Limits:
 class StallWatch:
     """A move's watchdog: the crosshead must follow its command (machine time throughout).
 
-    Stalled: over STALL_WINDOW_S it moved less than STALL_FRACTION of the commanded travel.
+    Stalled: over settings.stall_window_s it moved less than settings.stall_fraction of the
+    commanded travel.
     Timed out: the move took 1.25 x its nominal duration + 5 s without arriving.
     """
 
-    def __init__(self, speed_mm_min: float, start_s: float, expected_s: float):
+    def __init__(self, speed_mm_min: float, start_s: float, expected_s: float,
+                 settings: AcquisitionSettings = DEFAULT):
         self.speed, self.start_s, self.expected_s = speed_mm_min, start_s, expected_s
+        self.settings = settings
         self._window: collections.deque[tuple[float, float]] = collections.deque()
 
     def check(self, now_s: float, position: float, target: float) -> str:
         """"" when the move is on its way, else what went wrong (one line)."""
         window = self._window
         window.append((now_s, position))
-        while window and window[0][0] < now_s - STALL_WINDOW_S:
+        stall_s = self.settings.stall_window_s
+        while window and window[0][0] < now_s - stall_s:
             window.popleft()
         elapsed = now_s - self.start_s
         span = window[-1][0] - window[0][0]
-        if elapsed > 2 * STALL_WINDOW_S and len(window) >= 3 and span >= 0.8 * STALL_WINDOW_S:
+        if elapsed > 2 * stall_s and len(window) >= 3 and span >= 0.8 * stall_s:
             moved = abs(window[-1][1] - window[0][1])
-            if moved < STALL_FRACTION * self.speed / 60.0 * span:
+            if moved < self.settings.stall_fraction * self.speed / 60.0 * span:
                 return f"crosshead stalled: commanded {self.speed:g} mm/min, moved {moved:.3f} mm in {span:.1f} s"
         if elapsed > 1.25 * self.expected_s + 5.0:
             return (f"crosshead did not reach its target: {abs(position - target):.3f} mm short after "
@@ -157,12 +145,12 @@ class CrossheadWatch:
     """Reads the drive's status between samples and raises on its alarms (check_crosshead_status).
 
     Between samples only when the request fits before the next deadline (its round trip is
-    tracked), at most every STATUS_INTERVAL_S, and at least every STATUS_FORCED_INTERVAL_S
+    tracked), at most every settings.status_interval_s, and at least every settings.status_forced_interval_s
     even without slack (that may cost a sample: counted as missed).
     """
 
-    def __init__(self, machine: Machine, clock: RunClock = WALL_CLOCK):
-        self.machine, self.clock = machine, clock
+    def __init__(self, machine: Machine, clock: RunClock = WALL_CLOCK, settings: AcquisitionSettings = DEFAULT):
+        self.machine, self.clock, self.settings = machine, clock, settings
         self._last = 0.0
         self._rtt = 0.0
         self._in_a_row = 0
@@ -170,15 +158,15 @@ class CrossheadWatch:
 
     def maybe_read(self, schedule) -> None:
         since = self.clock.now() - self._last
-        if since < STATUS_INTERVAL_S:
+        if since < self.settings.status_interval_s:
             return
-        if since < STATUS_FORCED_INTERVAL_S and schedule.slack() < 1.5 * self._rtt + 1e-4:
+        if since < self.settings.status_forced_interval_s and schedule.slack() < 1.5 * self._rtt + 1e-4:
             return
         self.read(schedule)
 
     def read(self, schedule=None) -> CrossheadStatus | None:
         """The drive's status; None when this poll failed (counted and said: the device's own
-        error reply, or MAX_FAILED_STATUS_POLLS failures in a row, end the run)."""
+        error reply, or settings.max_failed_status_polls failures in a row, end the run)."""
         t = self.clock.now()
         try:
             status = self.machine.crosshead.status()
@@ -191,7 +179,7 @@ class CrossheadWatch:
             self._in_a_row += 1
             self.failed.append(str(exc))
             log.warning("crosshead status failed (%d in a row): %s", self._in_a_row, exc)
-            if self._in_a_row >= MAX_FAILED_STATUS_POLLS:
+            if self._in_a_row >= self.settings.max_failed_status_polls:
                 raise RunAborted(END_FAULT, f"crosshead status unreadable ({self._in_a_row} polls in a row): "
                                             f"{exc}") from None
             return None
@@ -218,19 +206,19 @@ class Stopper:
     for good (then nothing more is sent: no park).
     """
 
-    def __init__(self, machine: Machine, estop: threading.Event, clock: RunClock = WALL_CLOCK):
-        self.machine, self.clock = machine, clock
+    def __init__(self, machine: Machine, estop: threading.Event, clock: RunClock = WALL_CLOCK,
+                 settings: AcquisitionSettings = DEFAULT):
+        self.machine, self.clock, self.settings = machine, clock, settings
         self.estop = estop
         self.link_alive = False
 
     def stop(self) -> str:
-        """Stop, else emergency stop, retried (reconnecting) for STOP_RETRY_S; says what happened.
-
-        A link that glitched may come back within STOP_RETRY_S; a real drive's watchdog is the
+        """Stop, else emergency stop, retried (reconnecting) for settings.stop_retry_s; says what
+        happened. A link that glitched may come back within it; a real drive's watchdog is the
         last line of defence beyond that.
         """
         crosshead = self.machine.crosshead
-        deadline = self.clock.now() + STOP_RETRY_S
+        deadline = self.clock.now() + self.settings.stop_retry_s
         errors: list[str] = []
         while True:
             estop = ("emergency stop", "emergency stopped", crosshead.emergency_stop)
@@ -245,7 +233,8 @@ class Stopper:
                 except Exception as exc:
                     lost |= isinstance(exc, DeviceConnectionLost)
                     if not errors:
-                        log.warning("%s of the crosshead failed: %s (retrying for %g s)", verb, exc, STOP_RETRY_S)
+                        log.warning("%s of the crosshead failed: %s (retrying for %g s)", verb, exc,
+                                    self.settings.stop_retry_s)
                     errors.append(str(exc))
             if self.clock.now() >= deadline:
                 self.link_alive = False
@@ -260,10 +249,10 @@ class Stopper:
     def confirm_at_rest(self) -> str:
         """Wait until the drive reports no motion: "" when it does, else why not, in one line.
 
-        Not confirmed within STOP_CONFIRM_S (or the status unreadable): an emergency stop is
+        Not confirmed within settings.stop_confirm_s (or the status unreadable): an emergency stop is
         sent and the reason is returned, never swallowed - the run's trailer and the screen say it.
         """
-        deadline = self.clock.now() + STOP_CONFIRM_S
+        deadline = self.clock.now() + self.settings.stop_confirm_s
         last_error = ""
         while self.clock.now() < deadline:
             try:
@@ -278,7 +267,7 @@ class Stopper:
             except DeviceError as exc:
                 last_error = f"status unreadable: {exc}"
             self.clock.sleep(0.005)
-        note = f"crosshead not confirmed at rest within {STOP_CONFIRM_S:g} s ({last_error})"
+        note = f"crosshead not confirmed at rest within {self.settings.stop_confirm_s:g} s ({last_error})"
         try:
             self.machine.crosshead.emergency_stop()
             note += "; emergency stop sent"
@@ -316,7 +305,7 @@ def park(machine: Machine, stopper: Stopper, limits: Limits, target: float, spee
             if status.fault or status.emergency_stopped:
                 crosshead.stop()
                 return "park stopped by a crosshead fault"
-            arrived = abs(reading.position_mm - target) <= AT_TARGET_MM or status.in_position
+            arrived = abs(reading.position_mm - target) <= stopper.settings.at_target_mm or status.in_position
             if arrived and not status.moving:
                 return f"parked at {target:.3f} mm"
             if (status.upper_limit or status.lower_limit) and not status.moving:
@@ -330,10 +319,6 @@ def park(machine: Machine, stopper: Stopper, limits: Limits, target: float, spee
 
 
 # ---- before a run, a tare or a zero (the window and the engine) ------------------------------
-
-#: "Unloaded" means within this fraction of the load cell's capacity (5 N on a 500 N cell):
-#: well above the noise and drift of an indicator, well below a specimen pressed a few %.
-UNLOADED_FRACTION = 0.01
 
 _contacts: "weakref.WeakKeyDictionary[Machine, float]" = weakref.WeakKeyDictionary()
 
@@ -354,16 +339,16 @@ def shift_contact(machine: Machine, by_mm: float) -> None:
         _contacts[machine] += by_mm
 
 
-def unloaded_tolerance_N(machine: Machine) -> float:
-    return UNLOADED_FRACTION * float(machine.load_cell.capacity_N)
+def unloaded_tolerance_N(machine: Machine, settings: AcquisitionSettings = DEFAULT) -> float:
+    return settings.unloaded_fraction * float(machine.load_cell.capacity_N)
 
 
-def check_safe_to_tare(machine: Machine, action: str = "tare") -> None:
+def check_safe_to_tare(machine: Machine, action: str = "tare", settings: AcquisitionSettings = DEFAULT) -> None:
     """Raise FoamlabError (one plain line) unless the load cell may be tared/zeroed now.
 
     Reads one sample from the machine: call it on the thread that owns the machine."""
     sample = machine.read_sample()
-    tolerance = unloaded_tolerance_N(machine)
+    tolerance = unloaded_tolerance_N(machine, settings)
     if abs(sample.force_N) > tolerance:
         raise FoamlabError(
             f"{action} refused: the load cell reads {sample.force_N:.1f} N, not its unloaded level "

@@ -12,13 +12,11 @@ from foamlab.acquisition.clock import WALL_CLOCK, RunClock
 from foamlab.acquisition.events import END_FAULT, Listeners, RunAborted, Sample
 from foamlab.acquisition.safety import CrossheadWatch, Limits
 from foamlab.acquisition.schedule import SampleSchedule, ScheduleStats
+from foamlab.acquisition.settings import DEFAULT, AcquisitionSettings
 from foamlab.methods import PlannedStep
 from foamlab.storage.recorder import Recorder
 
 log = logging.getLogger(__name__)
-
-#: Consecutive failed reads (after the driver's own retries) tolerated before aborting.
-MAX_FAILED_READS = 3
 
 
 class Sampler:
@@ -31,12 +29,13 @@ class Sampler:
 
     def __init__(self, machine: Machine, limits: Limits, recorder: Recorder, listeners: Listeners, *,
                  period_s: float, speedup: float, wake: threading.Event, check_flags: Callable[[], None],
-                 on_sample: Callable[[Sample], None], clock: RunClock = WALL_CLOCK):
+                 on_sample: Callable[[Sample], None], clock: RunClock = WALL_CLOCK,
+                 settings: AcquisitionSettings = DEFAULT):
         self.machine, self.limits, self.recorder, self.listeners = machine, limits, recorder, listeners
-        self.clock = clock
+        self.clock, self.settings = clock, settings
         self.period_s, self.speedup, self.wake = period_s, speedup, wake
         self.check_flags, self.on_sample = check_flags, on_sample
-        self.watch = CrossheadWatch(machine, clock)
+        self.watch = CrossheadWatch(machine, clock, settings)
         self.schedule: SampleSchedule | None = None
         self.t0 = 0.0
         self.step: PlannedStep | None = None
@@ -91,7 +90,7 @@ class Sampler:
             self.failed_reads += 1
             self._in_a_row += 1
             schedule.miss()
-            if self._in_a_row > MAX_FAILED_READS:
+            if self._in_a_row > self.settings.max_failed_reads:
                 raise RunAborted(END_FAULT, f"device not answering: {exc}") from None
             log.warning("sample failed (%d in a row): %s", self._in_a_row, exc)
             return None
@@ -105,7 +104,7 @@ class Sampler:
         instant = reading.time or (t_request + t_done) / 2
         sample = self._record(instant, position, force, (t_done - t_request) * 1e3,
                               lateness * 1e3) if record else None
-        self.limits.check_sample(position, force, reading.load_cell_status)
+        self.limits.check_sample(position, force, reading.load_cell_status, self.settings)
         if sample is not None:
             if self.listeners:
                 self.listeners.emit("on_sample", sample)

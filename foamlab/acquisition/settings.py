@@ -1,0 +1,42 @@
+"""The acquisition's thresholds in one frozen object, passed explicitly (DEFAULT unless given).
+
+RunEngine(settings=...) hands it to the sampler, the crosshead and stall watches, the
+stopper and the park; the tare refusal takes it too. Why each value: docs/settings.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+
+def _setting(default, meaning: str):
+    return field(default=default, metadata={"meaning": meaning})
+
+
+@dataclass(frozen=True)
+class AcquisitionSettings:
+    # -- moves
+    at_target_mm: float = _setting(0.003, "a move is complete this close to its target (drives report um)")
+    near_target_mm: float = _setting(0.05, "this close, the drive is asked whether the move arrived")
+    stall_window_s: float = _setting(1.0, "stall watch window (machine s)")
+    stall_fraction: float = _setting(0.2, "stalled: moved less than this share of the commanded travel")
+    # -- the link
+    command_attempts: int = _setting(3, "sends of an idempotent command whose reply was lost")
+    max_failed_reads: int = _setting(3, "failed readings in a row tolerated before the run aborts")
+    max_failed_status_polls: int = _setting(2, "failed crosshead status polls in a row that end the run")
+    status_interval_s: float = _setting(0.1, "crosshead status read between samples at most this often (wall s)")
+    status_forced_interval_s: float = _setting(1.0, "...and at least this often, even without slack (wall s)")
+    # -- stopping
+    stop_confirm_s: float = _setting(2.0, "wait for the crosshead at rest after a stop (wall s)")
+    stop_retry_s: float = _setting(3.0, "cleanup keeps sending stop / e-stop over a failing link (wall s)")
+    # -- tare
+    unloaded_fraction: float = _setting(0.01, "unloaded: within this share of the load cell's capacity")
+
+    def lines(self) -> list[str]:
+        """`name = value  meaning`, one line each, in declaration order."""
+        width = max(len(f.name) for f in fields(self))
+        return [f"{f.name:<{width}} = {getattr(self, f.name):<8g} {f.metadata['meaning']}" for f in fields(self)]
+
+
+#: The values every run uses unless given others.
+DEFAULT = AcquisitionSettings()
