@@ -148,3 +148,19 @@ def test_a_stored_fit_is_diagnosed_without_identifying_the_run_again(fitted, mon
     d = diagnose([load_run(run_file)], fit=FitReport.load(side))
     assert d.verdict
     assert d.base.rmse <= 1.01 * report.core_fit.rmse      # the stored fit's model, not a worse one
+
+
+def test_a_run_with_samples_off_its_schedule_reads_its_stored_fit(tmp_path):
+    """The fit leaves out samples taken off the sampling schedule (analysis.prepared.on_schedule):
+    its stored report has fewer fitted samples than the run, and is still the run's fit."""
+    from foamlab.identification.store import stored_fit
+
+    run = im.generate(im.REGIME_B, 5, cycles=1).to_rundata()
+    t = run.time_s.copy()
+    t[len(t) // 2] += 0.7 * (t[1] - t[0])            # one sample stamped late: off the schedule
+    run_file = write_run_file(tmp_path / "late.csv", dataclasses.replace(run, time_s=t))
+    report = fit_run(load_run(run_file))
+    store_fit(report, run_file)
+    assert len(report.samples.time_s) < len(load_run(run_file)) == report.run_samples
+    found = stored_fit(run_file, load_run(run_file))
+    assert found is not None and found[0] == report

@@ -465,7 +465,7 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
         autocorrelation_time=float(tau), contact_zero_N=float(jf.contact_zero_N), status=int(jf.status),
         message=str(jf.message), samples=samples, turns=_turn_samples(fd.series.used[first:last], whole),
         structure=structure, starts=tuple(jf.starts), elapsed_s=time.perf_counter() - started,
-        turns_between_samples=bool(fd.nodes.between_samples),
+        turns_between_samples=bool(fd.nodes.between_samples), run_samples=len(fd.t) + int(fd.off_schedule),
         work=FitWork(fd, base, free if apart is not None else None, largest),
     )
 

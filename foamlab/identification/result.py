@@ -119,6 +119,7 @@ class FitReport:
     starts: tuple[str, ...] = ()
     elapsed_s: float = 0.0
     turns_between_samples: bool = True   # turns without a stop placed between samples (else at one)
+    run_samples: int = 0              # the run's samples as given (samples: those on its schedule)
     work: FitWork | None = field(default=None, compare=False, repr=False, metadata={"saved": False})
 
     def __eq__(self, other: object) -> bool:

@@ -29,7 +29,7 @@ def store_fit(result: FitReport, run_path: str | Path, out_dir: str | Path | Non
 
 def stored_fit(run_path: str | Path, run: RunData) -> tuple[FitReport, Path] | None:
     """The fit stored beside a run file when it is the fit of this run as it is now: not older
-    than the file, a report this foamlab reads, one fitted force per sample. None otherwise (the
+    than the file, a report this foamlab reads, of as many samples as the run. None otherwise (the
     caller fits; a sidecar it cannot read is said in the log, not raised: fitting again is the
     remedy)."""
     run_path = Path(run_path)
@@ -41,8 +41,8 @@ def stored_fit(run_path: str | Path, run: RunData) -> tuple[FitReport, Path] | N
     except (OSError, FoamlabError) as exc:
         log.info("stored fit of %s not used: %s", run_path, exc)
         return None
-    if len(report.samples.force_N) != len(run):
-        log.info("stored fit of %s not used: %d samples fitted, the run has %d", run_path,
-                 len(report.samples.force_N), len(run))
+    if report.run_samples != len(run):
+        log.info("stored fit of %s not used: made on %d samples, the run has %d", run_path,
+                 report.run_samples, len(run))
         return None
     return report, side
