@@ -57,7 +57,7 @@ def analyse_file(path: str, sha256: str) -> Outcome:
         outcome.diagnosis_path = str(a.diagnosis_path)
     if not outcome.ours:
         if a.fit is not None:
-            outcome.fit_document = json.dumps(a.fit.sidecar_dict(), indent=1)
+            outcome.fit_document = a.fit.sidecar_text()
         if a.diagnosis is not None:
             outcome.diagnosis_document = json.dumps({**a.diagnosis.to_dict(), "run": path}, indent=1)
     return _done(outcome, started)

@@ -271,15 +271,18 @@ class FitReport:
         })
         return out
 
+    def sidecar_text(self) -> str:
+        """The sidecar's JSON: the readable part indented, the record (thousands of samples) one
+        number after another."""
+        data = self.sidecar_dict()
+        record = data.pop("report")
+        return json.dumps(data, indent=1)[:-2] + ',\n "report": ' + json.dumps(record, separators=(",", ":")) + "\n}"
+
     def save(self, path: str | Path) -> Path:
         """Write the sidecar JSON (atomically: a reader never sees half a file)."""
         path = Path(path)
         tmp = path.with_name(path.name + ".tmp")
-        data = self.sidecar_dict()
-        record = data.pop("report")
-        # the readable part indented, the record (thousands of samples) one number after another
-        text = json.dumps(data, indent=1)[:-2] + ',\n "report": ' + json.dumps(record, separators=(",", ":")) + "\n}"
-        tmp.write_text(text, encoding="utf-8")
+        tmp.write_text(self.sidecar_text(), encoding="utf-8")
         tmp.replace(path)
         return path
 
