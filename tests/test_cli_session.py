@@ -1,4 +1,4 @@
-"""`foamlab run` and the window assemble a run the same way (foamlab.acquisition.session).
+"""`foamlab run` and the window assemble a run the same way (foamlab.session).
 
 The simulator process and the driver are replaced by recorders: what each front end asks
 for (the simulator's options, the profile and connection the driver is built from, the
@@ -14,7 +14,7 @@ pytest.importorskip("PySide6")
 from drivers.profile import load_profile  # noqa: E402
 from foamlab import FoamlabError, cli  # noqa: E402
 from foamlab.acquisition import engine as engine_module  # noqa: E402
-from foamlab.acquisition.session import MachineChoice, MachineSession  # noqa: E402
+from foamlab.session import MachineChoice, MachineSession  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -145,3 +145,30 @@ def test_an_unknown_profile_is_one_line(recorded, capsys):
     assert cli.main(["run", "--machine", "no-such-machine", "--specimen-height", "50", "--unprobed-ok"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "no-such-machine" in err, err
+
+
+def test_the_cli_and_the_window_predict_through_the_session(recorded, monkeypatch, tmp_path):
+    # the window's LivePrediction.begin calls foamlab.session.start_prediction too (gui/prediction.py)
+    import inspect
+
+    from foamlab.gui import prediction as gui_prediction
+
+    assert "start_prediction(engine, method" in inspect.getsource(gui_prediction.LivePrediction.begin)
+    asked = []
+
+    class QuietEngine:
+        def __init__(self, machine, method, specimen, out_dir, **kwargs):
+            pass
+
+        def add_listener(self, listener):
+            pass
+
+    def start_prediction(engine, method, listener):
+        asked.append((engine, method))
+        raise _Stop("predicted")
+
+    monkeypatch.setattr(engine_module, "RunEngine", QuietEngine)
+    monkeypatch.setattr("foamlab.session.start_prediction", start_prediction)
+    assert cli.main(["run", "--speedup", "5", "--out", str(tmp_path), "--quiet"]) == 2
+    assert len(asked) == 1 and isinstance(asked[0][0], QuietEngine) and asked[0][1].name == "paper-3cycle"
+    assert recorded["sims"][-1].stopped

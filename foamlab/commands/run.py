@@ -197,7 +197,7 @@ class ProgressLine:
 
 def run(args) -> int:
     from drivers.profile import ProfileError, load_profile
-    from foamlab.acquisition.session import MachineSession
+    from foamlab.session import MachineSession, start_prediction
     from foamlab.methods import load_method
     from foamlab.rundata import Specimen
     from foamlab.storage.recorder import Recorder
@@ -238,7 +238,8 @@ def run(args) -> int:
                       flush=True)
             progress = ProgressLine(enabled=not args.quiet)
             engine.add_listener(progress)
-            predictor = None if args.no_predict else _start_prediction(engine, method, progress)
+            # the prediction's lines are said even with --quiet: they matter
+            predictor = None if args.no_predict else start_prediction(engine, method, PredictionLines(progress))
             with _engine_logging(args.verbose):
                 result = _wait(engine)
                 scores = predictor.finish(PREDICTION_WAIT_S) if predictor is not None else None
@@ -250,8 +251,8 @@ def run(args) -> int:
 
 
 def _machine_choice(args):
-    """The machine the options name (foamlab.acquisition.session: the window's assembly too)."""
-    from foamlab.acquisition.session import MachineChoice
+    """The machine the options name (foamlab.session: the window's assembly too)."""
+    from foamlab.session import MachineChoice
 
     builtin = args.machine is None
     if not builtin and (args.fault or args.effect or args.sim_specimen):
@@ -286,16 +287,6 @@ class PredictionLines:
 
     def on_note(self, text: str) -> None:
         self.out.say(f"prediction: {text}")
-
-
-def _start_prediction(engine, method, progress: ProgressLine):
-    from foamlab.prediction.live import LivePredictor
-
-    predictor = LivePredictor(engine.plan, method.sampling_hz, method.n_cycles)
-    predictor.add_listener(PredictionLines(progress))      # said even with --quiet: it matters
-    engine.add_listener(predictor)
-    predictor.start()
-    return predictor
 
 
 def _wait(engine):

@@ -9,9 +9,9 @@ from collections.abc import Callable
 from PySide6 import QtCore
 
 from foamlab import FoamlabError
-from foamlab.acquisition.session import MachineSession
 from foamlab.gui.controls import ControlPanel
 from foamlab.gui.machine_link import MachineLink, Readout
+from foamlab.session import MachineSession
 
 POLL_HZ = 5            # idle readouts
 

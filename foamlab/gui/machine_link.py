@@ -19,8 +19,8 @@ from typing import Any, Callable
 
 from PySide6 import QtCore
 
-from foamlab.acquisition.session import BUILTIN_TRANSPORT, MachineChoice, MachineSession
 from foamlab.gui.background import BackgroundQueue
+from foamlab.session import BUILTIN_TRANSPORT, MachineChoice, MachineSession
 
 log = logging.getLogger(__name__)
 

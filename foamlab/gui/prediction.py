@@ -268,20 +268,17 @@ class LivePrediction(QtCore.QObject):
 
     def begin(self, engine, method, generation: int) -> None:
         """Predict `engine`'s run (call before engine.start())."""
-        from foamlab.prediction.live import LivePredictor  # noqa: PLC0415
+        from foamlab.session import start_prediction  # noqa: PLC0415
 
         self.stop()
         self.view.clear()
         self.departures = []
         self.generation = generation
-        self.predictor = LivePredictor(engine.plan, method.sampling_hz, method.n_cycles)
         self.bridge = bridge = PredictionBridge(self)
         bridge.forecast.connect(self._on_forecast)
         bridge.departure.connect(self._on_departure)
         bridge.note.connect(self._on_note)
-        self.predictor.add_listener(bridge)
-        engine.add_listener(self.predictor)
-        self.predictor.start()
+        self.predictor = start_prediction(engine, method, bridge)     # the CLI's too (foamlab.session)
         wait = "the first cycle" if MIN_CYCLES == 1 else f"cycles 1–{MIN_CYCLES}"
         if method.n_cycles > MIN_CYCLES:
             text = f"Live prediction: from cycle {MIN_CYCLES + 1} on, once {wait} are measured"

@@ -1,11 +1,14 @@
-"""One assembly of a run for every front end: a machine choice -> a machine -> a run engine.
+"""One assembly of a run for every front end: a machine choice -> a machine -> a run engine
+-> its live prediction.
 
 `foamlab run` and the window both call this, so what a run is given (the profile the
 driver is built from, the built-in simulated machine's process and options, the clock
-rate, the engine's connection handling and machine name) is decided once:
+rate, the engine's connection handling and machine name, the live prediction) is decided
+once:
 
     with MachineSession.open(MachineChoice(speedup=20)) as session:   # the built-in machine
         engine = session.engine(method, specimen, out_dir)
+        predictor = start_prediction(engine, method, listener)         # before engine.start()
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ if TYPE_CHECKING:
     from foamlab.acquisition.engine import RunEngine
     from foamlab.acquisition.safety import Limits
     from foamlab.methods import Method
+    from foamlab.prediction.live import LivePredictor
     from foamlab.rundata import Specimen
 
 log = logging.getLogger(__name__)
@@ -126,6 +130,18 @@ class MachineSession:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def start_prediction(engine: RunEngine, method: Method, listener: Any) -> LivePredictor:
+    """The live prediction of `engine`'s run of `method`, telling `listener` (on_forecast,
+    on_departure, on_note; from its own thread); started, so call it before engine.start()."""
+    from foamlab.prediction.live import LivePredictor  # noqa: PLC0415
+
+    predictor = LivePredictor(engine.plan, method.sampling_hz, method.n_cycles)
+    predictor.add_listener(listener)
+    engine.add_listener(predictor)
+    predictor.start()
+    return predictor
 
 
 def _start_builtin(choice: MachineChoice):
