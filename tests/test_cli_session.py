@@ -6,6 +6,7 @@ engine's clock rate and connection handling) is compared, not run.
 """
 
 import copy
+import dataclasses
 
 import pytest
 
@@ -14,6 +15,7 @@ pytest.importorskip("PySide6")
 from drivers.profile import load_profile  # noqa: E402
 from foamlab import FoamlabError, cli  # noqa: E402
 from foamlab.acquisition import engine as engine_module  # noqa: E402
+from foamlab.acquisition.settings import DEFAULT, AcquisitionSettings  # noqa: E402
 from foamlab.session import MachineChoice, MachineSession  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
@@ -147,7 +149,7 @@ def test_an_unknown_profile_is_one_line(recorded, capsys):
     assert err.count("\n") == 0 and "no-such-machine" in err, err
 
 
-def test_the_cli_and_the_window_predict_through_the_session(recorded, monkeypatch, tmp_path):
+def test_the_cli_and_the_window_predict_through_the_session(recorded, monkeypatch, tmp_path, capsys):
     # the window's LivePrediction.begin calls foamlab.session.start_prediction too (gui/prediction.py)
     import inspect
 
@@ -158,7 +160,7 @@ def test_the_cli_and_the_window_predict_through_the_session(recorded, monkeypatc
 
     class QuietEngine:
         def __init__(self, machine, method, specimen, out_dir, **kwargs):
-            pass
+            self.settings = kwargs.get("settings", DEFAULT)
 
         def add_listener(self, listener):
             pass
@@ -169,6 +171,10 @@ def test_the_cli_and_the_window_predict_through_the_session(recorded, monkeypatc
 
     monkeypatch.setattr(engine_module, "RunEngine", QuietEngine)
     monkeypatch.setattr("foamlab.session.start_prediction", start_prediction)
-    assert cli.main(["run", "--speedup", "5", "--out", str(tmp_path), "--quiet"]) == 2
+    assert cli.main(["run", "--speedup", "5", "--out", str(tmp_path), "--quiet", "--full"]) == 2
     assert len(asked) == 1 and isinstance(asked[0][0], QuietEngine) and asked[0][1].name == "paper-3cycle"
     assert recorded["sims"][-1].stopped
+    # --full: the acquisition's thresholds the run obeys, each with its value
+    out = capsys.readouterr().out
+    for f in dataclasses.fields(AcquisitionSettings):
+        assert f"{f.name} = {getattr(DEFAULT, f.name):g}" in " ".join(out.split()), f.name

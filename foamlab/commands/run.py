@@ -81,6 +81,8 @@ def register(subparsers) -> None:
     p.add_argument("--no-diagnose", action="store_true",
                    help="do not diagnose the fitted run (the diagnosis takes ~20 s; Ctrl-C skips it too)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument("--full", action="store_true",
+                   help="also print the acquisition's thresholds the run obeys (docs/settings.md)")
     p.add_argument("--verbose", action="store_true",
                    help="also print the engine's warnings (retries, failed reads) as they happen")
     p.set_defaults(func=run)
@@ -236,6 +238,9 @@ def run(args) -> int:
                 print(f"foamlab run: {method.describe()} on {session.name}; specimen {height:g} mm"
                       f"{f', {width:g} x {depth:g} mm' if width else ''}; speedup {session.speedup:g}x",
                       flush=True)
+            if args.full:
+                print("settings (foamlab.acquisition.settings; why each: docs/settings.md):")
+                print("\n".join("  " + line for line in engine.settings.lines()), flush=True)
             progress = ProgressLine(enabled=not args.quiet)
             engine.add_listener(progress)
             # the prediction's lines are said even with --quiet: they matter
