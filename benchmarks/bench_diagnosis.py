@@ -133,11 +133,14 @@ def physical(name: str, magnitude: float) -> str:
 # ----------------------------------------------------------------------------- the hard pairs
 
 def independent_run(regime: str, seed: int, hz: float = 16.0, **effect):
-    """A run of tests/independent_model.py with an effect applied by hand, in its own arithmetic
-    (independent_model.run_with_effect: compliance, friction, lag_s)."""
-    import independent_model as im
+    """A run of tests/independent_model.py with an effect hidden by tests/independent_effects.py
+    (its own arithmetic): compliance in mm/N, friction in N, lag_s in s."""
+    import independent_effects as ie
 
-    return im.run_with_effect(regime, seed, hz, **effect)
+    units = {"compliance": ("machine_compliance", lambda c: 1.0 / c), "friction": ("direction_friction", float),
+             "lag_s": ("channel_lag", lambda s: 1000.0 * s)}
+    causes = {units[k][0]: units[k][1](v) for k, v in effect.items() if v}
+    return ie.independent_run(regime, seed, causes, hz=hz)
 
 
 HARD = [(None, {}), ("machine_compliance", {"compliance": 1e-3}), ("machine_compliance", {"compliance": 5e-4}),

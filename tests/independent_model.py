@@ -409,29 +409,3 @@ def generate(regime: Regime, seed: int, cycles: int | None = None, start_s: floa
         x = np.round(x / regime.quantum_mm) * regime.quantum_mm
     return SyntheticRun(regime, seed, comp.hist.t.copy(), x, force, clean, comp, float(start_s))
 
-
-def run_with_effect(regime: str, seed: int, hz: float = SAMPLING_HZ, *, compliance: float = 0.0,
-                    friction: float = 0.0, lag_s: float = 0.0, noise_scale: float = 1.0,
-                    cycles: int | None = None):
-    """A run of the regime (by name) with a catalogue effect applied by hand, in this module's own
-    arithmetic (not foamlab.model.effects): friction +f while loading and -f while unloading where
-    the specimen pushes; lag: the force read lag_s late (linear interpolation); compliance (mm/N):
-    the specimen follows the triangle and the crosshead travels the frame's deflection C F on top
-    (measured displacement = specimen's + C F, to the encoder's quantum); cycles: the regime's
-    unless given. Returns a RunData."""
-    from foamlab.rundata import RunData
-
-    reg = REGIMES[regime].with_(sampling_hz=hz)
-    run = generate(reg, seed, cycles=cycles)
-    t, x = run.time_s.copy(), run.displacement_mm.copy()
-    total = run.model.force
-    force = np.maximum(total, 0.0)
-    if friction:
-        direction = np.where(run.model.hist.loading, 1.0, -1.0)
-        force = np.where(total > 0, np.maximum(force + friction * direction, 0.0), 0.0)
-    if lag_s:
-        force = np.interp(t - lag_s, t, force)
-    noise = (run.force_N - run.true_force_N) * noise_scale
-    if compliance:
-        x = np.round((x + compliance * force) / reg.quantum_mm) * reg.quantum_mm
-    return RunData(t, x, force + reg.zero_offset_N + noise, source=f"independent {regime} seed {seed}")

@@ -1,6 +1,6 @@
 """Issue 16's hard pairs on runs foamlab never generated: tests/independent_model.py (its own
-arithmetic, three cycles at 16 Hz, noise 0.15 N) with an effect applied by hand
-(independent_model.run_with_effect). The effects at the issue's sizes the data hold are named,
+arithmetic, three cycles at 16 Hz, noise 0.15 N) with a cause hidden by tests/independent_effects.py
+(sizes in its physical units: N/mm frame, N, ms). The effects at the issue's sizes the data hold are named,
 clean runs give none.
 
 Not here: regime A's 2 000 N/mm frame and 0.45 N friction (and B's 0.45 N friction). On those
@@ -11,7 +11,7 @@ pairs"); benchmarks/bench_diagnosis.py --hard measures every row.
 
 from __future__ import annotations
 
-import independent_model as im
+import independent_effects as ie
 import pytest
 
 from foamlab.diagnosis import diagnose
@@ -22,12 +22,12 @@ CASES = [
     # under Delta BIC 10 or a held-out gain of 1e-5 N; benchmarks/bench_diagnosis.py --hard), so
     # the test asks for 100 ms, where seeds 300/301 give Delta BIC 240/125 and held-out gains of
     # 4.8/3.7 mN - far from the edge on any machine.
-    ("A", 300, {"lag_s": 0.1}, "channel_lag"),
-    ("A", 301, {"lag_s": 0.1}, "channel_lag"),
-    ("B", 300, {"lag_s": 0.05}, "channel_lag"),
-    ("B", 301, {"lag_s": 0.05}, "channel_lag"),
-    ("B", 300, {"compliance": 1e-3}, "machine_compliance"),     # a 1 000 N/mm frame
-    ("B", 301, {"compliance": 5e-4}, "machine_compliance"),     # a 2 000 N/mm frame
+    ("A", 300, {"channel_lag": 100.0}, "channel_lag"),
+    ("A", 301, {"channel_lag": 100.0}, "channel_lag"),
+    ("B", 300, {"channel_lag": 50.0}, "channel_lag"),
+    ("B", 301, {"channel_lag": 50.0}, "channel_lag"),
+    ("B", 300, {"machine_compliance": 1000.0}, "machine_compliance"),
+    ("B", 301, {"machine_compliance": 2000.0}, "machine_compliance"),
     ("A", 300, {}, "none"),
     # a clean run where an early force (negative lag) fitted from several starts was named
     ("B", 302, {}, "none"),
@@ -37,5 +37,5 @@ CASES = [
 @pytest.mark.parametrize("regime,seed,effect,expected", CASES,
                          ids=[f"{r}-{s}-{next(iter(e), 'clean')}" for r, s, e, _ in CASES])
 def test_hard_pair_on_the_independent_generator_is_named(regime, seed, effect, expected):
-    d = diagnose([im.run_with_effect(regime, seed, **effect)])
+    d = diagnose([ie.independent_run(regime, seed, effect)])
     assert d.verdict == expected, [(c.name, round(c.delta_bic, 1), c.reason) for c in d.tested[0]] if d.tested else d.verdict

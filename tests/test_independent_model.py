@@ -22,6 +22,7 @@ import math
 import tomllib
 from pathlib import Path
 
+import independent_effects as ie
 import independent_model as im
 import numpy as np
 import pytest
@@ -32,8 +33,9 @@ ALL = list(im.REGIMES.values()) + list(im.GRID_REGIMES.values())
 START = 0.0371          # an arbitrary phase of the motion within the first sample step
 
 
-def test_the_generator_imports_no_model_code():
-    tree = ast.parse(Path(im.__file__).read_text(encoding="utf-8"))
+@pytest.mark.parametrize("module", [im, ie], ids=lambda m: m.__name__)
+def test_the_generator_imports_no_model_code(module):
+    tree = ast.parse(Path(module.__file__).read_text(encoding="utf-8"))
     imported = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
@@ -221,3 +223,53 @@ def test_n_cycle_run_and_csv_round_trip(tmp_path):
     assert len(back) == len(run.time_s)
     assert np.abs(back.displacement_mm - run.displacement_mm).max() < 1e-9
     assert np.abs(back.force_N - run.force_N).max() <= 5e-6
+
+
+# -- the hidden causes (tests/independent_effects.py) ------------------------------------------------
+def test_a_run_with_no_cause_is_the_generators_run():
+    run, clean = ie.independent_run("B", 6), im.generate(im.REGIME_B, 6)
+    assert np.array_equal(run.force_N, clean.force_N) and np.array_equal(run.displacement_mm, clean.displacement_mm)
+
+
+@pytest.mark.parametrize("form", ["causal", "paper"])
+def test_each_cause_changes_the_run_as_its_definition_says(form):
+    """Checked on the samples, against the generator's components (not the causes' arithmetic)."""
+    clean = ie.independent_run("A", 7, form=form)
+    comp = im.components(im.REGIME_A.with_(form=form), clean.time_s, start_s=im.start_phase(7))
+    h, total = comp.hist, comp.force
+    contact = total > 3.0                                 # in contact, also with 2 N less
+    moving = (h.t > h.start_s) & (h.t < h.end_s)
+
+    def diff(causes):
+        run = ie.independent_run("A", 7, causes, form=form)
+        return run.force_N - clean.force_N, run.displacement_mm - clean.displacement_mm
+
+    df, _ = diff({"direction_friction": 2.0})            # +f compressing, -f releasing, in contact
+    assert np.allclose(df[contact & moving & h.loading], 2.0) and np.allclose(df[contact & moving & ~h.loading], -2.0)
+    df, _ = diff({"force_zero_drift": 0.6})               # 0.6 N/min = 0.01 N/s from the first sample
+    assert np.allclose(df, 0.01 * (clean.time_s - clean.time_s[0]))
+    _, dx = diff({"machine_compliance": 500.0})           # the frame's deflection F / k on the displacement
+    assert np.abs(dx - np.maximum(total, 0.0) / 500.0).max() <= 1e-3
+    for causes, change in (({"cycle_softening": 10.0}, comp.elastic * (0.9 ** np.maximum(h.cycle, 0) - 1.0)),
+                           ({"damping_cycle_change": 50.0}, comp.damping * 0.5 * np.maximum(h.cycle, 0))):
+        df, _ = diff(causes)                              # elastic x 0.9^(c - 1); damping x (1 + 0.5 (c - 1))
+        both = (total > 0.5) & (total + change > 0.5)    # in contact with and without the cause
+        assert np.allclose(df[both], change[both]), causes
+    df, _ = diff({"channel_lag": 62.5})                   # exactly one sample late
+    assert np.allclose(df[1:], np.maximum(total, 0.0)[:-1] - np.maximum(total, 0.0)[1:], atol=1e-9)
+    df, _ = diff({"memory_lag": 200.0})                   # the release at each reversal is spread
+    peaks = [h.index_of(h.peak_time(k)) for k in range(h.n_cycles)]
+    assert all(abs(df[p + 1]) > 1.0 for p in peaks)
+    mid = (np.abs(h.t - (h.start_s + 0.5 * h.half_s)) < 2.0)   # mid-loading: memory forces change slowly
+    assert np.abs(df[mid]).max() < 0.05 * np.abs(df).max()
+
+
+def test_rate_pair_scales_the_damping_of_the_faster_run():
+    ref, fast = ie.rate_pair("A", 8, 0.5)
+    plain = ie.independent_run("A", 9, speed_mm_min=120.0)
+    reg = im.REGIME_A.with_(speed_mm_min=120.0)
+    comp = im.components(reg, fast.time_s, start_s=im.start_phase(9))
+    expected = comp.damping * (2 ** 0.5 - 1.0)
+    on = comp.force > 1.0
+    assert np.allclose((fast.force_N - plain.force_N)[on], expected[on])
+    assert np.array_equal(ref.force_N, ie.independent_run("A", 8).force_N)
