@@ -4,7 +4,7 @@ The probe connects, lets the device say what it is where its protocol can, reads
 once, runs the driver's own checks of reply formats, units and settings against the profile (a
 driver offers them as `self_checks()`), writes the travel limits and reads them back where the
 device allows, and - only with the operator's confirmation - moves the crosshead at most
-JOG_MM up and back while watching force and position. It says in plain words what works and
+settings.jog_mm up and back while watching force and position. It says in plain words what works and
 what does not; a probe that passed is remembered for this computer (foamlab.storage.probes) so
 that `foamlab run` can warn about a profile that never passed one.
 
@@ -24,20 +24,9 @@ from typing import Callable
 
 from drivers.base import DeviceError, Machine
 from foamlab.acquisition.safety import Limits
+from foamlab.acquisition.settings import COMMISSIONING, CommissioningSettings
 
 log = logging.getLogger(__name__)
-
-#: The commissioning move: at most this far (mm), up (away from a specimen) and back.
-JOG_MM = 1.0
-#: Its speed (mm/min), under the profile's limit.
-JOG_SPEED_MM_MIN = 30.0
-#: The move must arrive within this (mm) of where it was sent...
-JOG_TOLERANCE_MM = 0.05
-#: ...and the force may not change by more than this share of the force limit meanwhile.
-JOG_FORCE_FRACTION = 0.02
-#: Limits read back must match what was written within this (mm: the device's display step).
-LIMIT_TOLERANCE_MM = 0.011
-
 
 @dataclass(frozen=True)
 class Check:
@@ -78,6 +67,7 @@ class ProbeReport:
 class _Probe:
     machine: Machine
     limits: Limits
+    settings: CommissioningSettings = COMMISSIONING
     checks: list[Check] = field(default_factory=list)
 
     def check(self, name: str, action: Callable[[], str]) -> bool:
@@ -92,11 +82,12 @@ class _Probe:
 
 
 def probe(machine: Machine, profile: dict, limits: Limits, *,
-          confirm_move: Callable[[str], bool] | None = None) -> ProbeReport:
+          confirm_move: Callable[[str], bool] | None = None,
+          settings: CommissioningSettings = COMMISSIONING) -> ProbeReport:
     """Commission `machine` (built from `profile`, not yet connected). Never raises for the
     device's failures: each is a failed check. `confirm_move` is asked before the crosshead
     moves (None or False: it does not move)."""
-    p = _Probe(machine, limits)
+    p = _Probe(machine, limits, settings)
     name = str(profile.get("name", "machine"))
     if not p.check("connection", lambda: _connect(machine, profile)):
         return ProbeReport(name, tuple(p.checks))
@@ -178,7 +169,8 @@ def _limits(p: _Probe) -> None:
             return (f"[{lim.travel_upper_mm:g}, {lim.travel_lower_mm:g}] mm kept by foamlab: the device holds no "
                     "travel limits it can report (its limit switches and the per-sample checks protect travel)")
         upper, lower = held
-        if abs(upper - lim.travel_upper_mm) > LIMIT_TOLERANCE_MM or abs(lower - lim.travel_lower_mm) > LIMIT_TOLERANCE_MM:
+        tolerance = p.settings.limit_tolerance_mm
+        if abs(upper - lim.travel_upper_mm) > tolerance or abs(lower - lim.travel_lower_mm) > tolerance:
             raise ValueError(f"wrote [{lim.travel_upper_mm:g}, {lim.travel_lower_mm:g}] mm, the device holds "
                              f"[{upper:g}, {lower:g}] mm (sign or scale wrong?)")
         return f"written and read back: [{upper:g}, {lower:g}] mm"
@@ -187,36 +179,39 @@ def _limits(p: _Probe) -> None:
 
 
 def _move(p: _Probe, confirm: Callable[[str], bool] | None) -> bool:
-    """JOG_MM up and back, only when asked and confirmed; the force watched throughout."""
+    """settings.jog_mm up and back, only when asked and confirmed; the force watched throughout."""
+    jog = p.settings
     if any(c.ok is False for c in p.checks):
         p.checks.append(Check("commissioning move", None, "not attempted: fix the failures above first"))
         return False
-    question = (f"Move the crosshead {JOG_MM:g} mm UP and back at {JOG_SPEED_MM_MIN:g} mm/min? "
+    question = (f"Move the crosshead {jog.jog_mm:g} mm UP and back at {jog.jog_speed_mm_min:g} mm/min? "
                 "Keep clear of the plates; the machine's own emergency stop must be within reach.")
     if confirm is None or not confirm(question):
         p.checks.append(Check("commissioning move", None, "not done (not confirmed)"))
         return False
     m = p.machine
-    speed = min(JOG_SPEED_MM_MIN, p.limits.max_speed_mm_min)
+    speed = min(jog.jog_speed_mm_min, p.limits.max_speed_mm_min)
     try:
         start = m.read_sample()
     except DeviceError as exc:
         p.checks.append(Check("commissioning move", False, f"no sample before moving: {exc}"))
         return False
-    up = p.check("move up", lambda: _move_and_watch(m, start.position_mm - JOG_MM, speed, start.force_N, p.limits))
+    up = p.check("move up", lambda: _move_and_watch(m, start.position_mm - jog.jog_mm, speed, start.force_N,
+                                                    p.limits, jog))
     if up:
-        p.check("move back", lambda: _move_and_watch(m, start.position_mm, speed, start.force_N, p.limits))
+        p.check("move back", lambda: _move_and_watch(m, start.position_mm, speed, start.force_N, p.limits, jog))
     else:
         _stop_quietly(m)
     return True
 
 
-def _move_and_watch(m: Machine, target: float, speed: float, force0: float, limits: Limits) -> str:
+def _move_and_watch(m: Machine, target: float, speed: float, force0: float, limits: Limits,
+                    jog: CommissioningSettings) -> str:
     if not limits.travel_upper_mm <= target <= limits.travel_lower_mm:
         raise ValueError(f"{target:.3f} mm is outside the travel limits: move the crosshead first")
     m.crosshead.move_to(target, speed)
-    deadline = time.monotonic() + JOG_MM / speed * 60.0 * 2.0 + 5.0
-    force_band = JOG_FORCE_FRACTION * limits.force_N
+    deadline = time.monotonic() + jog.jog_mm / speed * 60.0 * 2.0 + 5.0
+    force_band = jog.jog_force_fraction * limits.force_N
     while time.monotonic() < deadline:
         s = m.read_sample()
         if abs(s.force_N - force0) > force_band:
@@ -226,7 +221,7 @@ def _move_and_watch(m: Machine, target: float, speed: float, force0: float, limi
         status = m.crosshead.status()
         if status.fault or status.emergency_stopped:
             raise ValueError("the drive reported a fault while moving")
-        if not status.moving and abs(s.position_mm - target) <= JOG_TOLERANCE_MM:
+        if not status.moving and abs(s.position_mm - target) <= jog.jog_tolerance_mm:
             return f"arrived at {s.position_mm:.3f} mm (sent {target:.3f} mm)"
         time.sleep(0.05)      # a commissioning move is watched, not sampled on a schedule
     _stop_quietly(m)

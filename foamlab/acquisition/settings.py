@@ -1,7 +1,8 @@
-"""The acquisition's thresholds in one frozen object, passed explicitly (DEFAULT unless given).
+"""The acquisition's thresholds in frozen objects, passed explicitly (the defaults unless given).
 
-RunEngine(settings=...) hands it to the sampler, the crosshead and stall watches, the
-stopper and the park; the tare refusal takes it too. Why each value: docs/settings.md.
+AcquisitionSettings: RunEngine(settings=...) hands it to the sampler, the crosshead and stall
+watches, the stopper and the park; the tare refusal takes it too. CommissioningSettings: the
+probe's move and read-back (`foamlab probe`). Why each value: docs/settings.md.
 """
 
 from __future__ import annotations
@@ -13,8 +14,15 @@ def _setting(default, meaning: str):
     return field(default=default, metadata={"meaning": meaning})
 
 
+class _Listed:
+    def lines(self) -> list[str]:
+        """`name = value  meaning`, one line each, in declaration order."""
+        width = max(len(f.name) for f in fields(self))
+        return [f"{f.name:<{width}} = {getattr(self, f.name):<8g} {f.metadata['meaning']}" for f in fields(self)]
+
+
 @dataclass(frozen=True)
-class AcquisitionSettings:
+class AcquisitionSettings(_Listed):
     # -- moves
     at_target_mm: float = _setting(0.003, "a move is complete this close to its target (drives report um)")
     near_target_mm: float = _setting(0.05, "this close, the drive is asked whether the move arrived")
@@ -32,11 +40,19 @@ class AcquisitionSettings:
     # -- tare
     unloaded_fraction: float = _setting(0.01, "unloaded: within this share of the load cell's capacity")
 
-    def lines(self) -> list[str]:
-        """`name = value  meaning`, one line each, in declaration order."""
-        width = max(len(f.name) for f in fields(self))
-        return [f"{f.name:<{width}} = {getattr(self, f.name):<8g} {f.metadata['meaning']}" for f in fields(self)]
-
 
 #: The values every run uses unless given others.
 DEFAULT = AcquisitionSettings()
+
+
+@dataclass(frozen=True)
+class CommissioningSettings(_Listed):
+    jog_mm: float = _setting(1.0, "the commissioning move: at most this far up (away from a specimen) and back")
+    jog_speed_mm_min: float = _setting(30.0, "its speed (mm/min), under the profile's limit")
+    jog_tolerance_mm: float = _setting(0.05, "the move arrives within this of where it was sent")
+    jog_force_fraction: float = _setting(0.02, "the force may change by at most this share of the force limit")
+    limit_tolerance_mm: float = _setting(0.011, "travel limits read back match what was written (display step)")
+
+
+#: The values every probe uses unless given others.
+COMMISSIONING = CommissioningSettings()
