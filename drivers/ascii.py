@@ -289,6 +289,7 @@ class Mark10Crosshead(Crosshead):
     def __init__(self, link: Mark10Link, settings: dict, limits: dict, travel_sign: int):
         self.link = link
         self.unit = link.stand_unit
+        self.position_resolution_mm = self.unit.reading_resolution_mm
         self.travel_sign = travel_sign
         self.max_speed_mm_min = float(settings["max_speed_mm_min"])
         self.safety_upper_mm = float(limits["travel_upper_mm"])

@@ -78,6 +78,10 @@ class LoadCell(abc.ABC):
 
 
 class Crosshead(abc.ABC):
+    #: The step of read_position() in mm (a reading's last digit, one encoder pulse), from the
+    #: device file and profile; 0 when the driver does not know it. Diagnosis allows for it.
+    position_resolution_mm: float = 0.0
+
     @abc.abstractmethod
     def read_position(self) -> float:
         """Position in mm, positive down."""

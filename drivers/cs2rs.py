@@ -58,6 +58,7 @@ class Cs2rsCrosshead(Crosshead):
         self.gear_ratio = float(settings["gear_ratio"])
         self.pulses_per_rev = int(settings["pulses_per_rev"])
         self.mm_per_pulse = self.lead_mm / (self.gear_ratio * self.pulses_per_rev)
+        self.position_resolution_mm = self.mm_per_pulse     # 0x602C counts pulses
         self.max_speed_mm_min = float(settings["max_speed_mm_min"])
         self.ramp_ms = ramp_ms(float(settings["acceleration_mm_s2"]), self.lead_mm, self.gear_ratio)
         # The drive has no documented soft limits: these are the driver's own, for its checks.

@@ -76,6 +76,11 @@ class StandUnit:
     limit: FixedWidth
     reading_decimals: int
 
+    @property
+    def reading_resolution_mm(self) -> float:
+        """The travel a reading's last digit stands for: 10^-decimals in this unit, in mm."""
+        return 10.0 ** -self.reading_decimals * self.to_mm
+
 
 @dataclass(frozen=True)
 class GaugeUnit:

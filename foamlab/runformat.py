@@ -14,6 +14,7 @@ import re
 from pathlib import Path
 from typing import Any
 
+from foamlab import FoamlabError
 from foamlab.rundata import Specimen
 
 MAGIC = "# foamlab run file v1"
@@ -26,6 +27,9 @@ META_PREFIX = "meta."
 PROFILE_KEY = "machine_profile"
 SCHEDULE_KEY = "schedule"
 END_KEY = "end"
+#: Header metadata: the crosshead's position resolution in mm (drivers' Crosshead.position_resolution_mm);
+#: absent (imports, older files) or 0: unknown.
+RESOLUTION_KEY = "position_resolution_mm"
 _KEY_VALUE = re.compile(r"^#\s*([A-Za-z_][\w.\-]*)\s*:\s?(.*)$")
 
 #: Header keys that map onto RunData fields (the rest is metadata).
@@ -54,6 +58,18 @@ def header_value(line: str) -> tuple[str, str] | None:
     """(key, value) of a ``# key: value`` line, None for any other line."""
     m = _KEY_VALUE.match(line)
     return (m.group(1), m.group(2).strip()) if m else None
+
+
+def position_resolution_mm(metadata: dict[str, Any]) -> float:
+    """The run's position resolution (RESOLUTION_KEY), mm; 0 when the run does not say."""
+    value = metadata.get(RESOLUTION_KEY, 0.0)
+    try:
+        q = float(value)
+    except (TypeError, ValueError):
+        q = math.nan
+    if not (math.isfinite(q) and q >= 0):
+        raise FoamlabError(f"{RESOLUTION_KEY} must be a number >= 0 (mm), got {value!r}")
+    return q
 
 
 def runfile_fields(header: dict[str, str]) -> dict[str, Any]:

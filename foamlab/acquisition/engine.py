@@ -44,7 +44,7 @@ from foamlab.acquisition.schedule import CpuWakeupLatency, raise_thread_priority
 from foamlab.acquisition.settings import DEFAULT, AcquisitionSettings
 from foamlab.methods import METHOD_FILE_KEY, METHOD_KEY, Method, PlannedStep, method_record
 from foamlab.rundata import Specimen
-from foamlab.runformat import END_KEY, PROFILE_KEY, SCHEDULE_KEY
+from foamlab.runformat import END_KEY, PROFILE_KEY, RESOLUTION_KEY, SCHEDULE_KEY
 from foamlab.storage.recorder import Recorder, RecordingFailed
 from foamlab.storage.runfile import now_iso
 
@@ -304,6 +304,7 @@ class RunEngine:
             "preload_N": self.method.contact.preload_N, "contact_position_mm": round(self._contact, 4),
             "start_position_mm": round(self._start_position, 4), "limits": self.limits.describe(),
             "nominal_duration_s": round(self.nominal_s, 3), "scheduling": self.scheduling,
+            RESOLUTION_KEY: self.machine.crosshead.position_resolution_mm,
         }
         if self.method.source:      # where the method came from (the method itself is the next key)
             header[METHOD_FILE_KEY] = str(Path(self.method.source).resolve())
