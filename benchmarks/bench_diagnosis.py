@@ -1,24 +1,18 @@
-"""Diagnosis benchmark: speed on the paper's protocol, detection table, false-alarm rate.
+"""Diagnosis benchmark: speed on the paper's protocol, the hard pairs, two causes, the drivers.
 
 1. Speed: `diagnose` (identification included) of three-cycle 16 Hz runs (~14 000
    samples), clean and with a hidden effect; median over the runs.
-2. Detection: for each cause, hidden at a ladder of sizes measured in units of the
-   load cell's noise (RMS change of the measured force the effect causes /
-   noise sigma, foamlab.model.effects.magnitude_for_ratio), over seeds: the share of
-   runs whose verdict names it, and of runs that name another cause. The table
-   gives the smallest size detected in >= 90 % of the seeds.
-3. False alarms: clean runs (no effect), the share whose verdict is not `none`.
 
-Detection and false alarms run on the test protocol (the paper's three cycles at
---hz, default 2 Hz) to keep the table affordable; speed on the full 16 Hz.
+Detection and false alarms are measured on runs foamlab never made:
+benchmarks/bench_detection_independent.py (the table made here on foamlab's own effects is gone).
 
 4. Through the real drivers (--hil N): the cases of tests/test_diagnosis_hil.py (a hidden
    effect per transport, a clean serial run) and a clean run through every transport at
    speedup 4, each recorded N times (simulator + run engine + driver, in real time at
    the speedup): the verdicts, the fitted sizes, the missed samples.
 
-    python benchmarks/bench_diagnosis.py                # full tables (~30-60 min on 2 busy cores)
-    python benchmarks/bench_diagnosis.py --quick        # fewer seeds and sizes
+    python benchmarks/bench_diagnosis.py                # the speed table
+    python benchmarks/bench_diagnosis.py --quick        # 3 speed runs
     python benchmarks/bench_diagnosis.py --hil 5        # only the through-the-drivers table
     python benchmarks/bench_diagnosis.py --hard 10      # the hard pairs on the independent generator (16 Hz)
     python benchmarks/bench_diagnosis.py --two 5        # two causes hidden together
@@ -42,15 +36,8 @@ import numpy as np  # noqa: E402
 from _table import publish  # noqa: E402
 
 from foamlab.diagnosis import diagnose  # noqa: E402
-from foamlab.diagnosis.synthetic import NOISE_N, hidden_effect_run  # noqa: E402
-from foamlab.model import ModelParameters, label_history, triangular_history  # noqa: E402
-from foamlab.model.effects import EFFECTS, magnitude_for_ratio  # noqa: E402
-
-RATIOS = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
-#: The side each cause is hidden on (damping_cycle_change: increasing - a decrease is bounded at
-#: -45 % per cycle, about 20 x the noise on this protocol).
-SIGN = {"damping_cycle_change": 1.0}
-REF_SPEED, OTHER_SPEED = 23.6, 47.2
+from foamlab.diagnosis.synthetic import hidden_effect_run  # noqa: E402
+from foamlab.model.effects import EFFECTS  # noqa: E402
 
 
 def speed(repeats: int) -> list[str]:
@@ -70,53 +57,6 @@ def speed(repeats: int) -> list[str]:
              "| samples | hidden effect | verdict | seconds |", "|---:|---|---|---:|"] + rows +
             ["", f"**median {statistics.median(times):.2f} s**, max {max(times):.2f} s over {len(times)} runs "
                  "(target: median <= 5 s)."])
-
-
-def _size(name: str, ratio: float, hz: float) -> float:
-    params = ModelParameters.default()
-    v = OTHER_SPEED if name == "rate_dependence" else REF_SPEED
-    t, x = triangular_history(params.x_scale_mm, v / 60.0, 3, hz)
-    return magnitude_for_ratio(name, ratio, params, t, x, NOISE_N, sign=SIGN.get(name, 1.0),
-                               labels=label_history(x))
-
-
-def _runs(name: str, magnitude: float, seed: int, hz: float):
-    if name == "rate_dependence":
-        return [hidden_effect_run({name: magnitude}, sampling_hz=hz, seed=seed, speed_mm_min=v)
-                for v in (REF_SPEED, OTHER_SPEED)]
-    return [hidden_effect_run({name: magnitude}, sampling_hz=hz, seed=seed)]
-
-
-def detection(seeds: int, hz: float, ratios, causes=None) -> list[str]:
-    rows = []
-    for name in causes or EFFECTS:
-        found = None
-        ladder = []
-        for ratio in ratios:
-            try:
-                mag = _size(name, ratio, hz)
-            except ValueError:          # beyond the parameter's bound
-                break
-            verdicts = [diagnose(_runs(name, mag, 1000 + s, hz)).verdict for s in range(seeds)]
-            hit = verdicts.count(name) / seeds
-            others = sorted({v for v in verdicts if v not in (name, "none", "unexplained")})
-            wrong = sum(v in others for v in verdicts) / seeds
-            ladder.append(f"{ratio:g} ({physical(name, mag)}): {hit:.0%}" + (f" ({wrong:.0%} {', '.join(others)})" if wrong else ""))
-            print(f"  {name} ratio {ratio:g} (magnitude {mag:.4g}): named {hit:.0%}, other cause {wrong:.0%}",
-                  file=sys.stderr, flush=True)
-            if hit >= 0.9:
-                found = (ratio, mag)
-                break
-        unit = EFFECTS[name].parameters[0].unit
-        rows.append(f"| {name} | {found[0]:g} | {found[1]:.4g} {unit} | {physical(name, found[1])} | "
-                    f"{'; '.join(ladder)} |" if found else
-                    f"| {name} | > {ratios[len(ladder) - 1] if ladder else '?'} | - | - | {'; '.join(ladder)} |")
-    return (["Smallest hidden effect named in >= 90 % of "
-             f"{seeds} seeds, in units of the noise level (RMS change of the measured force / noise sigma "
-             f"{NOISE_N} N), on the paper's three cycles at {hz:g} Hz (rate_dependence: runs at "
-             f"{REF_SPEED} and {OTHER_SPEED} mm/min). Ladder: named share at each size (and the share "
-             "that named another cause, and which).", "",
-             "| cause | size (x noise) | magnitude | physical | ladder |", "|---|---:|---:|---|---|"] + rows)
 
 
 def physical(name: str, magnitude: float) -> str:
@@ -181,7 +121,7 @@ def hard_pairs(seeds: int, hz: float = 16.0, regimes: str = "AB") -> list[str]:
             rows.append(f"| {regime} | {name or '-'} | {size} | {shown} | {right}/{seeds} | "
                         f"{'; '.join(f'{v} {n}' for v, n in verdicts.most_common())} |")
     return ([(f"Runs of tests/independent_model.py (regimes A: ~285 N peak, B: ~445 N; three cycles at {hz:g} Hz, "
-              f"noise {im.NOISE_N} N) with an effect applied by hand (`independent_run`), seeds 300..{299 + seeds}. "
+              f"noise {im.NOISE_N} N) with an effect hidden by tests/independent_effects.py (`independent_run`), seeds 300..{299 + seeds}. "
               "'left' = what the base model does not absorb of the effect: (RSS of identification's fit with "
               "it - without it, same noise) / sigma^2, mean over the seeds; about 18 is needed to name a "
               "one-parameter cause (Delta BIC > 10)."), "",
@@ -209,17 +149,6 @@ def two_causes(seeds: int, hz: float) -> list[str]:
     return ([(f"Two causes hidden together, the paper's three cycles at {hz:g} Hz, seeds 700..{699 + seeds}: "
               "runs whose findings name both (the verdict is the first finding)."), "",
              "| hidden | both named | findings per seed |", "|---|---:|---|"] + rows)
-
-
-def false_alarms(seeds: int, hz: float) -> list[str]:
-    verdicts = [diagnose([hidden_effect_run(None, sampling_hz=hz, seed=5000 + s)]).verdict
-                for s in range(seeds)]
-    bad = [v for v in verdicts if v != "none"]
-    named = [v for v in bad if v != "unexplained"]
-    return [f"Clean runs (no effect), {seeds} seeds at {hz:g} Hz: verdict `none` in "
-            f"{1 - len(bad) / seeds:.1%}; a cause named in {len(named) / seeds:.1%}, "
-            f"`unexplained` in {(len(bad) - len(named)) / seeds:.1%} (false-alarm rate "
-            f"**{len(bad) / seeds:.1%}**)." + (f" Named: {', '.join(sorted(set(named)))}." if named else "")]
 
 
 def through_the_drivers(repeats: int) -> list[str]:
@@ -261,18 +190,14 @@ def through_the_drivers(repeats: int) -> list[str]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="5 seeds, fewer sizes, 3 speed runs")
-    ap.add_argument("--seeds", type=int, default=None, help="seeds per size (default 10; quick 5)")
-    ap.add_argument("--clean-seeds", type=int, default=None, help="clean runs (default 50; quick 20)")
-    ap.add_argument("--hz", type=float, default=2.0, help="sampling rate of the detection runs")
+    ap.add_argument("--quick", action="store_true", help="3 speed runs")
+    ap.add_argument("--hz", type=float, default=2.0, help="sampling rate of the two-cause runs")
     ap.add_argument("--hil", type=int, default=0, metavar="N",
                     help="only the through-the-drivers table, N recordings per case")
     ap.add_argument("--speed", action="store_true", help="only the speed table (printed, not published)")
     ap.add_argument("--hard", type=int, default=0, metavar="N",
                     help="only the hard pairs on the independent generator (issue 16), N seeds per case")
     ap.add_argument("--two", type=int, default=0, metavar="N", help="only the two-cause table, N seeds per case")
-    ap.add_argument("--causes", default="", metavar="A,B",
-                    help="only the detection rows of these causes and the false alarms (printed, not published)")
     args = ap.parse_args()
     if args.hil:
         publish("Diagnosis through the real drivers (benchmarks/bench_diagnosis.py --hil)",
@@ -287,16 +212,8 @@ def main() -> None:
     if args.speed:
         print("\n".join(speed(3 if args.quick else 7)))
         return
-    seeds = args.seeds or (5 if args.quick else 10)
-    clean = args.clean_seeds or (20 if args.quick else 50)
-    ratios = RATIOS[::2] + RATIOS[-1:] if args.quick else RATIOS
-    if args.causes:
-        print("\n".join(false_alarms(clean, args.hz) + [""] +
-                        detection(seeds, args.hz, ratios, [c.strip() for c in args.causes.split(",")])))
-        return
     lines = ["### Speed", ""] + speed(3 if args.quick else 7)
-    lines += ["", "### False alarms", ""] + false_alarms(clean, args.hz)
-    lines += ["", "### Detection", ""] + detection(seeds, args.hz, ratios)
+    lines += ["", "Detection and false alarms: the section made by benchmarks/bench_detection_independent.py."]
     publish("Diagnosis (benchmarks/bench_diagnosis.py)", lines)
 
 
