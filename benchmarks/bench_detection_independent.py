@@ -64,11 +64,12 @@ def one_case(cause: str | None, size: float, seed: int, regime: str, form: str, 
         runs = ie.rate_pair(regime, seed, size, form=form, hz=hz)
     else:
         runs = [ie.independent_run(regime, seed, {cause: size} if cause else None, form=form, hz=hz)]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     d = diagnose(runs)
-    seconds = time.perf_counter() - t0
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0     # cpu: what load does not inflate
     return {"cause": cause or "clean", "size": size, "seed": seed, "regime": regime, "form": form, "hz": hz,
             "verdict": d.verdict, "findings": [f.name for f in d.findings], "seconds": round(seconds, 2),
+            "cpu_seconds": round(cpu, 2), "load": round(os.getloadavg()[0], 1),
             "runs": len(runs), "samples": int(sum(len(r.time_s) for r in runs))}
 
 
@@ -174,6 +175,11 @@ def table(records: list[dict], subset: str) -> list[str]:
     if single:
         lines.append(f"Time per one-run diagnosis: median {statistics.median(single):.1f} s, max {max(single):.1f} s "
                      f"over {len(single)} runs (issue 27 asks median <= 5 s, none over 15 s).")
+    cpu = [r["cpu_seconds"] for r in records if r["runs"] == 1 and "cpu_seconds" in r]
+    if cpu:
+        loads = [r["load"] for r in records if "load" in r]
+        lines.append(f"CPU seconds of the same diagnoses (what the machine's load does not inflate): median "
+                     f"{statistics.median(cpu):.1f} s, max {max(cpu):.1f} s; 1-minute load {min(loads):g}-{max(loads):g}.")
     return lines
 
 
