@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import json
 
+import independent_effects as ie
 import pytest
 
 from foamlab import cli
-from foamlab.diagnosis.synthetic import hidden_effect_run
 
 
 def _write_csv(path, run):
@@ -20,8 +20,9 @@ def _write_csv(path, run):
 
 @pytest.fixture(scope="module")
 def softened(tmp_path_factory):
+    """5 %/cycle softening hidden by tests/independent_effects.py in regime A at 4 Hz (seed 3)."""
     return _write_csv(tmp_path_factory.mktemp("d") / "soft.csv",
-                      hidden_effect_run({"cycle_softening": 0.05}, sampling_hz=1.0, seed=3))
+                      ie.independent_run("A", 3, {"cycle_softening": 5.0}, hz=4.0))
 
 
 def test_json_is_the_design_object_and_the_report_has_its_figures(softened, tmp_path, capsys):
