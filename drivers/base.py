@@ -79,7 +79,7 @@ class LoadCell(abc.ABC):
 
 class Crosshead(abc.ABC):
     #: The step of read_position() in mm (a reading's last digit, one encoder pulse), from the
-    #: device file and profile; 0 when the driver does not know it. Diagnosis allows for it.
+    #: device file and profile; 0 when the driver does not know it. The run file records it.
     position_resolution_mm: float = 0.0
 
     @abc.abstractmethod
