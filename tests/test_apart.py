@@ -75,7 +75,7 @@ def test_cancelling_pairs_left_free_are_said(monkeypatch):
     """The other way the choice can fall, taken on every machine: holding refused, the real file's
     cancelling pairs (+-596 at beta 0.058 / 0.059) are named in a warning, not left to be read
     off the correlation table."""
-    monkeypatch.setattr("foamlab.identification.fit.hold_apart", lambda fd, free: None)
+    monkeypatch.setattr("foamlab.identification.fit.hold_apart", lambda fd, free, *budgets: None)
     result = fit_run(load_run(REAL))
     assert _free_pairs(result)
     said = [w for w in result.warnings if "at nearly one order cancel" in w]

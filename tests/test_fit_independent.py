@@ -45,6 +45,7 @@ def test_fit_reaches_the_noise(regime, seed):
     ratio = result.rmse / regime.noise_N
     assert ratio <= TOLERANCE, (f"regime {regime.name} seed {seed} (motion from t = {run.start_s:.4f} s): "
                                 f"fit RMSE {result.rmse:.4f} N = {ratio:.3f} x the noise {regime.noise_N} N")
+    assert result.success, f"regime {regime.name} seed {seed}: {result.convergence}"
 
 
 def test_fit_cli_json_reaches_the_noise(tmp_path):
@@ -56,6 +57,8 @@ def test_fit_cli_json_reaches_the_noise(tmp_path):
     out = subprocess.run([sys.executable, "-m", "foamlab.cli", "fit", str(path), "--json", "--no-store"],
                          cwd=ROOT, env=env, capture_output=True, text=True, check=False, timeout=300)
     assert out.returncode == 0, out.stderr
-    rmse = json.loads(out.stdout)["rmse"]
+    fitted = json.loads(out.stdout)
+    rmse = fitted["rmse"]
+    assert fitted["converged"] is True, fitted["optimizer"]
     assert rmse / regime.noise_N <= TOLERANCE, (f"foamlab fit --json on regime A seed 1: rmse {rmse:.4f} N = "
                                                 f"{rmse / regime.noise_N:.3f} x the noise")

@@ -105,21 +105,27 @@ def test_fitted_curve_rmse_is_the_noise_level(default_params, noise):
 def test_fit_reports_table5_statistics_checks_and_json(default_fit, default_params):
     run, result = default_fit
     d = result.to_dict()
-    # DESIGN.md's four keys, then the noise level, the optimizer's end (as lmfit reports it) and
-    # the samples at turns the samples cannot place, the residual form with every form's scores
-    # (identification.forms), the structure (given here), and the fit's warnings and notes as printed
-    assert list(d) == ["parameters", "statistics", "rmse", "constraints", "noise", "optimizer", "turn_samples",
-                       "form", "forms", "structure", "warnings", "notes"]
+    # DESIGN.md's four keys, the samples the RMSE covers, the noise level, whether the optimizer
+    # converged and its end (as lmfit reports it) and the samples at turns the samples cannot
+    # place, the residual form with every form's scores (identification.forms), the structure
+    # (given here), and the fit's warnings and notes as printed
+    assert list(d) == ["parameters", "statistics", "rmse", "constraints", "samples", "noise", "converged",
+                       "optimizer", "turn_samples", "form", "forms", "structure", "warnings", "notes"]
     assert d["warnings"] == list(result.warnings) and all(isinstance(w, str) for w in d["warnings"])
-    assert d["turn_samples"] == {"count": 0, "rmse_without": d["rmse"], "max_abs": 0.0}   # an exact history
+    n = d["samples"]["rmse"]["count"]                             # an exact history: no turn samples
+    assert d["samples"]["rmse"]["set"] == "recorded" and n >= result.n_obs
+    assert d["turn_samples"] == {"count": 0, "rmse_without": d["rmse"], "max_abs": 0.0,
+                                 "rmse_without_samples": {"set": "evidence", "count": n}}
     assert d["structure"]["forced"] and d["structure"]["chosen"] == str(result.orders)
     assert d["form"] == d["forms"]["chosen"] and {s["form"] for s in d["forms"]["scores"]} == {"causal", "paper"}
-    assert set(d["optimizer"]) == {"success", "status", "message"} and d["optimizer"]["message"]
-    assert d["optimizer"]["success"] == (d["optimizer"]["status"] > 0)
+    assert set(d["optimizer"]) == {"success", "status", "message", "meaning"} and d["optimizer"]["message"]
+    assert d["optimizer"]["success"] == (d["optimizer"]["status"] > 0) == d["converged"]
     assert list(d["statistics"]) == ["damping", "residual", "elastic", "joint"]
-    for step in d["statistics"].values():
+    for name, step in d["statistics"].items():
         assert set(step) == {"sse", "r2", "adj_r2", "rmse"}
         assert all(isinstance(v, float) for v in step.values())
+        assert d["samples"]["statistics"][name]["count"] == result.statistics[name].n
+    assert d["samples"]["statistics"]["joint"] == {"set": "cycles", "count": result.n_obs}
     assert set(d["parameters"]) == set(default_params.names()) | {"x_scale_mm"}
     assert d["parameters"]["x_scale_mm"]["value"] == A and not d["parameters"]["x_scale_mm"]["varied"]
     assert all(set(v) - {"why"} == {"value", "stderr", "lower", "upper", "varied", "unit", "determined"}

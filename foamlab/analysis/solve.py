@@ -211,7 +211,7 @@ def fit_base(series: list[Series], params: ModelParameters, bounds: tuple[np.nda
 
 def polish(series: list[Series], params: ModelParameters,
            other_starts: Callable[[Fit], Iterable[ModelParameters]] | None = None,
-           bounds: tuple[np.ndarray, np.ndarray] | None = None) -> Fit:
+           bounds: tuple[np.ndarray, np.ndarray] | None = None, nfev: int = POLISH_NFEV) -> Fit:
     """The base model on every sample of the runs, from ``params``: all of alpha and beta
     searched with the linear parameters, the contact set and the load cell's zero (on the
     decimated series, then polished on every sample). Identification's last step, and the
@@ -219,7 +219,8 @@ def polish(series: list[Series], params: ModelParameters,
 
     other_starts: given the first decimated fit, more starts to try (none when it needs
     none); the best decimated fit is the one carried to every sample. bounds: of alpha and
-    beta (default identification's; identification.apart holds orders with them)."""
+    beta (default identification's; identification.apart holds orders with them); nfev: the
+    budget on every sample (a fit that is kept is carried on to convergence: ``converged``)."""
     k = decimation(series)
     coarse = [s.decimated(k) for s in series]
     best = fit_base(coarse, params, bounds)
@@ -227,4 +228,13 @@ def polish(series: list[Series], params: ModelParameters,
         other = fit_base(coarse, start, bounds)
         if other.rss < best.rss:
             best = other
-    return at_full_resolution(best, series, POLISH_NFEV if k > 1 else 0)
+    return at_full_resolution(best, series, nfev if k > 1 else 0)
+
+
+def converged(fit: Fit, max_nfev: int) -> Fit:
+    """The fit's optimizer carried on from where its budget stopped it, until it converges or
+    max_nfev more evaluations are spent (its status then says it stopped). A fit that
+    converged is returned as it is."""
+    if fit.status > 0:
+        return fit
+    return Fit.of(list(fit.causes), fit.model, varpro(fit.model, fit.nu, max_nfev=max(int(max_nfev), 1)))

@@ -90,6 +90,7 @@ def _fill(row: BatchRow, a: pipeline.Analysis) -> None:
         o = a.fit.orders
         row.orders, row.rmse, row.noise = f"{o.N},{o.M},{o.P}", float(a.fit.rmse), float(a.fit.noise_N)
         row.form = a.fit.params.residual_form
+        row.rmse_samples, row.dropped = a.fit.rmse_count, a.fit.dropped
         row.parameters = {n: float(v) for n, v in zip(a.fit.names, a.fit.values)}
     if a.diagnosis is not None:
         _fill_diagnosis(row, a)
@@ -102,8 +103,10 @@ def _fill_diagnosis(row: BatchRow, a: pipeline.Analysis) -> None:
     if d.findings:
         top = d.findings[0]
         row.effect, row.rmse_before, row.rmse_after = top.name, float(top.before.rmse), float(top.fit.rmse)
+        row.evidence_samples = top.fit.n
     elif d.verdict == "unexplained":
         row.effect, row.rmse_before, row.rmse_after = "unexplained", float(d.base.rmse), float(d.final.rmse)
+        row.evidence_samples = d.final.n
     if row.rmse_after > 0:
         row.gain = row.rmse_before / row.rmse_after
 

@@ -101,6 +101,10 @@ def run(args: argparse.Namespace) -> int:
             print(f"foamlab fit: {note}", file=sys.stderr)
     else:
         print(result.summary() if args.full else result.brief())
+        if args.full:
+            from foamlab.identification.settings import DEFAULT  # noqa: PLC0415
+            print("[[Settings]] (identification.settings)")
+            print("\n".join(f"    {line}" for line in DEFAULT.lines()))
         for note in notes:
             print(note)
     if compare:

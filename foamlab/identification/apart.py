@@ -26,6 +26,7 @@ from foamlab.analysis.solve import (
     POLISH_NFEV,
     Fit,
     at_full_resolution,
+    converged,
     decimation,
     fit_base,
     polish,
@@ -64,10 +65,11 @@ class HeldApart:
                 f"fits best, chi2 {self.dchi2:+.1f} against the free fit")
 
 
-def hold_apart(fd: PreparedRun, free: Fit) -> HeldApart | None:
+def hold_apart(fd: PreparedRun, free: Fit, polish_nfev: int = POLISH_NFEV, max_nfev: int = 0) -> HeldApart | None:
     """The free fit's coalesced residual pairs held apart (module docstring); None when it has
     none or holding them costs more than BIC_TIE. The rounds run on the decimated run (as the
-    search does), the last one is carried to every sample and judged there."""
+    search does), the last one is carried to every sample (polish_nfev evaluations, then on to
+    convergence within max_nfev more) and judged there."""
     if not coalesced(free):
         return None
     lay = free.params.layout
@@ -86,17 +88,19 @@ def hold_apart(fd: PreparedRun, free: Fit) -> HeldApart | None:
         fit, held = trial, trial_held
     if not held.any():
         return None
-    fit = at_full_resolution(fit, [fd.series], POLISH_NFEV)
+    fit = at_full_resolution(fit, [fd.series], polish_nfev)
     # the polish on every sample can take another cycle's pair together: held too, once
     extra = [p for p in coalesced(fit) if not held[list(p)].any()]
     if extra:
         more = held.copy()
         phi = _placed(coarse, fit, extra, more)
-        trial = polish([fd.series], fit.model.parameters(phi, fit.solution.theta), bounds=_holding(free, phi, more))
+        trial = polish([fd.series], fit.model.parameters(phi, fit.solution.theta), bounds=_holding(free, phi, more),
+                       nfev=polish_nfev)
         if _bic(trial, more) <= _bic(fit, held):
             fit, held = trial, more
     if _bic(fit, held) > _bic(free, np.zeros_like(held)) + BIC_TIE:
         return None
+    fit = converged(fit, max_nfev) if max_nfev else fit     # kept: carried on to convergence
     return HeldApart(fit, held, (fit.rss - free.rss) / fd.noise_N ** 2)
 
 

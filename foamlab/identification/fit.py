@@ -18,7 +18,7 @@ from threadpoolctl import threadpool_limits
 
 from foamlab.analysis.noise import AT_NOISE_RATIO, at_the_noise
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
-from foamlab.analysis.solve import Fit, model_like, polish, solved_at
+from foamlab.analysis.solve import Fit, converged, model_like, polish, solved_at
 from foamlab.identification.apart import HeldApart, coalesced, hold_apart
 from foamlab.identification.forms import choose as forms_choose
 from foamlab.identification.joint import (
@@ -33,6 +33,7 @@ from foamlab.identification.joint import (
 from foamlab.identification.paper import paper_steps
 from foamlab.identification.parameters import Parameters
 from foamlab.identification.result import FitReport, FittedSamples, FitWork, TurnSamples
+from foamlab.identification.settings import DEFAULT, FitSettings
 from foamlab.identification.statistics import (
     GoodnessOfFit,
     autocorrelation_time,
@@ -58,7 +59,8 @@ ZERO_T_VALUE = 1.96
 
 
 def fit_run(run: RunData, orders: Orders | str | tuple | None = None, progress: Progress | None = None,
-            x_scale_mm: float | None = None, form: str = "auto", hold: bool = True) -> FitReport:
+            x_scale_mm: float | None = None, form: str = "auto", hold: bool = True,
+            settings: FitSettings = DEFAULT) -> FitReport:
     """Identify the model's parameters from one run (any importer's RunData).
 
     orders: Orders(N, M, P[, C]), 'N,M,P' or a tuple; None (default): LARGEST (3,3,7,3), or 'auto'
@@ -71,11 +73,12 @@ def fit_run(run: RunData, orders: Orders | str | tuple | None = None, progress: 
     predicts held-out blocks better kept (identification.forms).
     hold: orders that coalesce held apart (identification.apart: what the report says); a
     forecast, which needs only the force, skips it (it costs a polish on every sample).
+    settings: the optimizer's budgets (identification.settings).
     Raises FoamlabError (one line, what is missing) for runs that cannot be identified.
     """
     report = progress or (lambda stage, fraction: None)
     report("segmenting the run", 0.0)
-    return fit_prepared(prepare(run, x_scale_mm=x_scale_mm), orders, progress, form, hold)
+    return fit_prepared(prepare(run, x_scale_mm=x_scale_mm), orders, progress, form, hold, settings)
 
 
 def resumed(report: FitReport, run: RunData) -> FitReport:
@@ -90,7 +93,8 @@ def resumed(report: FitReport, run: RunData) -> FitReport:
 
 
 def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
-                 progress: Progress | None = None, form: str = "auto", hold: bool = True) -> FitReport:
+                 progress: Progress | None = None, form: str = "auto", hold: bool = True,
+                 settings: FitSettings = DEFAULT) -> FitReport:
     """Identify the model on a prepared run (foamlab.analysis.prepare): the same as fit_run."""
     select = isinstance(orders, str) and orders.strip().lower() == AUTO_ORDERS
     # one load-unload cycle: the largest structure (23 parameters on one loading and unloading)
@@ -113,20 +117,20 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
             report(f"{f} form: {stage}" if len(forms) > 1 else stage, (i + fraction) / steps)
         rival = min((r.rmse for r in results), default=np.inf)
         results.append(_fit_placed(fd, replace(orders, form=f), select and len(forms) == 1, scaled, paper, rival,
-                                   hold))
+                                   hold, settings))
     chosen = forms_choose(results, forced=form != "auto")
     if select and len(forms) > 1:
         choice, alternatives = chosen.form_choice, chosen.alternatives
         chosen = _fit_placed(fd, replace(orders, form=choice.chosen), True,
                              lambda stage, fraction: report(f"structure: {stage}", (steps - 1 + fraction) / steps),
-                             paper, hold=hold)
+                             paper, hold=hold, settings=settings)
         chosen = replace(chosen, form_choice=choice).with_work(alternatives=alternatives)
     # the report of the whole fit: a new frozen record with the whole time (reports are not changed)
     return replace(chosen, elapsed_s=time.perf_counter() - started)
 
 
 def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progress, paper,
-                rival: float = np.inf, hold: bool = True) -> FitReport:
+                rival: float = np.inf, hold: bool = True, settings: FitSettings = DEFAULT) -> FitReport:
     """One form's fit (select: of the structure the data determine, from orders down), with its
     turning points placed where the samples say.
 
@@ -135,7 +139,7 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
     model switches at the turn, so the samples next to it show which. When they are off by
     more than TURN_MISFIT_MULTIPLE times the noise and their neighbours, the other is fitted too
     and the better kept."""
-    result = _fit_prepared(fd, orders, select, progress, paper, rival, hold)
+    result = _fit_prepared(fd, orders, select, progress, paper, rival, hold, settings)
     at_turns, around = _misfit_at_turns(result, fd)
     # a structure chosen with a turn misplaced can misfit everywhere, the turn's neighbours no more
     # than the rest (one cycle at 10 Hz: every structure 3-4 x the noise, 0.99 x placed the other way)
@@ -143,7 +147,8 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
     if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around) or lost:
         # the turns placed the other way: the structure the data chose, or chosen again (with the
         # turn misplaced, a 28 N miss at one peak sample chose (0, 2): 4 x the noise placed right)
-        other = _fit_prepared(fd.other_turns(), orders if select else result.orders, select, progress, hold=hold)
+        other = _fit_prepared(fd.other_turns(), orders if select else result.orders, select, progress, hold=hold,
+                              settings=settings)
         where = "between samples" if other.prepared.nodes.between_samples else "at the sample at the extreme"
         if other.rmse < result.rmse:
             return replace(other, structure=other.structure if select else result.structure,
@@ -172,7 +177,7 @@ def _misfit_at_turns(result: FitReport, fd: PreparedRun) -> tuple[float, float]:
 
 
 def _fit_prepared(fd: PreparedRun, orders: Orders, select: bool, progress: Progress | None,
-                  paper=None, rival: float = np.inf, hold: bool = True) -> FitReport:
+                  paper=None, rival: float = np.inf, hold: bool = True, settings: FitSettings = DEFAULT) -> FitReport:
     """One form's fit (select: of the structure the data determine). rival: the RMSE another
     form already reached; a first optimum further than RIVAL_RATIO from it gets no extra starts
     (they refine a local optimum's last percent, not a model twice off the data)."""
@@ -186,15 +191,15 @@ def _fit_prepared(fd: PreparedRun, orders: Orders, select: bool, progress: Progr
         report("joint refinement", 0.3)
         if not select:
             search = JointSearch(fd, orders, paper.start, report)
-            result = _fit_structure(fd, orders, paper, search, report, rival, hold)
+            result = _fit_structure(fd, orders, paper, search, report, rival, hold, settings)
         else:
-            result = _fit_selected(fd, orders, paper, report, rival, hold)
+            result = _fit_selected(fd, orders, paper, report, rival, hold, settings)
     report("done", 1.0)
     return replace(result, elapsed_s=time.perf_counter() - started)
 
 
 def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, rival: float = np.inf,
-                  hold: bool = True) -> FitReport:
+                  hold: bool = True, settings: FitSettings = DEFAULT) -> FitReport:
     """The structure the data determine (identification.structure), carried to every sample."""
 
     def core_fit(orders: Orders, optima, given: bool):
@@ -204,8 +209,8 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, riv
         jf = unpolished(fd, orders.layout(fd.n_residual_cycles), found)
         if given:        # with identification's other starts (the search's next, the paper's)
             search = JointSearch(fd, orders, None, report, found=optima)
-            return jf, _polished(fd, jf, search, paper if orders == largest else None, rival)
-        return jf, polish([fd.series], jf.params)
+            return jf, _polished(fd, jf, search, paper if orders == largest else None, rival, settings.polish_nfev)
+        return jf, polish([fd.series], jf.params, nfev=settings.polish_nfev)
 
     checked: dict[int, bool] = {}         # by id of the core's fit: its evaluation costs
 
@@ -218,8 +223,9 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, riv
     chosen = selection.chosen
     steps = paper if chosen.orders == largest else paper_steps(fd, chosen.orders)   # its Table 5
     jf, base = chosen.joint, _real_modes(chosen.core)
-    held, apart = _held_apart(fd, jf, base, report) if hold else (None, None)
+    held, apart = _held_apart(fd, jf, base, report, settings) if hold else (None, None)
     free = base
+    base = base if apart is not None else converged(base, settings.max_nfev)
     polished = held if apart is not None else _from_core(fd, jf, base)
     unreproduced = polished is None and not np.isfinite(jf.residual).all()
     if apart is not None:
@@ -264,7 +270,8 @@ def _real_modes(base: Fit) -> Fit:
     return base
 
 
-def _polished(fd: PreparedRun, jf: JointFit, search: JointSearch, paper, rival: float = np.inf) -> Fit:
+def _polished(fd: PreparedRun, jf: JointFit, search: JointSearch, paper, rival: float = np.inf,
+              nfev: int = DEFAULT.polish_nfev) -> Fit:
     """The core's polish of identification's fit on every sample, with identification's other
     starts, the better kept: the data call for another start when the first leaves structure
     above the noise (the search's next best optimum), and the decimated search can look white
@@ -272,30 +279,33 @@ def _polished(fd: PreparedRun, jf: JointFit, search: JointSearch, paper, rival: 
     Not for a first optimum further than RIVAL_RATIO from another form's RMSE (rival)."""
     base = polish([fd.series], jf.params,
                   lambda first: () if _at_the_noise(first, fd) or first.rmse > RIVAL_RATIO * rival
-                  else search.more(EXTRA_STARTS))
+                  else search.more(EXTRA_STARTS), nfev=nfev)
     if paper is not None and paper.start is not None and \
             AT_NOISE_RATIO * fd.noise_N < base.rmse <= RIVAL_RATIO * rival:
         # the three steps are the same in either form: their start in the form fitted (polished
         # as it came, a causal start made a paper-form fit a causal one)
-        other = polish([fd.series], replace(paper.start, residual_form=jf.params.residual_form))
+        other = polish([fd.series], replace(paper.start, residual_form=jf.params.residual_form), nfev=nfev)
         if other.rss < base.rss:
             base = other
     return base
 
 
 def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, report: Progress,
-                   rival: float = np.inf, hold: bool = True) -> FitReport:
+                   rival: float = np.inf, hold: bool = True, settings: FitSettings = DEFAULT) -> FitReport:
     """One structure: the search's best optimum polished, then carried to every sample by the
     analysis core."""
     jf = search.fit()
     report("polish on every sample", 0.8)
-    base = _polished(fd, jf, search, paper, rival)
-    # a form far off its rival's RMSE is not kept (forms.choose): its terms are not held apart
-    held, apart = _held_apart(fd, jf, base, report) if hold and base.rmse <= RIVAL_RATIO * rival else (None, None)
+    base = _polished(fd, jf, search, paper, rival, settings.polish_nfev)
+    # a form far off its rival's RMSE is not kept (forms.choose): its terms are not held apart,
+    # nor is it carried on to convergence
+    near = base.rmse <= RIVAL_RATIO * rival
+    held, apart = _held_apart(fd, jf, base, report, settings) if hold and near else (None, None)
     free = base
     if apart is not None:
         jf, base = held, apart.fit
     else:
+        base = converged(base, settings.max_nfev) if near else base
         polished = _from_core(fd, jf, base)
         if polished is not None:
             jf = polished
@@ -306,11 +316,12 @@ def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, 
                    warnings=_cancelling(base, apart) if hold else [], structure=forced(orders))
 
 
-def _held_apart(fd: PreparedRun, jf: JointFit, base: Fit, report: Progress) -> tuple[JointFit | None, HeldApart | None]:
+def _held_apart(fd: PreparedRun, jf: JointFit, base: Fit, report: Progress, settings: FitSettings = DEFAULT
+                ) -> tuple[JointFit | None, HeldApart | None]:
     """The core's fit with the orders that coalesce held apart (identification.apart), in
     identification's terms; (None, None) when none are held."""
     report("orders that coalesce held apart", 0.85)
-    apart = hold_apart(fd, base)
+    apart = hold_apart(fd, base, settings.polish_nfev, settings.max_nfev)
     held = _from_core(fd, jf, apart.fit, held=apart.held) if apart is not None else None
     return (held, apart) if held is not None else (None, None)
 

@@ -31,6 +31,18 @@ STEPS = ("damping", "residual", "elastic", "joint")
 SUMMARY_WARNINGS = 3
 #: The RMSE without the turn samples is shown when it is below this share of the whole run's.
 TURNS_SHOWN = 0.9
+#: The sample sets an RMSE is computed on (each RMSE says which, and how many samples).
+RECORDED = "recorded"     # every recorded sample from the first cycle's start to the last one's end
+CYCLES = "cycles"         # the samples of the half-cycles (the joint statistics' rows)
+EVIDENCE = "evidence"     # those the fit uses: recorded less the samples at turns it cannot place
+HELDOUT = "held-out"      # blocks left out of a fit and predicted by it (identification.forms)
+
+
+def sample_set(name: str, count: int) -> dict:
+    """How an RMSE's samples are named in the JSON: the set and how many."""
+    return {"set": name, "count": int(count)}
+
+
 #: What a sidecar's "report" entry is, and the version of its layout.
 REPORT_FORMAT = "foamlab fit report"
 REPORT_VERSION = 1
@@ -49,8 +61,12 @@ class TurnSamples:
     rmse_without_N: float          # RMS of measured - fitted over the evidence samples
     max_abs_N: float               # the largest |measured - fitted| among the turn samples
 
-    def to_dict(self) -> dict:
-        return {"count": self.count, "rmse_without": _num(self.rmse_without_N), "max_abs": _num(self.max_abs_N)}
+    def to_dict(self, recorded: int | None = None) -> dict:
+        """recorded: how many samples the whole-run RMSE covers (the evidence is those less these)."""
+        out = {"count": self.count, "rmse_without": _num(self.rmse_without_N), "max_abs": _num(self.max_abs_N)}
+        if recorded is not None:
+            out["rmse_without_samples"] = sample_set(EVIDENCE, recorded - self.count)
+        return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -190,6 +206,34 @@ class FitReport:
         return self.status > 0
 
     @property
+    def rmse_count(self) -> int:
+        """How many samples ``rmse`` covers: every recorded one from the first cycle's start to the
+        last one's end (RECORDED)."""
+        observed = self.samples.observed
+        return int(observed[-1] + 1 - observed[0]) if len(observed) else 0
+
+    @property
+    def dropped(self) -> int:
+        """The run's samples left out before the fit: taken off the sampling schedule."""
+        return max(self.run_samples - len(self.samples.time_s), 0) if self.run_samples else 0
+
+    def samples_dict(self) -> dict:
+        """Which samples the JSON's figures cover, and how many were dropped."""
+        return {"recorded": self.run_samples or len(self.samples.time_s), "off_schedule_dropped": self.dropped,
+                "rmse": sample_set(RECORDED, self.rmse_count),
+                # the paper's steps are fitted on their own half-cycles, the joint one on the cycles'
+                "statistics": {step: sample_set(CYCLES if step == "joint" else f"{step} step", st.n)
+                               for step in STEPS if (st := self.statistics.get(step)) is not None}}
+
+    @property
+    def convergence(self) -> str:
+        """What the optimizer's end means for the numbers: one line."""
+        if self.success:
+            return f"converged ({self.message})"
+        return (f"NOT CONVERGED: the optimizer stopped ({self.message}); the parameters, standard errors and "
+                "RMSE are where it stopped, not the optimum (the optimum's RMSE is at most this one)")
+
+    @property
     def prepared(self) -> PreparedRun | None:
         return self.work.prepared if self.work else None
 
@@ -229,9 +273,12 @@ class FitReport:
                 "sse": None, "r2": None, "adj_r2": None, "rmse": None}
         return {"parameters": parameters, "statistics": statistics, "rmse": _num(self.rmse),
                 "constraints": {k: bool(v) for k, v in self.constraints.items()},
+                "samples": self.samples_dict(),
                 "noise": _num(self.noise_N),
-                "optimizer": {"success": self.success, "status": self.status, "message": self.message},
-                "turn_samples": self.turns.to_dict() if self.turns is not None else None,
+                "converged": self.success,
+                "optimizer": {"success": self.success, "status": self.status, "message": self.message,
+                              "meaning": self.convergence},
+                "turn_samples": self.turns.to_dict(self.rmse_count) if self.turns is not None else None,
                 "form": self.params.residual_form, "forms": self._forms_dict(),
                 "structure": self.structure.to_dict() if self.structure is not None else None,
                 "warnings": list(self.warnings), "notes": list(self.notes)}
@@ -243,6 +290,7 @@ class FitReport:
             return {"chosen": self.params.residual_form, "reason": "", "scores": []}
         mine = choice.score(choice.chosen)
         return {"chosen": choice.chosen, "reason": choice.reason(), "forced": choice.forced,
+                "rmse_samples": RECORDED, "heldout_rmse_samples": HELDOUT,
                 "scores": [{"form": s.form, "rmse": _num(s.rmse), "heldout_rmse": _num(s.heldout_rmse),
                             "bic": _num(s.bic), "delta_bic": _num(s.bic - mine.bic) if mine else None}
                            for s in choice.scores]}
@@ -314,15 +362,17 @@ class FitReport:
         that matter most (the full report is ``summary()``, --json and the sidecar)."""
         joint = self.statistics.get("joint")
         ratio = self.rmse / self.noise_N if self.noise_N > 0 else float("nan")
-        lines = [f"fit of {self.source or 'run'}: orders {self.orders}, {self.n_obs} samples, {self.elapsed_s:.2f} s",
+        lines = [self._headline(f"fit of {self.source or 'run'}: orders {self.orders}") + f", {self.elapsed_s:.2f} s",
                  f"  {self.form_choice.reason() if self.form_choice else self.params.residual_form + ' residual form'}",
-                 f"  RMSE {self.rmse:.4g} N = {ratio:.2f} x the load cell's noise ({self.noise_N:.3g} N)"
+                 f"  RMSE {self.rmse:.4g} N on all {self.rmse_count} recorded samples = {ratio:.2f} x the load "
+                 f"cell's noise ({self.noise_N:.3g} N)"
                  + (f", R^2 {joint.r2:.6f}" if joint is not None else ""),
-                 f"  optimizer: {'converged' if self.success else 'stopped'} ({self.message})"]
+                 f"  optimizer: {self.convergence}"]
         if self.turns is not None and self.turns.count and self.turns.rmse_without_N < TURNS_SHOWN * self.rmse:
             t = self.turns
-            lines.insert(3, f"  without the {t.count} samples at turns the samples cannot place (predicted, not "
-                            f"evidence; up to {t.max_abs_N:.3g} N off): RMSE {t.rmse_without_N:.4g} N = "
+            lines.insert(len(lines) - 1, f"  without the {t.count} samples at turns the samples cannot place (predicted, not "
+                            f"evidence; up to {t.max_abs_N:.3g} N off): RMSE {t.rmse_without_N:.4g} N on the "
+                            f"{self.rmse_count - t.count} evidence samples = "
                             f"{t.rmse_without_N / self.noise_N:.2f} x the noise")
         if self.structure is not None:
             lines.append(f"  structure: {self.structure.why}"
@@ -350,12 +400,13 @@ class FitReport:
 
     def summary(self) -> str:
         """A readable report: statistics per step (Table 5), parameters, checks, warnings."""
-        lines = [f"[[Fit]] {self.source or 'run'}",
+        lines = [self._headline(f"[[Fit]] {self.source or 'run'}"),
                  f"    orders            {self.orders}",
                  f"    residual form     {self.form_choice.reason() if self.form_choice else self.params.residual_form}",
-                 f"    samples fitted    {self.n_obs}  (parameters {self.n_params})",
-                 f"    RMSE (whole run)  {self.rmse:.4g} N",
+                 f"    samples fitted    {self.n_obs} of the cycles  (parameters {self.n_params})",
+                 f"    RMSE              {self.rmse:.4g} N  (all {self.rmse_count} recorded samples)",
                  f"    AIC / BIC         {self.aic:.1f} / {self.bic:.1f}",
+                 f"    optimizer         {self.convergence}",
                  f"    time              {self.elapsed_s:.2f} s",
                  "[[Statistics]] (Table 5; joint = all parameters on the raw signal)",
                  f"    {'step':<10}{'SSE':>12}{'R^2':>10}{'adj R^2':>10}{'RMSE':>10}{'n':>7}{'p':>5}"]
@@ -397,13 +448,22 @@ class FitReport:
             lines += [f"    - {w}" for w in self.warnings]
         return "\n".join(lines)
 
+    def _headline(self, what: str) -> str:
+        """The first line: what was fitted, on how many samples, how many were dropped, and first
+        of all whether the optimizer did not converge."""
+        line = f"{what}, {self.n_obs} samples fitted"
+        if self.dropped:
+            line += f", {self.dropped} of {self.run_samples} dropped (off the sampling schedule)"
+        return line if self.success else f"NOT CONVERGED ({self.message}) - {line}"
+
     def _forms_lines(self) -> list[str]:
         """Each residual form's RMSE, held-out RMSE and BIC against the chosen one's."""
         choice = self.form_choice
         if choice is None or len(choice.scores) < 2:
             return []
         mine = choice.score(choice.chosen)
-        lines = ["[[Residual form]] (both fitted; the one predicting held-out blocks better kept)",
+        lines = ["[[Residual form]] (both fitted; the one predicting held-out blocks better kept; RMSE on all "
+                 "recorded samples)",
                  f"    {'form':<10}{'RMSE':>10}{'held-out':>10}{'dBIC':>10}"]
         for sc in choice.scores:
             mark = "  (kept)" if sc.form == choice.chosen else ""

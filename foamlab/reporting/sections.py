@@ -141,9 +141,10 @@ def fit(doc: Document, c: ReportContent, png: Path | None) -> None:
         doc.paragraph(text(f"not fitted: {c.analysis.fit_error or ' '.join(c.notes) or 'not asked for'}"))
         return
     ratio = f.rmse / f.noise_N if f.noise_N > 0 else float("nan")
-    doc.paragraph(text(f"orders {f.orders}; {f.n_obs} samples, {f.n_params} free parameters; RMSE "
-                       f"{num(f.rmse)} N = {num(ratio, '.2f')} x the load cell's noise ({num(f.noise_N, '.3g')} N); "
-                       f"optimizer {'converged' if f.success else 'stopped'} ({f.message}). "
+    dropped = f"; {f.dropped} of {f.run_samples} samples dropped (off the sampling schedule)" if f.dropped else ""
+    doc.paragraph(text(f"orders {f.orders}; {f.n_obs} samples fitted, {f.n_params} free parameters{dropped}; RMSE "
+                       f"{num(f.rmse)} N on all {f.rmse_count} recorded samples = {num(ratio, '.2f')} x the load "
+                       f"cell's noise ({num(f.noise_N, '.3g')} N); optimizer {f.convergence}. "
                        "Statistics per step of the paper's identification (Table 5) and of the joint refinement:"))
     rows = []
     for step in ("damping", "residual", "elastic", "joint"):
@@ -219,8 +220,9 @@ def diagnosis(doc: Document, c: ReportContent, png: Path | None, caption: str) -
         rows.append([f.get("effect", ""), num(g.get("rmse_before")), num(g.get("rmse_after")),
                      num(g.get("heldout_rmse_before")), num(g.get("heldout_rmse_after")),
                      num(g.get("delta_bic"), ".1f"), "yes" if f.get("effect") == verdict else ""])
-    doc.paragraph(text("Gain of each extension of the model (RMSE in N, on all samples and on held-out "
-                       "blocks; dBIC: drop of the Bayesian information criterion):"))
+    doc.paragraph(text("Gain of each extension of the model (RMSE in N on the diagnosis's evidence samples - "
+                       "the samples at turns the samples cannot place left out, unlike the fit's RMSE above - "
+                       "and on held-out blocks; dBIC: drop of the Bayesian information criterion):"))
     doc.table(["finding", "RMSE before", "RMSE after", "held-out before", "held-out after", "dBIC", "named"],
               rows or [["no extension passed", "", "", "", "", "", ""]],
               [0.22, 0.13, 0.13, 0.14, 0.14, 0.12, 0.12])
