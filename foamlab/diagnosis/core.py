@@ -172,7 +172,7 @@ class Procedure:
         compare([c], self.base)
         c.share = explained_share(c, self.base, self.sigma)
         c.coarse_fit = self._coarse(alone)
-        c.reason = (rule_evidence(c, self.settings) or rule_not_pinned(c)
+        c.reason = (rule_evidence(c, self.settings) or rule_not_pinned(c, self.settings)
                     or rule_effect_determined(c, self.settings)
                     or rule_heldout(c, self.base, self._coarse(self.base)))
         if c.reason or not explains(c, self.settings):
@@ -320,7 +320,7 @@ class Procedure:
                 # strong on the search's samples: judge it at full resolution
                 c.fit, c.before = self._full(c.coarse_fit), self.current
                 compare([c], self.current)
-            c.reason = (rule_evidence(c, self.settings) or rule_not_pinned(c)
+            c.reason = (rule_evidence(c, self.settings) or rule_not_pinned(c, self.settings)
                         or rule_effect_determined(c, self.settings))
             if c.reason:
                 continue
@@ -352,8 +352,9 @@ class Procedure:
     def verdict(self) -> Diagnosis:
         """The verdict from the findings, and the residual analysis before and after."""
         base, final, findings, partial = self.base, self.current, self.findings, self.partial
-        base_analysis = analyse(self.series, base.solution.residuals, self.sigma)
-        final_analysis = analyse(self.series, final.solution.residuals, self.sigma) if findings else base_analysis
+        base_analysis = analyse(self.series, base.solution.residuals, self.sigma, self.settings)
+        final_analysis = (analyse(self.series, final.solution.residuals, self.sigma, self.settings)
+                          if findings else base_analysis)
         excess = base.rss - base.n * self.sigma ** 2
         removed = base.rss - final.rss
         share = 1.0 if removed >= excess else max(removed, 0.0) / excess

@@ -59,8 +59,9 @@ def rule_evidence(c: Candidate, s: DiagnosisSettings) -> str:
     return "" if c.delta_bic > s.delta_bic_min else f"delta BIC {c.delta_bic:.1f} <= {s.delta_bic_min:g}"
 
 
-def rule_not_pinned(c: Candidate) -> str:
-    return f"{c.pinned}: the data ask for more than this cause can be" if c.pinned else ""
+def rule_not_pinned(c: Candidate, s: DiagnosisSettings) -> str:
+    pinned = c.pinned(s.pinned_fraction)
+    return f"{pinned}: the data ask for more than this cause can be" if pinned else ""
 
 
 def rule_effect_determined(c: Candidate, s: DiagnosisSettings) -> str:

@@ -14,13 +14,8 @@ from scipy import signal
 
 from foamlab.analysis.design import Series
 from foamlab.analysis.noise import Whiteness, whiteness
+from foamlab.diagnosis.settings import DEFAULT, DiagnosisSettings
 
-#: Displacement bins per half-cycle in the residual map.
-X_BINS = 10
-#: Time bins per run.
-TIME_BINS = 30
-#: A region with |score| above this is reported as structure.
-SCORE_THRESHOLD = 4.0
 
 
 @dataclass
@@ -69,13 +64,14 @@ class ResidualAnalysis:
     periodicity: Periodicity | None
     by_half_cycle: list[tuple[str, int, int, float, float]] = field(default_factory=list)
     turning: tuple[float, float, float] = (0.0, 0.0, 0.0)   # (power share, sample share, window s)
+    score_threshold: float = DEFAULT.score_threshold        # |score| above it: structure (settings)
 
     @property
     def excess_ratio(self) -> float:
         return self.rmse / self.noise_sigma if self.noise_sigma > 0 else float("inf")
 
     def structured_regions(self, limit: int = 5) -> list[Region]:
-        hot = [r for r in self.regions if abs(r.score) > SCORE_THRESHOLD]
+        hot = [r for r in self.regions if abs(r.score) > self.score_threshold]
         return sorted(hot, key=lambda r: -abs(r.score))[:limit]
 
     def where(self, limit: int = 5) -> list[str]:
@@ -124,7 +120,8 @@ class _UsedSamples:
         return len(self.t)
 
 
-def analyse(series: list[Series], residuals: list[np.ndarray], noise_sigma: float) -> ResidualAnalysis:
+def analyse(series: list[Series], residuals: list[np.ndarray], noise_sigma: float,
+            settings: DiagnosisSettings = DEFAULT) -> ResidualAnalysis:
     """residuals: per series, at every sample; only the used samples (Series.used) count."""
     residuals = [np.asarray(r)[s.used] for s, r in zip(series, residuals)]
     series = [_UsedSamples.of(s) for s in series]
@@ -140,7 +137,7 @@ def analyse(series: list[Series], residuals: list[np.ndarray], noise_sigma: floa
         name = s.name if multi else ""
         x_max = float(np.max(s.x)) if len(s.x) else 1.0
         x_min = float(np.min(s.x)) if len(s.x) else 0.0
-        edges = np.linspace(x_min, x_max, X_BINS + 1)
+        edges = np.linspace(x_min, x_max, settings.x_bins + 1)
         for cyc in np.unique(s.cycle):
             for d in (1, -1, 0):
                 sel = (s.cycle == cyc) & (s.direction == d)
@@ -148,8 +145,8 @@ def analyse(series: list[Series], residuals: list[np.ndarray], noise_sigma: floa
                     continue
                 rr = r[sel]
                 halves.append((name, int(cyc), d, float(np.mean(rr)), float(np.sqrt(np.mean(rr ** 2)))))
-                idx = np.clip(np.digitize(s.x[sel], edges) - 1, 0, X_BINS - 1)
-                for b in range(X_BINS):
+                idx = np.clip(np.digitize(s.x[sel], edges) - 1, 0, settings.x_bins - 1)
+                for b in range(settings.x_bins):
                     rb = rr[idx == b]
                     if len(rb) < 5:
                         continue
@@ -157,7 +154,7 @@ def analyse(series: list[Series], residuals: list[np.ndarray], noise_sigma: floa
                     mean = float(np.mean(rb))
                     regions.append(Region(name, int(cyc), d, float(edges[b]), float(edges[b + 1]), len(rb),
                                           mean, float(np.sqrt(np.mean(rb ** 2))), mean / se if se > 0 else 0.0))
-        tb = np.array_split(np.arange(len(r)), min(TIME_BINS, max(len(r) // 5, 1)))
+        tb = np.array_split(np.arange(len(r)), min(settings.time_bins, max(len(r) // 5, 1)))
         for ix in tb:
             if len(ix) == 0:
                 continue
@@ -173,6 +170,7 @@ def analyse(series: list[Series], residuals: list[np.ndarray], noise_sigma: floa
         time_bins=time_bins,
         periodicity=_periodicity(series, residuals),
         by_half_cycle=halves,
+        score_threshold=settings.score_threshold,
     )
 
 

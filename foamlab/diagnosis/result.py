@@ -19,9 +19,6 @@ from foamlab.model import ModelParameters
 if TYPE_CHECKING:
     from foamlab.diagnosis.form import FormFinding
 
-#: An effect that ends within this fraction of its range of a non-zero limit is pinned there.
-PINNED_FRACTION = 0.01
-
 
 @dataclass
 class Candidate:
@@ -51,9 +48,8 @@ class Candidate:
         se = v["stderr"].get(name, float("nan"))
         return abs(v["values"][name]) / se if se and np.isfinite(se) and se > 0 else float("nan")
 
-    @property
-    def pinned(self) -> str:
-        """'' - or which fitted parameter ended on a limit of its range other than zero.
+    def pinned(self, fraction: float) -> str:
+        """'' - or which fitted parameter ended within `fraction` of its range of a limit other than zero.
 
         The optimum lies beyond what the effect can physically be (a damping change that
         would make a later cycle's damping vanish): the data ask for something else, which
@@ -62,7 +58,7 @@ class Candidate:
         lo, hi = self.cause.bounds()
         v = self.values["values"]
         for p, a, b in zip(self.cause.effect.fitted_parameters(), lo, hi):
-            tol = PINNED_FRACTION * (b - a)
+            tol = fraction * (b - a)
             for limit in (a, b):
                 if limit != 0 and abs(v[p.name] - limit) <= tol:
                     return f"{p.name} = {v[p.name]:.4g} at the limit of its range ({limit:g})"

@@ -17,13 +17,18 @@ def _setting(default, meaning: str, **kw):
 
 @dataclass(frozen=True)
 class DiagnosisSettings:
-    """Acceptance rules (evidence.py) and the search's budget (core.py)."""
+    """Acceptance rules (evidence.py), the residual map (residuals.py), the search's budget (core.py)."""
 
     # -- acceptance rules
     delta_bic_min: float = _setting(10.0, "a candidate improves the prewhitened BIC by more than this")
     effect_z_min: float = _setting(3.0, "its effect lies this many standard errors from zero")
     explained_share_min: float = _setting(0.5, "share of the structure above the noise a named cause explains")
     partial_share_min: float = _setting(0.1, "share a first-round cause explains to be reported as partial")
+    pinned_fraction: float = _setting(0.01, "pinned: an effect within this share of its range of a non-zero limit")
+    # -- where the residuals have structure
+    score_threshold: float = _setting(4.0, "structure: a residual region this many standard errors off zero")
+    x_bins: int = _setting(10, "displacement bins per half-cycle in the residual map")
+    time_bins: int = _setting(30, "time bins per run in the residual map")
     # -- when to stop
     max_findings: int = _setting(3, "causes found on top of each other at most")
     near_noise: float = _setting(0.1, "white residuals within this of the noise variance end the search")
