@@ -28,8 +28,9 @@ from foamlab.gui.bridge import EngineBridge
 from foamlab.gui.commissioning import Commissioning
 from foamlab.gui.connection import ConnectionView
 from foamlab.gui.controls import ControlPanel
-from foamlab.gui.dialogs import DialogSlot, EscapeStops, ask, choose_file
+from foamlab.gui.dialogs import DialogSlot, EscapeStops, ask
 from foamlab.gui.display import RunDisplay
+from foamlab.gui.files import FileActions
 from foamlab.gui.forms import ERROR_STYLE
 from foamlab.gui.idle import IdleCommands
 from foamlab.gui.machine_link import MachineLink, Readout
@@ -54,7 +55,7 @@ STATE_TEXT = {
 PHASE_OF_ACTION = {"compress": LOADING, "return": UNLOADING, "dwell": "dwell"}
 
 
-class MainWindow(QtWidgets.QMainWindow):
+class MainWindow(FileActions, QtWidgets.QMainWindow):
     def __init__(self, speedup: float = 1.0, out_dir: str | Path = "foamlab-data",
                  profile: str | None = None, method: str | None = None, auto_diagnose: bool = True,
                  simulator: dict | None = None) -> None:
@@ -364,76 +365,6 @@ class MainWindow(QtWidgets.QMainWindow):
                    else self.display.diagnose_shown())
         if problem:
             self._status(problem, error=True)
-
-    # ================================================================ files
-    def open_file(self, path: str | Path | None = None) -> None:
-        """Show a run from a file (any supported format): curves, then fit, then diagnosis."""
-        if self.running:
-            self._status("a run is going: open files after it ends", error=True)
-            return
-        if path is None:
-            self._show_dialog(choose_file(self, "Open measured data", self.out_dir,
-                                          "Measured data (*.csv *.txt *.tsv);;All files (*)", self.open_file))
-            return
-        self.display.open(Path(path), lambda run, path=Path(path): self._on_opened(run, path))
-
-    def _on_opened(self, run, path: Path) -> None:
-        self.last_result = None
-        self.tabs.setCurrentIndex(0)
-        self.controls.show_run_inputs(run)
-        self.series_view.show_series_of(path, run)
-        self._status(f"opened {run.source}")
-
-    def export_png(self, path: str | Path | None = None) -> Path | None:
-        if path is None:
-            self._show_dialog(choose_file(self, "Export plot", self.out_dir / "plot.png", "PNG image (*.png)",
-                                          self.export_png, save=True))
-            return None
-        return self.display.export_png(Path(path))
-
-    def write_report(self, path: str | Path | None = None) -> None:
-        """The shown run's test report as a PDF (foamlab.reporting), written in the background."""
-        if self.running or self.shown_run is None:
-            self._status("no run to report: finish a run or open a file first", error=True)
-            return
-        if path is None:
-            self._show_dialog(choose_file(self, "Write test report", self.display.report_path(),
-                                          "PDF (*.pdf)", self.write_report, save=True))
-            return
-        self.display.write_report(Path(path))
-
-    def export_csv(self, path: str | Path | None = None) -> Path | None:
-        if not self.results.report.run:
-            self._status("nothing to export yet: run a test or open a file", error=True)
-            return None
-        if path is None:
-            self._show_dialog(choose_file(self, "Export results", self.out_dir / "results.csv", "CSV (*.csv)",
-                                          self.export_csv, save=True))
-            return None
-        return self.display.export_csv(Path(path))
-
-    def export_series_csv(self, path: str | Path | None = None) -> Path | None:
-        """The Series tab's series as one CSV (foamlab.reporting.series), where the operator chooses."""
-        if self.series_view.series is None:
-            self._status("no series to export: finish a run or open one first", error=True)
-            return None
-        if path is None:
-            self._show_dialog(choose_file(self, "Export series", self.series_view.default_path(".csv"),
-                                          "CSV (*.csv)", self.export_series_csv, save=True))
-            return None
-        return self.series_view.export_csv(Path(path))
-
-    def write_series_report(self, path: str | Path | None = None) -> None:
-        """The Series tab's series as a PDF (foamlab.reporting.write_series_report), in the background."""
-        if self.running or self.series_view.series is None:
-            self._status("a run is going: write the series report after it ends" if self.running else
-                         "no series to report: finish a run or open one first", error=True)
-            return
-        if path is None:
-            self._show_dialog(choose_file(self, "Write series report", self.series_view.default_path(".pdf"),
-                                          "PDF (*.pdf)", self.write_series_report, save=True))
-            return
-        self.series_view.write_report(Path(path))
 
     # ================================================================ dialogs, closing
     @property
