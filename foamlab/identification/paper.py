@@ -198,55 +198,91 @@ def paper_steps(fd: PreparedRun, orders: Orders) -> PaperResult:
                                   "L2": cycles[1].loading}
     for c in range(2, C + 1):
         used[f"U{c}"] = cycles[c - 1].unloading
-    data = {k: _usable(fd, h) for k, h in used.items()}
-    short = [k for k, (xv, _) in data.items() if len(xv) < 2 * MIN_BINS]
-    if short:
-        warnings.append(f"paper's three steps skipped: half-cycle(s) {', '.join(short)} have too few "
-                        "samples in contact")
+    lattice = _Lattice.of(fd, used, warnings)
+    if lattice is None:
         return PaperResult(None, {}, warnings)
-    # one lattice (bin width dx) for all half-cycles; each difference uses the bins
-    # where both of its half-cycles have data
-    x_lo = min(float(np.min(xv)) for xv, _ in data.values())
-    x_hi = max(float(np.max(xv)) for xv, _ in data.values())
-    span = x_hi - x_lo
-    density = min(len(xv) / max(float(np.ptp(xv)), 1e-12) for xv, _ in data.values())
-    S_total = int(np.clip(density * span / SAMPLES_PER_BIN, MIN_BINS, MAX_BINS))
-    edges = np.linspace(x_lo, x_hi, S_total + 1)
-    lattice = 0.5 * (edges[1:] + edges[:-1])
-    F = {k: resample_on_grid(xv, fv, edges) for k, (xv, fv) in data.items()}
-    main = np.isfinite(F["L1"]) & np.isfinite(F["U1"]) & np.isfinite(F["L2"])
-    stroke = fd.seg.stroke_mm
-    shared = float(np.ptp(lattice[main])) if main.sum() >= 2 else 0.0
-    if main.sum() < MIN_BINS or shared < MIN_SHARED_FRACTION * stroke:
-        warnings.append(f"paper's three steps skipped: L1, U1 and L2 share only {shared:.3g} mm "
-                        f"of displacement in contact (stroke {stroke:.3g} mm)")
-        return PaperResult(None, {}, warnings)
-    grid = lattice[main]
-    S = len(grid)
     steps: dict[str, StepResult] = {}
-    T_load = fd.loading_time_s
-    lower_all, upper_all = nonlinear_bounds(orders, C, T_load)
+    lower_all, upper_all = nonlinear_bounds(orders, C, fd.loading_time_s)
+    vd_data = (lattice.F["L2"] - lattice.F["U1"])[lattice.main]
+    steps["damping"], alphas, a = _step_damping(fd, orders, lattice, used["L2"], vd_data,
+                                                lower_all, upper_all)
+    steps["residual"] = _step_residual(fd, orders, lattice, C, warnings)
+    steps["elastic"] = _step_elastic(fd, orders, lattice, vd_data)
+    start = ModelParameters(
+        x_scale_mm=fd.x_scale_mm, elastic_k=steps["elastic"].values["k"], damping_a=a,
+        damping_alpha=alphas[:, 0] + 1j * alphas[:, 1],
+        residual_r=steps["residual"].values["r"], residual_beta=steps["residual"].values["beta"],
+        residual_form=orders.form, shared_orders=orders.shared and C > 1,
+        description="start values: the paper's three-step identification",
+    )
+    return PaperResult(start, steps, warnings, lattice.grid)
 
-    # Step 1: damping, Eq. 15 data, Eq. 9 model (Eq. 26)
-    vd_data = (F["L2"] - F["U1"])[main]
-    L2 = used["L2"]
+
+@dataclass(frozen=True)
+class _Lattice:
+    """One displacement lattice (bin width dx) for all half-cycles used; each difference uses
+    the bins where both of its half-cycles have data. `main`: the bins L1, U1 and L2 share."""
+
+    centres: np.ndarray
+    F: dict[str, np.ndarray]
+    main: np.ndarray
+
+    @property
+    def grid(self) -> np.ndarray:
+        return self.centres[self.main]
+
+    @classmethod
+    def of(cls, fd: PreparedRun, used: dict[str, HalfCycle], warnings: list[str]) -> "_Lattice | None":
+        data = {k: _usable(fd, h) for k, h in used.items()}
+        short = [k for k, (xv, _) in data.items() if len(xv) < 2 * MIN_BINS]
+        if short:
+            warnings.append(f"paper's three steps skipped: half-cycle(s) {', '.join(short)} have too few "
+                            "samples in contact")
+            return None
+        x_lo = min(float(np.min(xv)) for xv, _ in data.values())
+        x_hi = max(float(np.max(xv)) for xv, _ in data.values())
+        density = min(len(xv) / max(float(np.ptp(xv)), 1e-12) for xv, _ in data.values())
+        S_total = int(np.clip(density * (x_hi - x_lo) / SAMPLES_PER_BIN, MIN_BINS, MAX_BINS))
+        edges = np.linspace(x_lo, x_hi, S_total + 1)
+        centres = 0.5 * (edges[1:] + edges[:-1])
+        F = {k: resample_on_grid(xv, fv, edges) for k, (xv, fv) in data.items()}
+        main = np.isfinite(F["L1"]) & np.isfinite(F["U1"]) & np.isfinite(F["L2"])
+        stroke = fd.seg.stroke_mm
+        shared = float(np.ptp(centres[main])) if main.sum() >= 2 else 0.0
+        if main.sum() < MIN_BINS or shared < MIN_SHARED_FRACTION * stroke:
+            warnings.append(f"paper's three steps skipped: L1, U1 and L2 share only {shared:.3g} mm "
+                            f"of displacement in contact (stroke {stroke:.3g} mm)")
+            return None
+        return cls(centres, F, main)
+
+
+def _step_damping(fd: PreparedRun, orders: Orders, lattice: _Lattice, L2: HalfCycle,
+                  vd_data: np.ndarray, lower_all, upper_all) -> tuple[StepResult, np.ndarray, np.ndarray]:
+    """Step 1: damping, Eq. 15 data, Eq. 9 model (Eq. 26)."""
+    grid = lattice.grid
+    S = len(grid)
     v2 = _rate(fd, L2)
     x_rel = grid - fd.x[L2.start]
     fam = _ColumnFamily(None, lambda g: damping_closed_form(_unit_damping(g[0] + 1j * g[1]), x_rel, v2),
                         2, S)
     if orders.N:
-        fit = fit_separable(fam, vd_data, orders.N, alpha_candidates(T_load),
+        fit = fit_separable(fam, vd_data, orders.N, alpha_candidates(fd.loading_time_s),
                             lower_all[:2 * orders.N], upper_all[:2 * orders.N])
         alphas = fit.nonlinear.reshape(-1, 2)
         a = fit.linear
         vd_fit = vd_data - fit.residual
     else:
         alphas, a, vd_fit = np.zeros((0, 2)), np.zeros(0), np.zeros(S)
-    steps["damping"] = StepResult("damping", grid, vd_data, vd_fit, 3 * orders.N,
-                                  GoodnessOfFit.of(vd_data, vd_fit, 3 * orders.N),
-                                  {"a": a, "alpha": alphas[:, 0] + 1j * alphas[:, 1]})
+    step = StepResult("damping", grid, vd_data, vd_fit, 3 * orders.N,
+                      GoodnessOfFit.of(vd_data, vd_fit, 3 * orders.N),
+                      {"a": a, "alpha": alphas[:, 0] + 1j * alphas[:, 1]})
+    return step, alphas, a
 
-    # Step 2: residual of each cycle, Eqs. 16-18 data, Eq. 11 model (Eq. 27)
+
+def _step_residual(fd: PreparedRun, orders: Orders, lattice: _Lattice, C: int,
+                   warnings: list[str]) -> StepResult:
+    """Step 2: residual of each cycle, Eqs. 16-18 data, Eq. 11 model (Eq. 27)."""
+    cycles, F = fd.seg.cycles, lattice.F
     r_all = np.zeros((C, orders.M))
     b_all = np.zeros((C, orders.M))
     res_x, res_data, res_fit = [], [], []
@@ -258,7 +294,7 @@ def paper_steps(fd: PreparedRun, orders: Orders) -> PaperResult:
                             "grid points; its terms start from cycle 1's")
             r_all[c - 1], b_all[c - 1] = r_all[0], b_all[0]
             continue
-        xr_grid, vr = lattice[ok], vr[ok]
+        xr_grid, vr = lattice.centres[ok], vr[ok]
         cyc = cycles[c - 1]
         s, p = cyc.loading.start, cyc.unloading.start
         A = float(fd.x[p] - fd.x[s])
@@ -283,24 +319,17 @@ def paper_steps(fd: PreparedRun, orders: Orders) -> PaperResult:
     res_data_all = np.concatenate(res_data) if res_data else np.zeros(0)
     res_fit_all = np.concatenate(res_fit) if res_fit else np.zeros(0)
     n_res = orders.M * len(res_data) + (orders.M if orders.shared else orders.M * len(res_data))
-    steps["residual"] = StepResult("residual", np.concatenate(res_x) if res_x else np.zeros(0),
-                                   res_data_all, res_fit_all, n_res,
-                                   GoodnessOfFit.of(res_data_all, res_fit_all, n_res),
-                                   {"r": r_all, "beta": b_all})
+    return StepResult("residual", np.concatenate(res_x) if res_x else np.zeros(0),
+                      res_data_all, res_fit_all, n_res,
+                      GoodnessOfFit.of(res_data_all, res_fit_all, n_res), {"r": r_all, "beta": b_all})
 
-    # Step 3: elastic, Eq. 19 data, Eq. 12 model (Eq. 28): linear least squares
-    e_data = F["L1"][main] - vd_data
+
+def _step_elastic(fd: PreparedRun, orders: Orders, lattice: _Lattice, vd_data: np.ndarray) -> StepResult:
+    """Step 3: elastic, Eq. 19 data, Eq. 12 model (Eq. 28): linear least squares."""
+    grid = lattice.grid
+    e_data = lattice.F["L1"][lattice.main] - vd_data
     vander = np.vander(grid / fd.x_scale_mm, orders.P + 1, increasing=True)
     k = lsq_linear(vander, e_data, method="trf").x
     e_fit = vander @ k
-    steps["elastic"] = StepResult("elastic", grid, e_data, e_fit, orders.P + 1,
-                                  GoodnessOfFit.of(e_data, e_fit, orders.P + 1), {"k": k})
-
-    start = ModelParameters(
-        x_scale_mm=fd.x_scale_mm, elastic_k=k, damping_a=a,
-        damping_alpha=alphas[:, 0] + 1j * alphas[:, 1],
-        residual_r=r_all, residual_beta=b_all, residual_form=orders.form,
-        shared_orders=orders.shared and C > 1,
-        description="start values: the paper's three-step identification",
-    )
-    return PaperResult(start, steps, warnings, grid)
+    return StepResult("elastic", grid, e_data, e_fit, orders.P + 1,
+                      GoodnessOfFit.of(e_data, e_fit, orders.P + 1), {"k": k})
