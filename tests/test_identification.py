@@ -106,11 +106,13 @@ def test_fit_reports_table5_statistics_checks_and_json(default_fit, default_para
     run, result = default_fit
     d = result.to_dict()
     # DESIGN.md's four keys, the samples the RMSE covers, the noise level, whether the optimizer
-    # converged and its end (as lmfit reports it) and the samples at turns the samples cannot
-    # place, the residual form with every form's scores (identification.forms), the structure
-    # (given here), and the fit's warnings and notes as printed
+    # converged and its end (as lmfit reports it), the samples at turns the samples cannot place and
+    # the placement of those turns (fitted: counted in the degrees of freedom), the residual form
+    # with every form's scores (identification.forms), the structure (given here), and the fit's
+    # warnings and notes as printed
     assert list(d) == ["parameters", "statistics", "rmse", "constraints", "samples", "noise", "converged",
-                       "optimizer", "turn_samples", "form", "forms", "structure", "warnings", "notes"]
+                       "optimizer", "turn_samples", "turn_placement", "dof", "form", "forms", "structure",
+                       "warnings", "notes"]
     assert d["warnings"] == list(result.warnings) and all(isinstance(w, str) for w in d["warnings"])
     n = d["samples"]["rmse"]["count"]                             # an exact history: no turn samples
     assert d["samples"]["rmse"]["set"] == "recorded" and n >= result.n_obs

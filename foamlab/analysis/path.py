@@ -103,6 +103,9 @@ class PathNodes:
     # the instants of turns without a stop, where the samples cannot place them (the lines' meeting
     # point, or the extreme sample where they meet at it): fit.py fits the other placement there
     turns_between: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    turn_extremes: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # each one's turning point
+    before_extreme: bool = False  # a turn whose lines meet at its extreme sample is just before it
+    flipped: tuple[int, ...] = ()  # turning points placed the other way (fitted per turn: fit.py)
 
     @property
     def inserted(self) -> int:
@@ -164,7 +167,8 @@ def _just_before(t: np.ndarray, path: np.ndarray, first: int, v_in: float, v_out
 
 
 def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, bool]],
-               tol: float, between_samples: bool = True, before_extreme: bool = False) -> PathNodes:
+               tol: float, between_samples: bool = True, before_extreme: bool = False,
+               flipped: tuple[int, ...] = ()) -> PathNodes:
     """The crosshead's path with the corners the samples miss.
 
     A drive that reverses from rest arrives at a turning point between two samples,
@@ -180,11 +184,14 @@ def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, b
     (_lines_meet: between_samples) or at its extreme sample (a polyline made of its
     samples, as foamlab's own synthetic runs are); the samples alone cannot tell which.
     Where the lines meet at the extreme sample itself (within the encoder's resolution), a
-    measured path's other placement (before_extreme) turns just before it (_just_before)."""
+    measured path's other placement (before_extreme) turns just before it (_just_before).
+    flipped: turning points (indices of extremes) placed the other way from the rest (each
+    turn's placement a parameter of the fit)."""
     n = len(t)
     inserts: list[tuple[float, float, int]] = []          # (time, x, sample it precedes)
     arrival, departure = {}, {}
     between: list[float] = []
+    turn_of: list[int] = []
 
     def line(a: int, b: int):
         if not (0 <= a < n and 0 <= b < n and t[b] > t[a]):
@@ -193,6 +200,8 @@ def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, b
         return (lambda when: path[a] + v * (when - t[a])), v
 
     for k, (first, last, _) in enumerate(extremes):
+        place_between, place_before = ((not between_samples, not before_extreme) if k in flipped
+                                       else (between_samples, before_extreme))
         x_ext = path[last]
         incoming, outgoing = line(first - 2, first - 1), line(last + 1, last + 2)
         if incoming is None or outgoing is None or incoming[1] == 0 or outgoing[1] == 0:
@@ -206,13 +215,15 @@ def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, b
             turn = _lines_meet(t, path, first, last, incoming[1], outgoing[1])
             if turn is not None:
                 between.append(turn[0])
+                turn_of.append(k)
             elif first == last:
                 # the lines meet at the extreme sample: the turn is there or just before it, and
                 # only the sample's force says which (B at 10 Hz: a turn 1.7 ms before, 28 N)
                 between.append(float(t[first]))
-                if before_extreme:
+                turn_of.append(k)
+                if place_before:
                     turn = _just_before(t, path, first, incoming[1], outgoing[1])
-            if turn is not None and (between_samples or turn[0] not in between):
+            if turn is not None and (place_between or turn[0] not in between):
                 departure[k] = len(inserts)
                 inserts.append(turn)
             continue
@@ -241,7 +252,8 @@ def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, b
         corners += [turn, insert_node[arrival[k]] if k in arrival else int(of_sample[first])]
     labels = labels_from_extrema(len(node_t), minima, maxima)
     return PathNodes(node_t, node_x, of_sample, labels, np.unique(np.asarray(corners, dtype=int)),
-                     between_samples, np.asarray(between, float))
+                     between_samples, np.asarray(between, float), np.asarray(turn_of, int), before_extreme,
+                     tuple(sorted(int(k) for k in flipped)))
 
 
 def path_determined(t: np.ndarray, x: np.ndarray, force: np.ndarray, nodes: PathNodes,

@@ -117,6 +117,15 @@ class PreparedRun:
         return replace(self, nodes=nodes, series=_series(self.run, self.series.name, self.labels, nodes,
                                                          self.seg.contact_lost))
 
+    def with_flipped(self, flipped: tuple[int, ...]) -> "PreparedRun":
+        """The same run with these turning points (indices of extremes) placed the other way from
+        the rest (path.path_nodes): a placement fitted per turn."""
+        nodes = path_nodes(self.t, self.path_mm, self.extremes, self.corner_tol,
+                           between_samples=self.nodes.between_samples,
+                           before_extreme=self.nodes.before_extreme, flipped=tuple(flipped))
+        return replace(self, nodes=nodes, series=_series(self.run, self.series.name, self.labels, nodes,
+                                                         self.seg.contact_lost))
+
     def with_force(self, force: np.ndarray) -> "PreparedRun":
         """The same run (segmentation, path, labels) with another force: what a fit sees of
         the measurement with an effect taken out (diagnosis' restarts). Nothing re-segmented."""

@@ -18,7 +18,7 @@ from threadpoolctl import threadpool_limits
 
 from foamlab.analysis.noise import AT_NOISE_RATIO, at_the_noise
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
-from foamlab.analysis.solve import Fit, converged, model_like, polish, solved_at
+from foamlab.analysis.solve import Fit, converged, polish, solved_at
 from foamlab.identification.apart import HeldApart, coalesced, hold_apart
 from foamlab.identification.forms import choose as forms_choose
 from foamlab.identification.joint import (
@@ -89,6 +89,8 @@ def resumed(report: FitReport, run: RunData) -> FitReport:
     fd = prepare(run, x_scale_mm=report.params.x_scale_mm)
     if fd.nodes.between_samples != report.turns_between_samples:
         fd = fd.other_turns()
+    if report.turns_flipped:
+        fd = fd.with_flipped(report.turns_flipped)
     return report.with_work(prepared=fd, core_fit=solved_at([fd.series], report.params))
 
 
@@ -131,30 +133,65 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
 
 def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progress, paper,
                 rival: float = np.inf, hold: bool = True, settings: FitSettings = DEFAULT) -> FitReport:
-    """One form's fit (select: of the structure the data determine, from orders down), with its
-    turning points placed where the samples say.
+    """One form's fit (select: of the structure the data determine, from orders down), with the
+    placement of each turning point the samples cannot place fitted.
 
     Where the crosshead turned without a stop, the samples cannot say whether it turned at
     the sample at the extreme (a polyline of samples) or between two (a real machine): the
-    model switches at the turn, so the samples next to it show which. When they are off by
-    more than TURN_MISFIT_MULTIPLE times the noise and their neighbours, the other is fitted too
-    and the better kept."""
+    model switches at the turn, so the samples next to it show which. Each such turn's
+    placement is a parameter of the fit (counted in its degrees of freedom: _result), fitted
+    by the likelihood: where the samples next to some turns misfit by more than
+    TURN_MISFIT_MULTIPLE times the noise, those turns are placed the other way alone (a turn a
+    fraction of a millisecond before the extreme sample: only that sample's force says it
+    was already unloading); where they misfit more than their neighbours, every turn is; the
+    placement whose whole run fits best is kept."""
     result = _fit_prepared(fd, orders, select, progress, paper, rival, hold, settings)
     at_turns, around = _misfit_at_turns(result, fd)
     # a structure chosen with a turn misplaced can misfit everywhere, the turn's neighbours no more
     # than the rest (one cycle at 10 Hz: every structure 3-4 x the noise, 0.99 x placed the other way)
     lost = select and len(fd.nodes.turns_between) > 0 and result.rmse > FAR_FROM_NOISE * fd.noise_N
+    placements = []
+    # a form far off its rival's RMSE is not kept (forms.choose): its turns are not placed one by one
+    misplaced = _misplaced_turns(result, fd) if result.rmse <= RIVAL_RATIO * rival else ()
+    if misplaced and len(misplaced) < len(fd.nodes.turns_between):
+        placements.append(fd.with_flipped(misplaced))
     if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around) or lost:
-        # the turns placed the other way: the structure the data chose, or chosen again (with the
-        # turn misplaced, a 28 N miss at one peak sample chose (0, 2): 4 x the noise placed right)
-        other = _fit_prepared(fd.other_turns(), orders if select else result.orders, select, progress, hold=hold,
+        # the structure the data chose, or chosen again (with the turn misplaced, a 28 N miss at
+        # one peak sample chose (0, 2): 4 x the noise placed right)
+        placements.append(fd.other_turns())
+    kept = result
+    for placed in placements:
+        other = _fit_prepared(placed, orders if select else result.orders, select, progress, hold=hold,
                               settings=settings)
-        where = "between samples" if other.prepared.nodes.between_samples else "at the sample at the extreme"
-        if other.rmse < result.rmse:
-            return replace(other, structure=other.structure if select else result.structure,
-                           notes=other.notes + (f"turning points without a stop placed {where}: the samples next "
-                                                f"to them fit {result.rmse:.4g} N the other way",))
-    return result
+        if other.rmse < kept.rmse:
+            kept = replace(other, structure=other.structure if select else result.structure,
+                           notes=other.notes + (f"{_placement(other)}: the whole run fits {result.rmse:.4g} N "
+                                                f"with every one placed {_rule(result)}",))
+    return kept
+
+
+def _rule(report: FitReport) -> str:
+    return "between samples" if report.turns_between_samples else "at the sample at the extreme"
+
+
+def _placement(report: FitReport) -> str:
+    rule = _rule(report)
+    if not report.turns_flipped:
+        return f"turning points without a stop placed {rule}"
+    at = ", ".join(f"{t:.4g}" for t in report.turns_flipped_s)
+    return f"turning points without a stop placed {rule}, but {len(report.turns_flipped)} the other way (t = {at} s)"
+
+
+def _misplaced_turns(result: FitReport, fd: PreparedRun) -> tuple[int, ...]:
+    """The turning points (indices of fd.extremes) without a stop whose samples within one step
+    misfit by more than TURN_MISFIT_MULTIPLE times the noise."""
+    r = fd.f - result.predicted_force_N
+    out = []
+    for when, k in zip(fd.nodes.turns_between, fd.nodes.turn_extremes):
+        near = np.abs(fd.t - when) <= fd.native_step_s
+        if near.any() and np.sqrt(np.mean(r[near] ** 2)) > TURN_MISFIT_MULTIPLE * fd.noise_N:
+            out.append(int(k))
+    return tuple(out)
 
 
 #: The samples next to turns without a stop misfit by more than this many times the noise
@@ -443,15 +480,19 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
         force = base.model.specimen_force(base.nu, base.solution.theta)[0] + jf.contact_zero_N
     else:
         force = response.force
-    predicted = _placed_by_force(fd, params, np.maximum(force, jf.contact_zero_N), jf.contact_zero_N, base)
+    # every figure is this one evaluation of the model; each turn the samples cannot place has
+    # its placement fitted (_fit_placed): a parameter each
+    predicted = np.maximum(force, jf.contact_zero_N)
+    turn_parameters = len(fd.nodes.turns_between)
+    n_free = jf.n_free + turn_parameters
     y = fd.f[fd.observed]
-    joint = GoodnessOfFit.of(y, predicted[fd.observed], jf.n_free)
+    joint = GoodnessOfFit.of(y, predicted[fd.observed], n_free)
     first, last = int(fd.observed[0]), int(fd.observed[-1]) + 1
     whole = fd.f[first:last] - predicted[first:last]
     blocks = np.split(y - predicted[fd.observed], np.flatnonzero(np.diff(fd.observed) > 1) + 1)
     tau = autocorrelation_time(blocks)
     parameters, correlation, unc_warnings = _parameters(fd, orders, jf, tau)
-    aic, bic = information_criteria(joint.sse, joint.n, jf.n_free)
+    aic, bic = information_criteria(joint.sse, joint.n, n_free)
     names, values = parameters.names, parameters.column("value")
     lower, upper = nonlinear_bounds(orders, lay.C, fd.loading_time_s)
     out_warnings = list(fd.warnings) + list(paper.warnings) + unc_warnings
@@ -472,11 +513,13 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
         source=fd.run.source, orders=orders, params=params, parameters=parameters, correlation=correlation,
         statistics=statistics, rmse=float(np.sqrt(np.mean(whole ** 2))), noise_N=float(fd.noise_N),
         constraints=thermodynamic_checks(params), warnings=tuple(out_warnings + list(warnings)), notes=tuple(notes),
-        aic=float(aic), bic=float(bic), n_obs=int(joint.n), n_params=int(jf.n_free),
+        aic=float(aic), bic=float(bic), n_obs=int(joint.n), n_params=int(n_free),
         autocorrelation_time=float(tau), contact_zero_N=float(jf.contact_zero_N), status=int(jf.status),
         message=str(jf.message), samples=samples, turns=_turn_samples(fd.series.used[first:last], whole),
         structure=structure, starts=tuple(jf.starts), elapsed_s=time.perf_counter() - started,
         turns_between_samples=bool(fd.nodes.between_samples), run_samples=len(fd.t) + int(fd.off_schedule),
+        turn_parameters=turn_parameters, turns_flipped=tuple(fd.nodes.flipped),
+        turns_flipped_s=tuple(float(fd.t[fd.extremes[k][1]]) for k in fd.nodes.flipped),
         work=FitWork(fd, base, free if apart is not None else None, largest),
     )
 
@@ -531,33 +574,6 @@ def _turn_samples(evidence: np.ndarray, residual: np.ndarray) -> TurnSamples:
     kept = residual[evidence] if evidence.any() else residual
     return TurnSamples(len(at_turns), float(np.sqrt(np.mean(kept ** 2))),
                        float(np.abs(at_turns).max()) if len(at_turns) else 0.0)
-
-
-def _placed_by_force(fd: PreparedRun, params, predicted: np.ndarray, zero: float, base: Fit | None) -> np.ndarray:
-    """The samples next to a turn that the samples cannot place (not evidence: the fit does not
-    use them) predicted with the placement their own force supports. Where the crosshead
-    turned a fraction of a millisecond before the extreme sample, that sample reads the peak
-    within the encoder's step and only its force (tens of newtons apart: damping off, the
-    residual on) says it was already unloading; the parameters do not depend on it."""
-    unused = ~fd.series.used
-    if not unused.any():
-        return predicted
-    groups = np.split(np.flatnonzero(unused), np.flatnonzero(np.diff(np.flatnonzero(unused)) > 1) + 1)
-    misfit = lambda values, g: float(np.sqrt(np.mean((fd.f[g] - values[g]) ** 2)))
-    suspect = [g for g in groups if misfit(predicted, g) > TURN_MISFIT_MULTIPLE * fd.noise_N]
-    if not suspect:
-        return predicted
-    flipped = fd.other_turns()
-    if base is not None:        # the core's exact columns: right after a turn the force is steep in time
-        force = model_like(base, [flipped.series]).specimen_force(base.nu, base.solution.theta)[0] + zero
-    else:
-        force = model_response(params, flipped).force
-    other = np.maximum(force, zero)
-    out = predicted.copy()
-    for g in suspect:
-        if misfit(other, g) < misfit(predicted, g):
-            out[g] = other[g]
-    return out
 
 
 def _bound_warnings(names, values, lay, lower, upper) -> list[str]:

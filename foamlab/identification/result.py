@@ -45,7 +45,7 @@ def sample_set(name: str, count: int) -> dict:
 
 #: What a sidecar's "report" entry is, and the version of its layout.
 REPORT_FORMAT = "foamlab fit report"
-REPORT_VERSION = 1
+REPORT_VERSION = 2        # 2: each turn's placement fitted (turn_parameters, turns_flipped)
 
 
 def _num(v) -> float | None:
@@ -136,6 +136,9 @@ class FitReport:
     elapsed_s: float = 0.0
     turns_between_samples: bool = True   # turns without a stop placed between samples (else at one)
     run_samples: int = 0              # the run's samples as given (samples: those on its schedule)
+    turn_parameters: int = 0          # turns the samples cannot place: each one's placement fitted (in n_params)
+    turns_flipped: tuple[int, ...] = ()      # of them, the turning points placed the other way from the rest
+    turns_flipped_s: tuple[float, ...] = ()  # their extreme samples' instants
     work: FitWork | None = field(default=None, compare=False, repr=False, metadata={"saved": False})
 
     def __eq__(self, other: object) -> bool:
@@ -279,6 +282,10 @@ class FitReport:
                 "optimizer": {"success": self.success, "status": self.status, "message": self.message,
                               "meaning": self.convergence},
                 "turn_samples": self.turns.to_dict(self.rmse_count) if self.turns is not None else None,
+                "turn_placement": {"parameters": self.turn_parameters,
+                                   "rule": "between samples" if self.turns_between_samples else "at the sample",
+                                   "placed_other_way_s": list(self.turns_flipped_s)},
+                "dof": {"n_obs": self.n_obs, "n_params": self.n_params, "turn_parameters": self.turn_parameters},
                 "form": self.params.residual_form, "forms": self._forms_dict(),
                 "structure": self.structure.to_dict() if self.structure is not None else None,
                 "warnings": list(self.warnings), "notes": list(self.notes)}
@@ -403,7 +410,8 @@ class FitReport:
         lines = [self._headline(f"[[Fit]] {self.source or 'run'}"),
                  f"    orders            {self.orders}",
                  f"    residual form     {self.form_choice.reason() if self.form_choice else self.params.residual_form}",
-                 f"    samples fitted    {self.n_obs} of the cycles  (parameters {self.n_params})",
+                 f"    samples fitted    {self.n_obs} of the cycles  (parameters {self.n_params}, of them "
+                 f"{self.turn_parameters} turn placements)",
                  f"    RMSE              {self.rmse:.4g} N  (all {self.rmse_count} recorded samples)",
                  f"    AIC / BIC         {self.aic:.1f} / {self.bic:.1f}",
                  f"    optimizer         {self.convergence}",
