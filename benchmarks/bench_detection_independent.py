@@ -146,7 +146,9 @@ def table(records: list[dict], subset: str) -> list[str]:
     ]
     smallest: dict[str, str] = {}
     for cause in ie.CAUSES:
-        for size in sorted({r["size"] for r in records if r["cause"] == cause}, key=abs):
+        # smallest effect first (a frame's stiffness: the stiffer, the smaller)
+        strength = (lambda v: 1.0 / v) if cause == "machine_compliance" else abs
+        for size in sorted({r["size"] for r in records if r["cause"] == cause}, key=strength):
             rows = [r for r in records if r["cause"] == cause and r["size"] == size]
             named = [r for r in rows if r["verdict"] == cause]
             share = len(named) / len(rows)
@@ -179,7 +181,8 @@ def table(records: list[dict], subset: str) -> list[str]:
     if cpu:
         loads = [r["load"] for r in records if "load" in r]
         lines.append(f"CPU seconds of the same diagnoses (what the machine's load does not inflate): median "
-                     f"{statistics.median(cpu):.1f} s, max {max(cpu):.1f} s; 1-minute load {min(loads):g}-{max(loads):g}.")
+                     f"{statistics.median(cpu):.1f} s, max {max(cpu):.1f} s over the {len(cpu)} runs that recorded it; "
+                     f"1-minute load {min(loads):g}-{max(loads):g}.")
     return lines
 
 
