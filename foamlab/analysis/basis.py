@@ -114,6 +114,38 @@ class _Damping:
         return col, self.interp(dz.real), self.interp(-dz.imag)
 
 
+def _slope_changes(t, x, start: int, grid_t: np.ndarray, grid_x: np.ndarray, j0: int, turning,
+                   later_starts, tol: float):
+    """The memory's nodes from the start on (grid nodes from j0, and the turning points that
+    are not grid nodes) and each node's slope change ds, summed over the memories begun."""
+    tk, h = float(t[start]), grid_t[1] - grid_t[0]
+    # turning points at or after the start that are not grid nodes
+    # (a node after the grid's end reaches no row: rows lie on the grid's span)
+    tp = np.asarray([i for i in turning if tk - tol <= t[i] <= grid_t[-1] + tol], dtype=int)
+    tp_t = t[tp]
+    off = np.abs((tp_t - grid_t[0]) / h - np.round((tp_t - grid_t[0]) / h)) * h > tol
+    off |= tp_t <= tk + tol            # the start is always its own node
+    tp, tp_t = tp[off], tp_t[off]
+    node_t = np.concatenate([grid_t[j0:], tp_t])
+    node_u = np.concatenate([grid_x[j0:], x[tp]]) - x[start]
+    is_grid = np.concatenate([np.ones(len(grid_t) - j0, bool), np.zeros(len(tp), bool)])
+    grid_idx = np.concatenate([np.arange(j0, len(grid_t)), np.full(len(tp), -1)])
+    order = np.argsort(node_t, kind="stable")
+    node_t, node_u, is_grid, grid_idx = node_t[order], node_u[order], is_grid[order], grid_idx[order]
+    slopes = np.diff(node_u) / np.diff(node_t)
+    ds = np.zeros(len(node_t))
+    if len(slopes):
+        ds[0] = slopes[0]
+        ds[1:len(slopes)] = np.diff(slopes)
+    if len(later_starts) and len(slopes):
+        # memory k adds its initial slope at its start and every slope change after it
+        at = np.searchsorted(node_t, t[np.asarray(later_starts, int)] - tol)
+        begun = 1 + np.searchsorted(np.sort(at), np.arange(len(node_t)), side="left")
+        ds[1:] *= begun[1:]
+        np.add.at(ds, at[at < len(slopes)], slopes[at[at < len(slopes)]])
+    return node_t, ds, is_grid, grid_idx
+
+
 class _Fractional:
     """D^beta of (x - x(t_k)) from cycle k's start t_k, at the observed samples after its peak.
 
@@ -139,30 +171,8 @@ class _Fractional:
         obs_t = t[obs[self.rows]]
         on_grid = grid_t > tk + tol
         j0 = int(np.argmax(on_grid)) if on_grid.any() else len(grid_t)
-        # turning points at or after the start that are not grid nodes
-        # (a node after the grid's end reaches no row: rows lie on the grid's span)
-        tp = np.asarray([i for i in turning if tk - tol <= t[i] <= grid_t[-1] + tol], dtype=int)
-        tp_t = t[tp]
-        off = np.abs((tp_t - grid_t[0]) / h - np.round((tp_t - grid_t[0]) / h)) * h > tol
-        off |= tp_t <= tk + tol            # the start is always its own node
-        tp, tp_t = tp[off], tp_t[off]
-        node_t = np.concatenate([grid_t[j0:], tp_t])
-        node_u = np.concatenate([grid_x[j0:], x[tp]]) - x[start]
-        is_grid = np.concatenate([np.ones(len(grid_t) - j0, bool), np.zeros(len(tp), bool)])
-        grid_idx = np.concatenate([np.arange(j0, len(grid_t)), np.full(len(tp), -1)])
-        order = np.argsort(node_t, kind="stable")
-        node_t, node_u, is_grid, grid_idx = node_t[order], node_u[order], is_grid[order], grid_idx[order]
-        slopes = np.diff(node_u) / np.diff(node_t)
-        ds = np.zeros(len(node_t))
-        if len(slopes):
-            ds[0] = slopes[0]
-            ds[1:len(slopes)] = np.diff(slopes)
-        if len(later_starts) and len(slopes):
-            # memory k adds its initial slope at its start and every slope change after it
-            at = np.searchsorted(node_t, t[np.asarray(later_starts, int)] - tol)
-            begun = 1 + np.searchsorted(np.sort(at), np.arange(len(node_t)), side="left")
-            ds[1:] *= begun[1:]
-            np.add.at(ds, at[at < len(slopes)], slopes[at[at < len(slopes)]])
+        node_t, ds, is_grid, grid_idx = _slope_changes(t, x, start, grid_t, grid_x, j0, turning,
+                                                       later_starts, tol)
         n = len(grid_t)
         self.h, self.n = h, n
         self.d_grid = np.zeros(n)

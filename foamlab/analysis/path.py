@@ -235,6 +235,19 @@ def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, b
         if t[last] + CORNER_AT_SAMPLE * (t[last + 1] - t[last]) < at < t[last + 1]:
             departure[k] = len(inserts)
             inserts.append((at, x_ext, last + 1))
+    node_t, node_x, of_sample, minima, maxima, corners = _with_inserts(t, path, extremes, inserts,
+                                                                       arrival, departure)
+    labels = labels_from_extrema(len(node_t), minima, maxima)
+    return PathNodes(node_t, node_x, of_sample, labels, np.unique(np.asarray(corners, dtype=int)),
+                     between_samples, np.asarray(between, float), np.asarray(turn_of, int), before_extreme,
+                     tuple(sorted(int(k) for k in flipped)))
+
+
+def _with_inserts(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, bool]],
+                  inserts: list[tuple[float, float, int]], arrival: dict[int, int], departure: dict[int, int]):
+    """The samples and the inserted corners as one node sequence, with each turning point's
+    node (minima, maxima) and the corner nodes."""
+    n = len(t)
     before = np.array([i[2] for i in inserts], dtype=int)
     of_sample = np.arange(n) + np.searchsorted(np.sort(before), np.arange(n), side="right")
     node_t = np.empty(n + len(inserts))
@@ -250,10 +263,7 @@ def path_nodes(t: np.ndarray, path: np.ndarray, extremes: list[tuple[int, int, b
         turn = insert_node[departure[k]] if k in departure else int(of_sample[last])
         (maxima if top else minima).append(turn)
         corners += [turn, insert_node[arrival[k]] if k in arrival else int(of_sample[first])]
-    labels = labels_from_extrema(len(node_t), minima, maxima)
-    return PathNodes(node_t, node_x, of_sample, labels, np.unique(np.asarray(corners, dtype=int)),
-                     between_samples, np.asarray(between, float), np.asarray(turn_of, int), before_extreme,
-                     tuple(sorted(int(k) for k in flipped)))
+    return node_t, node_x, of_sample, minima, maxima, corners
 
 
 def path_determined(t: np.ndarray, x: np.ndarray, force: np.ndarray, nodes: PathNodes,
