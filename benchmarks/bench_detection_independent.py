@@ -169,7 +169,7 @@ def table(records: list[dict], subset: str) -> list[str]:
                      f"{statistics.median(r['seconds'] for r in clean):.1f} | {max(r['seconds'] for r in clean):.1f} |")
     single = [r["seconds"] for r in records if r["runs"] == 1]
     lines += ["", "Smallest size named in >= 90 % of its seeds: " +
-              "; ".join(f"{c} {smallest.get(c, 'none of the sizes run')}" for c in ie.CAUSES
+              "; ".join(f"{c} {smallest.get(c, 'not reached at the sizes run')}" for c in ie.CAUSES
                         if any(r["cause"] == c for r in records)) + "."]
     if clean:
         lines.append(f"False alarms on clean runs: {len(clean) - none}/{len(clean)} "
