@@ -6,14 +6,15 @@
 #   2. the tests marked `schedule` (they assert the 16 Hz schedule, or skip a recording that
 #      missed samples), one at a time with nothing else of the suite beside them.
 # Extra arguments go to both phases (e.g. -x, -k NAME). FOAMLAB_TEST_WORKERS overrides the
-# worker count of phase 1 (default: one per core).
+# worker count of phase 1 (default: one per core); worksteal: an idle worker takes queued tests
+# from a busy one, so two long tests do not end up queued behind each other on one worker.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-.venv/bin/python}
 WORKERS=${FOAMLAB_TEST_WORKERS:-auto}
 
 start=$(date +%s)
-"$PY" -m pytest -q -n "$WORKERS" -m "not schedule" "$@"
+"$PY" -m pytest -q -n "$WORKERS" --dist worksteal -m "not schedule" "$@"
 first=$?
 middle=$(date +%s)
 "$PY" -m pytest -q -p no:xdist -m "schedule" "$@"
