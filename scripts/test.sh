@@ -11,6 +11,10 @@
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-.venv/bin/python}
+# one BLAS thread per process: phase 1 already runs one worker per core, and a BLAS pool per
+# worker oversubscribes the cores (fresh clone, 2 cores: ci10 default threads 16:04, ci9 with
+# OMP_NUM_THREADS=1 15:38 while running 123 s more of tests). A caller's setting wins.
+export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} OPENBLAS_NUM_THREADS=${OPENBLAS_NUM_THREADS:-1} MKL_NUM_THREADS=${MKL_NUM_THREADS:-1}
 WORKERS=${FOAMLAB_TEST_WORKERS:-auto}
 
 start=$(date +%s)
