@@ -180,8 +180,6 @@ class FitReport:
     def predicted_force_N(self) -> np.ndarray:
         return self.samples.predicted_force_N
 
-    predicted = predicted_force_N
-
     @property
     def run_time_s(self) -> np.ndarray:
         return self.samples.time_s
