@@ -4,7 +4,7 @@
 #      importers, drivers against recorded peers, the window offscreen, faults and HIL runs that
 #      assert what happened, not how punctually;
 #   2. the tests marked `schedule` (they assert the 16 Hz schedule, or skip a recording that
-#      missed samples), one at a time with nothing else of the suite beside them.
+#      missed samples), one at a time, at normal priority, while phase 1 runs in the idle class.
 # Extra arguments go to both phases (e.g. -x, -k NAME). FOAMLAB_TEST_WORKERS overrides the
 # worker count of phase 1 (default: one per core); worksteal: an idle worker takes queued tests
 # from a busy one, so two long tests do not end up queued behind each other on one worker.
@@ -17,14 +17,23 @@ PY=${PYTHON:-.venv/bin/python}
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} OPENBLAS_NUM_THREADS=${OPENBLAS_NUM_THREADS:-1} MKL_NUM_THREADS=${MKL_NUM_THREADS:-1}
 WORKERS=${FOAMLAB_TEST_WORKERS:-auto}
 
+# Phase 2 waits on the machine's clock most of the time (one run is 15 min of machine time at
+# x15): it runs beside phase 1, which gets only the CPU time phase 2 leaves (SCHED_IDLE: any
+# runnable normal task preempts it at once; `nice -n 19` where the idle class is refused).
+idle() { if chrt --idle 0 true 2>/dev/null; then chrt --idle 0 "$@"; else nice -n 19 "$@"; fi; }
+log=$(mktemp "${TMPDIR:-/tmp}/foamlab-phase2.XXXXXX")
 start=$(date +%s)
-"$PY" -m pytest -q -n "$WORKERS" --dist worksteal -m "not schedule" "$@"
+"$PY" -m pytest -q -p no:xdist -m "schedule" "$@" >"$log" 2>&1 &
+phase2=$!
+trap 'kill "$phase2" 2>/dev/null; rm -f "$log"' EXIT
+idle "$PY" -m pytest -q -n "$WORKERS" --dist worksteal -m "not schedule" "$@"
 first=$?
 middle=$(date +%s)
-"$PY" -m pytest -q -p no:xdist -m "schedule" "$@"
+wait "$phase2"
 second=$?
-end=$(date +%s)
-echo "scripts/test.sh: phase 1 (parallel) $((middle - start)) s, exit $first; phase 2 (schedule) $((end - middle)) s, exit $second"
+echo "---- phase 2 (schedule tests, run beside phase 1) ----"
+cat "$log"
+echo "scripts/test.sh: phase 1 (parallel, idle class) $((middle - start)) s, exit $first; phase 2 (schedule, beside it; its time above) exit $second; all $(( $(date +%s) - start )) s"
 # exit 5 = no test collected (a -k that selects only one phase's tests) is not a failure
 [ "$first" -eq 5 ] && first=0
 [ "$second" -eq 5 ] && second=0
