@@ -23,6 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from foamlab import FoamlabError
+from foamlab.acquisition.settings import DEFAULT as ACQUISITION
+from foamlab.acquisition.settings import AcquisitionSettings
 from foamlab.diagnosis import Diagnosis, diagnose
 from foamlab.diagnosis.store import store_diagnosis
 from foamlab.identification import FitReport, fit_run
@@ -72,6 +74,34 @@ class Analysis:
     def files(self) -> list[Path]:
         """The run file and the sidecars written beside it."""
         return [p for p in (self.path, self.fit_path, self.diagnosis_path) if p is not None]
+
+
+@dataclass(frozen=True)
+class AfterRun:
+    """What the analysis after a run does, decided once for `foamlab run` and the window:
+    an aborted or empty run is not fitted (its protocol is incomplete); a run missing more of
+    its deadlines than settings.gaps_no_diagnosis_fraction is diagnosed only on request."""
+
+    fit: bool
+    diagnose: bool
+    missed_share: float
+    gaps: str = ""          # the data-quality flag, '' when the run kept its schedule
+    fit_note: str = ""      # why the fit is left out
+    diagnosis_note: str = ""
+
+    @classmethod
+    def of(cls, result, settings: AcquisitionSettings = ACQUISITION) -> AfterRun:
+        """From a foamlab.acquisition.RunResult."""
+        total = result.n_samples + result.missed
+        share = result.missed / total if total else 0.0
+        gaps = (f"{share:.1%} of the samples missed ({result.missed} of {total})"
+                if share > settings.gaps_warn_fraction else "")
+        fit = result.status == "finished" and result.run is not None and len(result.run) > 0
+        diagnose = fit and share <= settings.gaps_no_diagnosis_fraction
+        return cls(fit, diagnose, share, gaps,
+                   "" if fit else "not fitted (the run did not finish)",
+                   "" if diagnose or not fit else
+                   f"not run: {share:.1%} of the samples are missing (diagnose the run on request)")
 
 
 def _attempt(what: str, make: Callable[[], object]) -> tuple[object, str]:

@@ -315,6 +315,7 @@ def _report(result, method, out_dir: Path, fit: bool = True, diagnose: bool = Tr
     """Say how the run went, then analyse it (foamlab.pipeline: the window's stages too)."""
     from foamlab import pipeline
 
+    plan = pipeline.AfterRun.of(result)         # what the window does after a run too
     analysis = pipeline.Analysis(result.run, result.path) if result.run is not None else None
     if analysis is not None:
         analysis.forecast = forecast
@@ -326,7 +327,7 @@ def _report(result, method, out_dir: Path, fit: bool = True, diagnose: bool = Tr
         if analysis is not None:
             _warn_catalog(pipeline.catalog_stage(analysis, out_dir))
         return 130 if "Ctrl-C" in result.reason else 1
-    _print_acquisition(result, method)
+    _print_acquisition(result, method, plan)
     pipeline.method_stage(analysis, method)
     if analysis.method_results is not None and len(analysis.method_results):
         print("results:")
@@ -334,7 +335,7 @@ def _report(result, method, out_dir: Path, fit: bool = True, diagnose: bool = Tr
             print(f"  {value.format()}")
     elif analysis.method_error:
         print(f"results: not available: {analysis.method_error}")
-    if fit:
+    if fit and plan.fit:
         try:
             pipeline.fit_stage(analysis)
         except KeyboardInterrupt:   # the run is saved; the fit can be made later (foamlab fit)
@@ -349,7 +350,9 @@ def _report(result, method, out_dir: Path, fit: bool = True, diagnose: bool = Tr
     pipeline.files_stage(analysis)      # the fit file now: a skipped diagnosis does not hold it up
     if analysis.fit_path:
         print(f"  fit file: {analysis.fit_path}")
-    if fit and diagnose and analysis.fit is not None:
+    if fit and diagnose and not plan.diagnose:
+        analysis.diagnosis_error = plan.diagnosis_note.replace("on request", f"with `foamlab diagnose {result.path}`")
+    elif fit and diagnose and analysis.fit is not None:
         print("diagnosing the run (Ctrl-C skips it)...", flush=True)
         try:
             pipeline.diagnose_stage(analysis)
@@ -379,15 +382,14 @@ def _print_forecast(scores) -> None:
         print(f"forecast: {scores.note}")
 
 
-def _print_acquisition(result, method) -> None:
+def _print_acquisition(result, method, plan) -> None:
     timing = result.timing
     waiting = f", {timing.missed_waiting_device} of them waiting for replies" if result.missed else ""
     print(f"foamlab run: finished: {result.n_samples} samples, {result.missed} missed{waiting} "
           f"({method.sampling_hz:g} Hz; deadline lateness p99 {timing.lateness_p99_ms:.2f} ms, "
           f"request p99 {timing.rtt_p99_ms:.2f} ms)")
-    deadlines = result.n_samples + result.missed
-    if deadlines and result.missed > 0.01 * deadlines:
-        print(f"  note: {100 * result.missed / deadlines:.0f} % of the deadlines were missed: the machine "
+    if plan.gaps:
+        print(f"  note: {plan.missed_share:.1%} of the deadlines were missed: the machine "
               f"answered in {timing.rtt_p99_ms:.1f} ms (p99) for a {timing.period_s * 1e3:.2f} ms period; "
               f"a lower --speedup keeps every sample")
     print(f"  run file: {result.path}")

@@ -27,7 +27,6 @@ from foamlab.runformat import is_run_file_path
 
 log = logging.getLogger(__name__)
 
-NOT_DIAGNOSED_GAPS = "not run: too many samples are missing (Analysis > Diagnose the shown run)"
 
 
 def clock(seconds: float) -> str:
@@ -165,13 +164,13 @@ class RunDisplay(QtWidgets.QWidget):
         text, style = end_message(result.status, result.reason, result.n_samples, result.missed, where)
         self.run_status.setText(text)
         self.run_status.setStyleSheet(style)
-        gaps = missed_flag(result.n_samples, result.missed)
+        plan = pipeline.AfterRun.of(result)
         report = Report()
         report.run = run_rows(result)
-        if gaps is not None:
-            report.flags.append(gaps)
-            report.diagnosis_note = NOT_DIAGNOSED_GAPS
-        report.fit_note = "fitting…" if ok else "not fitted (the run did not finish)"
+        if plan.gaps:
+            report.flags.append(missed_flag(result.n_samples, result.missed))
+        report.diagnosis_note = plan.diagnosis_note
+        report.fit_note = "fitting…" if plan.fit else plan.fit_note
         for departure in self.live.departures:
             report.add_departure(departure)
         self.shown_run, self.shown_analysis = result.run, None
@@ -180,8 +179,7 @@ class RunDisplay(QtWidgets.QWidget):
         if result.run is not None:
             analysis = pipeline.Analysis(result.run, result.path)
             self._ended = (self.generation, analysis, report)
-            self._analyse(analysis, report, self.generation, headline, fit=ok and len(result.run) > 0,
-                          diagnose=gaps is None)
+            self._analyse(analysis, report, self.generation, headline, fit=plan.fit, diagnose=plan.diagnose)
         return text.split(" Data:")[0], style
 
     def _show_forecast(self, scores, generation: int) -> None:

@@ -5,14 +5,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from foamlab.acquisition.settings import DEFAULT as ACQUISITION
 from foamlab.gui.forms import ERROR_STYLE
 
 WARNING_STYLE = "color: #9A5B00; font-weight: bold;"
 OK_STYLE = ""
 
-#: Above this share of missed sample deadlines a run's curves have gaps that matter: the
-#: acquisition target of the engine (docs/acquisition.md: <= 0.5 % missed in CI).
-MISSED_WARN_FRACTION = 0.005
 
 
 @dataclass(frozen=True)
@@ -30,7 +28,7 @@ def missed_fraction(n_samples: int, missed: int) -> float:
 
 def missed_flag(n_samples: int, missed: int) -> Flag | None:
     share = missed_fraction(n_samples, missed)
-    if share <= MISSED_WARN_FRACTION:
+    if share <= ACQUISITION.gaps_warn_fraction:     # pipeline.AfterRun's threshold
         return None
     return Flag(f"{share:.1%} of the samples missed ({missed} of {n_samples + missed})",
                 "the machine did not answer in time: the curves have gaps, and the fit and the method's "
