@@ -1,0 +1,44 @@
+"""A process started in the idle scheduling class (scripts/test.sh's phase 1) takes no real-time
+priority: the engine's thread and the simulator's answering thread would otherwise escape the
+class and take the CPU from the schedule tests beside it."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="Linux scheduling classes only")
+
+CHILD = """
+import os
+os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+from foamlab.acquisition.schedule import raise_thread_priority
+said = raise_thread_priority()
+print(said, '|', os.sched_getscheduler(0) == os.SCHED_IDLE)
+"""
+
+
+def test_the_engine_thread_stays_in_the_idle_class():
+    out = subprocess.run([sys.executable, "-c", CHILD], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    said, still_idle = out.stdout.strip().split(" | ")
+    assert said.startswith("idle class") and still_idle == "True"
+
+
+def test_a_simulator_started_in_the_idle_class_stays_there():
+    child = """
+import os
+os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+from simulator.process import start_simulator_process
+with start_simulator_process("modbus-tcp") as sim:
+    pid = sim.process.pid
+    threads = os.listdir(f"/proc/{pid}/task")
+    print(len(threads), all(os.sched_getscheduler(int(t)) == os.SCHED_IDLE for t in threads))
+"""
+    out = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=90)
+    assert out.returncode == 0, out.stderr
+    n_threads, all_idle = out.stdout.split()
+    assert int(n_threads) >= 2 and all_idle == "True"     # the answering thread among them
