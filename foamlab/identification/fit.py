@@ -184,14 +184,21 @@ def _placement(report: FitReport) -> str:
 
 def _misplaced_turns(result: FitReport, fd: PreparedRun) -> tuple[int, ...]:
     """The turning points (indices of fd.extremes) without a stop whose samples within one step
-    misfit by more than TURN_MISFIT_MULTIPLE times the noise."""
+    misfit by more than TURN_MISFIT_MULTIPLE times the noise and the other turns' typical misfit.
+
+    A turn the samples place wrongly is a single turn (where it fell between two samples); an
+    effect at the turns - a channel lag, friction - misfits every turn alike, and placing some of
+    them the other way would hide part of it from the diagnosis (independent A seed 301, 100 ms
+    lag: three of six turns placed the other way for 1.2564 N against 1.2566 N, and the lag's
+    Delta BIC fell from 125 to 16, cycle_softening named instead)."""
     r = fd.f - result.predicted_force_N
-    out = []
+    misfit = []
     for when, k in zip(fd.nodes.turns_between, fd.nodes.turn_extremes):
         near = np.abs(fd.t - when) <= fd.native_step_s
-        if near.any() and np.sqrt(np.mean(r[near] ** 2)) > TURN_MISFIT_MULTIPLE * fd.noise_N:
-            out.append(int(k))
-    return tuple(out)
+        misfit.append((int(k), float(np.sqrt(np.mean(r[near] ** 2))) if near.any() else 0.0))
+    typical = float(np.median([m for _, m in misfit])) if misfit else 0.0
+    bar = TURN_MISFIT_MULTIPLE * max(fd.noise_N, typical)
+    return tuple(k for k, m in misfit if m > bar)
 
 
 #: The samples next to turns without a stop misfit by more than this many times the noise
