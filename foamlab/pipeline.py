@@ -78,8 +78,8 @@ class Analysis:
 
 @dataclass(frozen=True)
 class AfterRun:
-    """What the analysis after a run does, decided once for `foamlab run` and the window:
-    an aborted or empty run is not fitted (its protocol is incomplete); a run missing more of
+    """What the analysis after a run does, decided once for `foamlab run` and the window (which
+    analyse result.run when it is there): an aborted or empty run is not fitted (its protocol is incomplete); a run missing more of
     its deadlines than settings.gaps_no_diagnosis_fraction is diagnosed only on request."""
 
     fit: bool
@@ -96,7 +96,7 @@ class AfterRun:
         share = result.missed / total if total else 0.0
         gaps = (f"{share:.1%} of the samples missed ({result.missed} of {total})"
                 if share > settings.gaps_warn_fraction else "")
-        fit = result.status == "finished" and result.run is not None and len(result.run) > 0
+        fit = result.status == "finished" and result.n_samples > 0
         diagnose = fit and share <= settings.gaps_no_diagnosis_fraction
         return cls(fit, diagnose, share, gaps,
                    "" if fit else "not fitted (the run did not finish)",

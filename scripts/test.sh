@@ -19,7 +19,9 @@ WORKERS=${FOAMLAB_TEST_WORKERS:-auto}
 
 # Phase 2 waits on the machine's clock most of the time (one run is 15 min of machine time at
 # x15): it runs beside phase 1, which gets only the CPU time phase 2 leaves (SCHED_IDLE: any
-# runnable normal task preempts it at once; `nice -n 19` where the idle class is refused).
+# runnable normal task preempts it at once; `nice -n 19` where the idle class is refused). Its
+# engines take no real-time priority there (acquisition.schedule.in_background); a simulated
+# device still answers at its own (a device has its own processor).
 idle() { if chrt --idle 0 true 2>/dev/null; then chrt --idle 0 "$@"; else nice -n 19 "$@"; fi; }
 log=$(mktemp "${TMPDIR:-/tmp}/foamlab-phase2.XXXXXX")
 start=$(date +%s)

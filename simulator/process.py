@@ -45,16 +45,13 @@ def _child(conn, transport: str, kwargs: dict, realtime: bool) -> None:
     # The parent's pid now, before "ready": read after it, a parent killed in between (a loaded
     # computer preempting the child right after its send) left the orphan watching its new parent.
     parent_pid = os.getppid()
-    # started in the idle class (the tests that keep no schedule, scripts/test.sh): it stays there
-    # - a raised priority would take the CPU from the work the class leaves it to
-    background = getattr(os, "SCHED_IDLE", None) is not None and os.sched_getscheduler(0) == os.SCHED_IDLE
-    if realtime and not background:
+    if realtime:
         # threads started below inherit the policy
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
         except (AttributeError, OSError):
             pass
-    elif not background:
+    else:
         # a larger share of the CPU than the other (normal) processes, without real-time
         # starvation of the kernel's threads
         try:
@@ -71,7 +68,7 @@ def _child(conn, transport: str, kwargs: dict, realtime: bool) -> None:
     except BaseException as exc:   # report any start failure to the parent, then exit
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
-    if not realtime and not background:
+    if not realtime:
         # A real device answers within its firmware's fixed time: the short-lived answering
         # thread may preempt other jobs without starving anything (an ordinary one waited
         # for a CPU: docs/simulator_wire.md#the-simulator-in-its-own-process-simulatorprocesspy);

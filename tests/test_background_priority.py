@@ -28,17 +28,27 @@ def test_the_engine_thread_stays_in_the_idle_class():
     assert said.startswith("idle class") and still_idle == "True"
 
 
-def test_a_simulator_started_in_the_idle_class_stays_there():
+def test_a_simulator_started_in_the_idle_class_still_answers_in_device_time():
+    """The simulator stands in for a device, which answers from its own processor whatever the
+    host is doing: its answering thread takes its real-time priority even in the idle class
+    (with it idle too, a phase-1 window test waited over 2 x 40 ms for a reply: ci13)."""
     child = """
 import os
 os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 from simulator.process import start_simulator_process
 with start_simulator_process("modbus-tcp") as sim:
     pid = sim.process.pid
-    threads = os.listdir(f"/proc/{pid}/task")
-    print(len(threads), all(os.sched_getscheduler(int(t)) == os.SCHED_IDLE for t in threads))
+    policies = [os.sched_getscheduler(int(t)) for t in os.listdir(f"/proc/{pid}/task")]
+    print(policies.count(os.SCHED_FIFO), len(policies))
 """
+    own = os.sched_getscheduler(0)
+    try:        # SCHED_FIFO needs a privilege; without it the simulator answers at normal priority
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except PermissionError:
+        pytest.skip("no permission for real-time priority here")
+    finally:
+        os.sched_setscheduler(0, own, os.sched_param(0))
     out = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=90)
     assert out.returncode == 0, out.stderr
-    n_threads, all_idle = out.stdout.split()
-    assert int(n_threads) >= 2 and all_idle == "True"     # the answering thread among them
+    fifo, threads = (int(v) for v in out.stdout.split())
+    assert fifo == 1 and threads >= 2
