@@ -79,15 +79,15 @@ class Analysis:
 @dataclass(frozen=True)
 class AfterRun:
     """What the analysis after a run does, decided once for `foamlab run` and the window (which
-    analyse result.run when it is there): an aborted or empty run is not fitted (its protocol is incomplete); a run missing more of
-    its deadlines than settings.gaps_no_diagnosis_fraction is diagnosed only on request."""
+    analyse result.run when it is there): an aborted or empty run is not fitted (its protocol is
+    incomplete); a finished one is fitted and diagnosed, and flagged when it missed more of its
+    deadlines than settings.gaps_warn_fraction (its samples are the record: none is filled in,
+    the model is evaluated where they were taken)."""
 
     fit: bool
-    diagnose: bool
     missed_share: float
     gaps: str = ""          # the data-quality flag, '' when the run kept its schedule
     fit_note: str = ""      # why the fit is left out
-    diagnosis_note: str = ""
 
     @classmethod
     def of(cls, result, settings: AcquisitionSettings = ACQUISITION) -> AfterRun:
@@ -97,11 +97,7 @@ class AfterRun:
         gaps = (f"{share:.1%} of the samples missed ({result.missed} of {total})"
                 if share > settings.gaps_warn_fraction else "")
         fit = result.status == "finished" and result.n_samples > 0
-        diagnose = fit and share <= settings.gaps_no_diagnosis_fraction
-        return cls(fit, diagnose, share, gaps,
-                   "" if fit else "not fitted (the run did not finish)",
-                   "" if diagnose or not fit else
-                   f"not run: {share:.1%} of the samples are missing (diagnose the run on request)")
+        return cls(fit, share, gaps, "" if fit else "not fitted (the run did not finish)")
 
 
 def _attempt(what: str, make: Callable[[], object]) -> tuple[object, str]:

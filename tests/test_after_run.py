@@ -20,28 +20,22 @@ def _result(n: int, missed: int, status: str = "finished", path=None) -> RunResu
     return RunResult(path, status, "" if status == "finished" else "stopped", n, missed, timing=timing, run=run)
 
 
-def test_a_run_on_schedule_is_fitted_and_diagnosed_without_a_flag():
+def test_a_run_on_schedule_is_fitted_without_a_flag():
     plan = AfterRun.of(_result(1000, 2))
-    assert plan.fit and plan.diagnose and plan.gaps == "" and plan.diagnosis_note == ""
+    assert plan.fit and plan.gaps == ""
 
 
-def test_gaps_are_flagged_above_the_warning_share_and_diagnosed_on_request_above_the_other():
-    warn, limit = DEFAULT.gaps_warn_fraction, DEFAULT.gaps_no_diagnosis_fraction
-    flagged = AfterRun.of(_result(1000, int(1000 * 2 * warn)))
-    assert flagged.gaps.startswith("1.0% of the samples missed") and flagged.diagnose
-    withheld = AfterRun.of(_result(1000, int(1000 * 2 * limit)))
-    assert withheld.fit and not withheld.diagnose
-    assert withheld.diagnosis_note.startswith("not run: 9.1% of the samples are missing")
+def test_gaps_are_flagged_above_the_warning_share_and_the_run_still_analysed():
+    plan = AfterRun.of(_result(1000, int(1000 * 2 * DEFAULT.gaps_warn_fraction)))
+    assert plan.gaps.startswith("1.0% of the samples missed") and plan.fit
 
 
 def test_an_aborted_run_is_not_fitted():
     plan = AfterRun.of(_result(100, 0, status="aborted"))
-    assert not plan.fit and not plan.diagnose and "did not finish" in plan.fit_note
+    assert not plan.fit and "did not finish" in plan.fit_note
 
 
-def test_the_command_line_withholds_the_diagnosis_as_the_window_does(tmp_path, capsys):
+def test_the_command_line_flags_the_gaps_as_the_window_does(tmp_path, capsys):
     result = _result(200, 40, path=tmp_path / "run.csv")
-    _report(result, load_method("paper-3cycle"), tmp_path, fit=True, diagnose=True)
-    out = capsys.readouterr().out
-    assert "16.7% of the deadlines were missed" in out
-    assert f"diagnosis: not run: 16.7% of the samples are missing (diagnose the run with `foamlab diagnose {result.path}`)" in out
+    _report(result, load_method("paper-3cycle"), tmp_path, fit=False, diagnose=False)
+    assert "16.7% of the deadlines were missed" in capsys.readouterr().out

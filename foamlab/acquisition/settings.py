@@ -41,7 +41,6 @@ class AcquisitionSettings(_Listed):
     unloaded_fraction: float = _setting(0.01, "unloaded: within this share of the load cell's capacity")
     # -- after the run (foamlab.pipeline.after_run: both front ends)
     gaps_warn_fraction: float = _setting(0.005, "a run missing more than this share of its deadlines is flagged")
-    gaps_no_diagnosis_fraction: float = _setting(0.05, "...and above this share it is diagnosed only on request")
 
 
 #: The values every run uses unless given others.

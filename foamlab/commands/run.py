@@ -350,9 +350,7 @@ def _report(result, method, out_dir: Path, fit: bool = True, diagnose: bool = Tr
     pipeline.files_stage(analysis)      # the fit file now: a skipped diagnosis does not hold it up
     if analysis.fit_path:
         print(f"  fit file: {analysis.fit_path}")
-    if fit and diagnose and not plan.diagnose:
-        analysis.diagnosis_error = plan.diagnosis_note.replace("on request", f"with `foamlab diagnose {result.path}`")
-    elif fit and diagnose and analysis.fit is not None:
+    if fit and diagnose and analysis.fit is not None:
         print("diagnosing the run (Ctrl-C skips it)...", flush=True)
         try:
             pipeline.diagnose_stage(analysis)

@@ -169,7 +169,6 @@ class RunDisplay(QtWidgets.QWidget):
         report.run = run_rows(result)
         if plan.gaps:
             report.flags.append(missed_flag(result.n_samples, result.missed))
-        report.diagnosis_note = plan.diagnosis_note
         report.fit_note = "fitting…" if plan.fit else plan.fit_note
         for departure in self.live.departures:
             report.add_departure(departure)
@@ -179,7 +178,7 @@ class RunDisplay(QtWidgets.QWidget):
         if result.run is not None:
             analysis = pipeline.Analysis(result.run, result.path)
             self._ended = (self.generation, analysis, report)
-            self._analyse(analysis, report, self.generation, headline, fit=plan.fit, diagnose=plan.diagnose)
+            self._analyse(analysis, report, self.generation, headline, fit=plan.fit)
         return text.split(" Data:")[0], style
 
     def _show_forecast(self, scores, generation: int) -> None:
@@ -232,10 +231,9 @@ class RunDisplay(QtWidgets.QWidget):
 
     # -- analysis (foamlab.pipeline) -------------------------------------------------------
     def _analyse(self, analysis: pipeline.Analysis, report: Report, generation: int, headline: list[str],
-                 fit: bool = True, diagnose: bool = True, stored: dict | None = None) -> None:
+                 fit: bool = True, stored: dict | None = None) -> None:
         """Method results and the fit on the analysis thread (files beside the run, catalog), then
-        the diagnosis of that same fit: stored, automatic or on request. `diagnose` False: the
-        run has gaps, it is diagnosed only on request."""
+        the diagnosis of that same fit: stored, automatic or on request."""
         folder = self.out_dir
 
         def work() -> pipeline.Analysis:
@@ -259,7 +257,7 @@ class RunDisplay(QtWidgets.QWidget):
                 report.fit_note = a.fit_error
             self.results.show_report(report)
             self.catalog_changed.emit()
-            if a.fit is not None and diagnose:
+            if a.fit is not None:
                 self._maybe_diagnose(a, report, generation, stored)
 
         def failed(message: str) -> None:
