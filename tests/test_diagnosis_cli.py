@@ -28,8 +28,13 @@ def softened(tmp_path_factory):
 def test_json_is_the_design_object_and_the_report_has_its_figures(softened, tmp_path, capsys):
     assert cli.main(["diagnose", str(softened), "--json", "--report", str(tmp_path / "rep")]) == 0
     obj = json.loads(capsys.readouterr().out)
-    assert set(obj) == {"verdict", "findings", "base", "skipped"}  # base: the residual form and why
+    assert set(obj) == {"verdict", "findings", "base", "skipped", "detection_limits"}  # base: the form and why
     assert all(isinstance(why, str) and why for why in obj["skipped"].values())   # cause -> why not tested
+    # what the run could have seen: every cause it tests, in physical units and in words
+    limits = {item["cause"]: item for item in obj["detection_limits"]}
+    assert set(limits) == {"cycle_softening", "damping_cycle_change", "channel_lag", "force_zero_drift",
+                           "machine_compliance", "direction_friction", "memory_lag"}
+    assert all(item["limit"] > 0 and item["text"].startswith("no ") for item in limits.values())
     assert obj["base"]["form"] in ("causal", "paper") and "held-out" in obj["base"]["why"]
     assert obj["verdict"] == "cycle_softening"
     first = obj["findings"][0]

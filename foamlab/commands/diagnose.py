@@ -160,6 +160,9 @@ def summary(d) -> str:
         if where:
             lines.append("structure left:" if d.findings else "structure no cause explains:")
             lines += [f"  {w}" for w in where]
+    if d.limits:
+        lines.append("what this run could have seen (the smallest size named in 90 % of runs like it):")
+        lines += [f"  {limit.text}" for limit in d.limits]
     if d.skipped:
         lines += [f"not tested: {name} ({why})" for name, why in d.skipped.items()]
     return "\n".join(lines)

@@ -99,6 +99,12 @@ class Cause:
         return float(np.clip(0.3 * cls.scale(series), lo[0], hi[0]))
 
     @classmethod
+    def limit_text(cls, limit: float) -> str:
+        """The smallest size this run would name, in words and physical units."""
+        p = cls.effect.fitted_parameters()[0]
+        return f"no {cls.name} above {limit:.2g} {p.unit}"
+
+    @classmethod
     def describe(cls, values: dict[str, float], stderr: dict[str, float]) -> str:
         p = cls.effect.parameters[0]
         v, se = values[p.name], stderr.get(p.name, float("nan"))
@@ -142,6 +148,10 @@ class CycleSoftening(Cause):
         return 0.1
 
     @classmethod
+    def limit_text(cls, limit):
+        return f"no softening above {100 * limit:.2g} %/cycle"
+
+    @classmethod
     def describe(cls, values, stderr):
         return (f"the elastic force drops {100 * values['s']:.3g} % ± {100 * stderr.get('s', np.nan):.2g} % "
                 "per cycle")
@@ -163,6 +173,10 @@ class DampingCycleChange(Cause):
     @classmethod
     def scale(cls, series):
         return 1.0
+
+    @classmethod
+    def limit_text(cls, limit):
+        return f"no damping change beyond ±{100 * limit:.2g} %/cycle"
 
     @classmethod
     def describe(cls, values, stderr):
@@ -198,6 +212,10 @@ class ChannelLag(Cause):
         return np.array(sorted({float(np.clip(v, lo[0], hi[0])) for v in vals}))[:, None]
 
     @classmethod
+    def limit_text(cls, limit):
+        return f"no force channel lag above {1000 * limit:.2g} ms"
+
+    @classmethod
     def describe(cls, values, stderr):
         tau = values["tau_s"]
         side = "late" if tau > 0 else "early"
@@ -212,6 +230,10 @@ class ForceZeroDrift(Cause):
     def scale(cls, series):
         duration = max(float(s.t[-1] - s.t[0]) for s in series)
         return 0.05 * force_scale(series) / max(duration, 1e-9)
+
+    @classmethod
+    def limit_text(cls, limit):
+        return f"no force zero drift beyond ±{60 * limit:.2g} N/min"
 
     @classmethod
     def describe(cls, values, stderr):
@@ -229,6 +251,10 @@ class MachineCompliance(Cause):
     def scale(cls, series):
         stroke = max(float(np.ptp(s.x)) for s in series)
         return 0.02 * stroke / force_scale(series)
+
+    @classmethod
+    def limit_text(cls, limit):
+        return f"no frame softer than {1 / limit:.3g} N/mm (compliance above {1000 * limit:.2g} um/N)"
 
     @classmethod
     def describe(cls, values, stderr):
@@ -260,6 +286,10 @@ class DirectionFriction(Cause):
         return {"v_smooth_mm_s": 0.01 * min(s.speed_mm_min for s in series) / 60.0}
 
     @classmethod
+    def limit_text(cls, limit):
+        return f"no friction against the motion above {limit:.2g} N"
+
+    @classmethod
     def describe(cls, values, stderr):
         return f"a friction force of {values['f_N']:.3g} ± {stderr.get('f_N', np.nan):.2g} N opposes the motion"
 
@@ -276,6 +306,10 @@ class RateDependence(Cause):
     @classmethod
     def scale(cls, series):
         return 0.5
+
+    @classmethod
+    def limit_text(cls, limit):
+        return f"no rate dependence of the damping beyond exponent ±{limit:.2g}"
 
     @classmethod
     def describe(cls, values, stderr):
@@ -297,6 +331,10 @@ class MemoryLag(Cause):
         lo, hi = cls.bounds()
         vals = [0.0] + [m * h for m in (0.3, 1.0, 3.0, 10.0, 30.0)]
         return np.array(sorted({float(np.clip(v, lo[0], hi[0])) for v in vals}))[:, None]
+
+    @classmethod
+    def limit_text(cls, limit):
+        return f"no memory lag above {1000 * limit:.2g} ms"
 
     @classmethod
     def describe(cls, values, stderr):

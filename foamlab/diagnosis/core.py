@@ -63,6 +63,7 @@ from foamlab.diagnosis.extend import (
     screen,
     without,
 )
+from foamlab.diagnosis.limits import detection_limits
 from foamlab.diagnosis.residuals import analyse
 from foamlab.diagnosis.result import Candidate, Diagnosis
 from foamlab.diagnosis.settings import DEFAULT, DiagnosisSettings
@@ -99,6 +100,7 @@ class Procedure:
                 self.skipped[name] = why
             else:
                 self.remaining.append(CAUSES[name])
+        self.applicable = list(self.remaining)    # every cause these runs can test
         self.findings: list[Candidate] = []
         self.partial: list[Candidate] = []
         self.first_partial: list[Candidate] = []
@@ -370,8 +372,10 @@ class Procedure:
             verdict = "unexplained" if base_analysis.whiteness.min_p < WHITE_P else "none"
             if verdict == "unexplained":
                 heldout_rmse(base, self._coarse(base))
+        self._progress("what this run could have seen", 0.98)
+        limits = detection_limits(self.coarse, self._coarse(base), self.applicable, self.settings, n_full=base.n)
         return Diagnosis(
-            verdict=verdict, findings=findings, partial=partial, tested=self.tested, skipped=self.skipped,
+            verdict=verdict, limits=limits, findings=findings, partial=partial, tested=self.tested, skipped=self.skipped,
             base=base, final=final, base_analysis=base_analysis, final_analysis=final_analysis,
             final_whiteness=final_analysis.whiteness, explained_share=float(share), noise_sigma=self.sigma,
             series=self.series, params=base.params, seconds=time.perf_counter() - self.started,

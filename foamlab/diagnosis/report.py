@@ -238,6 +238,10 @@ def _html(d: Diagnosis, figs: dict[str, str], title: str) -> str:
     out.append("<h2>Where the base model misses</h2><ul>")
     out += [f"<li>{e(w)}</li>" for w in d.base_analysis.where()] or ["<li>nowhere above 4 standard errors</li>"]
     out.append("</ul>")
+    if d.limits:
+        out.append("<h2>What this run could have seen</h2><p>The smallest size of each cause the diagnosis "
+                   "names in 90 % of runs like this one (from the information the run holds at the base fit):</p><ul>")
+        out += [f"<li>{e(limit.text)}</li>" for limit in d.limits] + ["</ul>"]
     out.append("<h2>Every candidate tested</h2><table><tr><th>round</th><th>cause</th><th>ΔBIC</th>"
                "<th>fitted</th><th>named</th><th>why not</th></tr>")
     for i, rnd in enumerate(d.tested):

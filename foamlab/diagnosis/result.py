@@ -18,6 +18,7 @@ from foamlab.model import ModelParameters
 
 if TYPE_CHECKING:
     from foamlab.diagnosis.form import FormFinding
+    from foamlab.diagnosis.limits import DetectionLimit
 
 
 @dataclass
@@ -99,6 +100,7 @@ class Diagnosis:
     base_form_reason: str = ""                  # which residual form the base uses, and why
     form_finding: "FormFinding | None" = None   # the other form is what the base got wrong
     settings: DiagnosisSettings = DEFAULT       # the thresholds it was decided by
+    limits: list["DetectionLimit"] = field(default_factory=list)   # what this run could have seen
 
     def to_dict(self) -> dict:
         """The JSON object of `foamlab diagnose --json` (see docs/DESIGN: verdict, findings)."""
@@ -128,7 +130,8 @@ class Diagnosis:
             })
         return {"verdict": self.verdict, "findings": _jsonable(findings),
                 "base": {"form": self.params.residual_form, "why": self.base_form_reason},
-                "skipped": dict(self.skipped)}
+                "skipped": dict(self.skipped),
+                "detection_limits": _jsonable([limit.to_dict() for limit in self.limits])}
 
 
 def _jsonable(obj):

@@ -128,6 +128,7 @@ class Report:
     fit_note: str = ""
     verdict: str = ""                                          # the catalogue name (or none/unexplained)
     findings: list[FindingRow] = field(default_factory=list)
+    limits: list[str] = field(default_factory=list)           # what the run could have seen, in words
     diagnosis_note: str = ""
     flags: list[Flag] = field(default_factory=list)
     forecast: list[ForecastRow] = field(default_factory=list)
@@ -153,6 +154,7 @@ class Report:
         """A foamlab.diagnosis Diagnosis, or the JSON dict stored beside a run file."""
         data = diagnosis if isinstance(diagnosis, dict) else diagnosis.to_dict()
         self.verdict = str(data.get("verdict", ""))
+        self.limits = [str(item["text"]) for item in data.get("detection_limits") or [] if item.get("text")]
         self.findings = []
         for f in data.get("findings") or []:
             gain = f.get("gain") or {}
@@ -187,6 +189,8 @@ class Report:
         if self.verdict:
             if self.verdict in PLAIN_VERDICTS:
                 text = PLAIN_VERDICTS[self.verdict]
+                if self.verdict == "none" and self.limits:
+                    text += " (" + "; ".join(self.limits) + ")"
             else:
                 first = next((f for f in self.findings if f.effect == self.verdict), None)
                 text = f"{first.description}: {first.meaning}" if first else self.verdict.replace("_", " ")
@@ -224,6 +228,7 @@ class Report:
             rows.append(["diagnosis", "verdict", self.verdict, "", ""])
         rows += [["finding", f.effect, _num(f.rmse_before), _num(f.rmse_after), _num(f.delta_bic)]
                  for f in self.findings]
+        rows += [["detection_limit", text, "", "", ""] for text in self.limits]
         rows += [["forecast", f"cycle {f.cycle} from cycles 1-{f.from_cycles}", _num(f.rmse), "N",
                   f"{f.ratio:.3g} x noise"] for f in self.forecast]
         return rows

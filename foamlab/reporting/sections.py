@@ -229,6 +229,10 @@ def diagnosis(doc: Document, c: ReportContent, png: Path | None, caption: str) -
     for f in d.get("findings", []):
         if f.get("where"):
             doc.paragraph(text("structure left: " + "; ".join(map(str, f["where"]))), "small")
+    limits = [item["text"] for item in d.get("detection_limits") or [] if item.get("text")]
+    if limits:
+        doc.paragraph(text("What this run could have seen (the smallest size of each cause named in 90 % of "
+                           "runs like it): " + "; ".join(limits) + "."), "small")
     doc.figure(png, caption)
 
 

@@ -1,0 +1,94 @@
+"""What this run could have seen: for each cause, the smallest size its diagnosis would name.
+
+The acceptance rule's evidence is a likelihood ratio: an effect of size eta whose standard
+error at the base fit is se gives LR ~ chi2(1, (eta / se)^2), named when LR - q ln(n) exceeds
+settings.delta_bic_min. The limit is the size named in 90 % of runs like this one:
+se * (sqrt(delta_bic_min + q ln n) + z_0.9). se comes from the information the run holds at
+the base fit: the Jacobian of the base with the effect added at zero, alpha/beta free (a base
+that imitates the effect takes its share of the information), the linear parameters
+projected out (variable projection), on the prewhitened scale the rule uses.
+
+A linearised limit: where the base imitates an effect through a valley of local optima
+(compliance), the search may miss an effect above it; tests/test_detection_limits.py injects
+into the run's own fitted model at 0.5x and 1.5x the limit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import norm
+
+from foamlab.analysis.design import ExtendedModel, Series
+from foamlab.analysis.noise import ArWhitener
+from foamlab.analysis.solve import Fit, bounds_like, contact_of
+from foamlab.diagnosis.causes import Cause
+from foamlab.diagnosis.settings import DiagnosisSettings
+
+#: The limit is the size named in this share of runs like this one.
+DETECTED_SHARE = 0.9
+
+
+@dataclass(frozen=True)
+class DetectionLimit:
+    """The smallest size of one cause this run's diagnosis names in DETECTED_SHARE of runs."""
+
+    cause: str
+    parameter: str
+    unit: str
+    stderr: float      # of the effect parameter at the base fit (its unit)
+    limit: float       # in the parameter's unit; nan where the run holds no information on it
+    text: str          # in words and physical units: "no friction above 0.31 N"
+
+    def to_dict(self) -> dict:
+        finite = lambda v: float(v) if np.isfinite(v) else None
+        return {"cause": self.cause, "parameter": self.parameter, "unit": self.unit,
+                "stderr": finite(self.stderr), "limit": finite(self.limit), "text": self.text}
+
+
+def detection_limits(series: list[Series], base: Fit, causes: list[type[Cause]],
+                     settings: DiagnosisSettings, n_full: int | None = None) -> list[DetectionLimit]:
+    """The limit of each cause (its first fitted parameter) on these runs at the base fit.
+
+    series may be the search's decimated ones (base fitted on them): the information of every
+    sample, n_full of them, is then the decimated samples' times n_full / n (the standard error
+    over its square root) - a Jacobian on every sample costs seconds per cause."""
+    whitener = ArWhitener.fit(base.solution.used_residuals)
+    n = n_full or base.n
+    thin = np.sqrt(base.n / n)
+    out = []
+    for cause in causes:
+        se = _stderr_at_zero(series, base, cause, whitener) * thin
+        q = len(cause.effect.fitted_parameters())
+        multiple = np.sqrt(settings.delta_bic_min + q * np.log(n)) + norm.ppf(DETECTED_SHARE)
+        limit = se * multiple if np.isfinite(se) else float("nan")
+        p = cause.effect.fitted_parameters()[0]
+        text = cause.limit_text(limit) if np.isfinite(limit) else f"{cause.name}: not determined by this run"
+        out.append(DetectionLimit(cause.name, p.name, p.unit, float(se), float(limit), text))
+    return out
+
+
+def _stderr_at_zero(series: list[Series], base: Fit, cause: type[Cause], whitener: ArWhitener) -> float:
+    """Standard error of the cause's first parameter with the effect at zero and the base free."""
+    params = base.params
+    settings = {cause.effect.name: cause.settings(series)}
+    model = ExtendedModel(series, params, [cause.effect], settings,
+                          effect_bounds={cause.effect.name: cause.bounds()}, free_base=True,
+                          base_bounds=bounds_like(base.model, series, params), masks=contact_of(base, series))
+    nu = model.start(np.zeros(model.n_eta))
+    fun, jac = model.residual_fn()
+    r, J = fun(nu), jac(nu)
+    lengths = [int(m.sum()) for m in model.rows()]
+    cuts = np.cumsum(lengths)[:-1]
+    white = lambda v: whitener.apply(np.split(v, cuts))
+    rw = white(r)
+    Jw = np.column_stack([white(J[:, j]) for j in range(J.shape[1])])
+    sigma2 = float(rw @ rw) / max(len(rw) - J.shape[1], 1)
+    try:
+        cov = np.linalg.pinv(Jw.T @ Jw) * sigma2
+    except np.linalg.LinAlgError:
+        return float("nan")
+    first = model.n_phi       # the effect's first parameter follows alpha/beta
+    v = cov[first, first]
+    return float(np.sqrt(v)) if np.isfinite(v) and v > 0 else float("nan")

@@ -1,0 +1,55 @@
+"""What a run could have seen (issue 27 item 2): each cause's detection limit, reported with
+the verdict, means what it says on runs foamlab never generated.
+
+A clean run of tests/independent_model.py (regime A, seed 320, fixed before looking) is
+diagnosed; each cause is then hidden by tests/independent_effects.py in the same run (same
+seed: the same noise) at 0.5x and 1.5x the limit that diagnosis reported. At 1.5x the cause
+must be named, at 0.5x not. Seed 320's figures for every cause, and machine_compliance (at
+1.5x its limit in regime A, a 708 N/mm frame, named damping_cycle_change: the base imitates
+a frame, issue 27), are in docs/analysis.md, "What a run could have seen".
+"""
+
+from __future__ import annotations
+
+import independent_effects as ie
+import pytest
+
+from foamlab.diagnosis import diagnose
+from foamlab.gui.report import Report
+
+SEED = 320
+#: The limit's unit (the effect parameter's) -> the independent generator's (ie.UNITS).
+TO_GENERATOR = {"direction_friction": 1.0, "channel_lag": 1000.0, "cycle_softening": 100.0}
+
+
+@pytest.fixture(scope="module")
+def limits():
+    d = diagnose([ie.independent_run("A", SEED, {})])
+    assert d.verdict == "none"
+    return {limit.cause: limit for limit in d.limits}
+
+
+def test_every_tested_cause_has_a_limit_in_words(limits):
+    assert set(limits) == {"cycle_softening", "damping_cycle_change", "channel_lag", "force_zero_drift",
+                           "machine_compliance", "direction_friction", "memory_lag"}
+    for limit in limits.values():
+        assert limit.limit > 0 and limit.stderr > 0 and limit.text.startswith("no ")
+    assert limits["machine_compliance"].text.startswith("no frame softer than")
+    assert limits["channel_lag"].text.endswith(" ms")
+
+
+@pytest.mark.parametrize("multiple,named", [(0.5, False), (1.5, True)])
+@pytest.mark.parametrize("cause", sorted(TO_GENERATOR))
+def test_a_cause_at_its_limit_times_1_5_is_named_and_at_half_is_not(limits, cause, multiple, named):
+    size = limits[cause].limit * multiple * TO_GENERATOR[cause]
+    d = diagnose([ie.independent_run("A", SEED, {cause: size})])
+    assert (d.verdict == cause) is named, (size, d.verdict, [(c.name, round(c.delta_bic, 1)) for c in d.tested[0]])
+
+
+def test_the_window_says_what_a_clean_run_could_have_seen():
+    report = Report()
+    report.set_diagnosis({"verdict": "none", "findings": [], "detection_limits": [
+        {"cause": "direction_friction", "text": "no friction against the motion above 0.99 N"},
+        {"cause": "channel_lag", "text": "no force channel lag above 27 ms"}]})
+    assert "no friction against the motion above 0.99 N; no force channel lag above 27 ms" in report.verdict_text()
+    assert ["detection_limit", "no force channel lag above 27 ms", "", "", ""] in report.csv_rows()
