@@ -80,3 +80,24 @@ def test_cancelling_pairs_left_free_are_said(monkeypatch):
     assert _free_pairs(result)
     said = [w for w in result.warnings if "at nearly one order cancel" in w]
     assert len(said) == 1 and f"{len(_free_pairs(result))} pair(s)" in said[0], result.warnings
+
+
+def test_the_real_files_structure_does_not_depend_on_the_blas_threads():
+    """Issue 26 item 3: the fit holds BLAS to one thread while it fits, so the structure chosen
+    (which orders are held, which pairs are said to cancel) and every value are the same whatever
+    threads the caller's environment asks for."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    def fit_with(threads: str) -> dict:
+        env = dict(os.environ, OMP_NUM_THREADS=threads, OPENBLAS_NUM_THREADS=threads, MKL_NUM_THREADS=threads)
+        out = subprocess.run([sys.executable, "-m", "foamlab.cli", "fit", str(REAL), "--json"], env=env,
+                             capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
+        return json.loads(out.stdout)
+
+    one, two = fit_with("1"), fit_with("2")
+    assert one["warnings"] == two["warnings"] and one["notes"] == two["notes"]
+    assert one["parameters"] == two["parameters"] and one["rmse"] == two["rmse"]
