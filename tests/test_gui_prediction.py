@@ -107,7 +107,10 @@ def test_softening_from_cycle_3_is_flagged_on_cycle_3s_samples(qtbot, tmp_path):
 
 # --------------------------------------------------------------------------- end to end
 
-HIL_SPEEDUP = 8.0          # the window's GUI thread shares the process: at x15 with a core kept busy its work p99 was 46 % of the period
+#: The window's GUI thread shares the process: at x15 with a core kept busy its work p99 was 46 % of
+#: the period; at x8 beside phase 1 of the suite replies took 5.5-7.9 ms at p99 of a 7.8 ms period
+#: (ci12, ci16: skipped as overloaded). At x4 the period is 15.6 ms.
+HIL_SPEEDUP = 4.0
 SPECIMEN = ("live", "72.5", "100", "100")
 CYCLE_S = 2 * 58.0 / 50.0 * 60.0          # machine seconds per cycle (58 mm down and up at 50 mm/min)
 RUN_TIMEOUT_MS = int((3 * CYCLE_S / HIL_SPEEDUP + 120) * 1000)

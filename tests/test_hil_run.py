@@ -32,7 +32,9 @@ from tests.hil_support import (SPECIMEN, approach, assert_keeps_the_schedule, ma
 pytestmark = [pytest.mark.hil]
 
 #: Speedup per transport for the full protocol (see the module docstring).
-FULL_SPEEDUP = {"modbus-tcp": 4.0, "serial": 8.0, "modbus-rtu-pty": 4.0}
+#: Serial at x4 since session 12: phase 2 runs beside phase 1 (scripts/test.sh), and at x8 (a 7.8 ms
+#: period) a reply p99 of 5.5 ms skipped a run as overloaded (ci16); phase 2 still ends first.
+FULL_SPEEDUP = {"modbus-tcp": 4.0, "serial": 4.0, "modbus-rtu-pty": 4.0}
 #: The per-transport runs test a specimen a quarter of the default height: the same protocol,
 #: the same sample rate and speedups, a quarter of the samples (~3 500; the CI suite has 20
 #: minutes, and the schedule statistics of 3 500 deadlines are as telling as of 7 000).
