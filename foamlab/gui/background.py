@@ -16,6 +16,24 @@ from PySide6 import QtCore
 log = logging.getLogger(__name__)
 
 
+_COLLECTOR = None
+
+
+def collect_garbage_on_the_gui_thread() -> None:
+    """Python's cyclic garbage collected on the GUI thread only, once per process and for its
+    whole life (pyqtgraph's GarbageCollector: automatic collection off, a GUI-thread timer
+    collects by the same thresholds). A collection started in one of these queues' threads
+    destroys Qt objects there: the destructor holds Qt's connection lock and waits for the
+    interpreter lock, which the GUI thread holds while it waits for that Qt lock (ci18: a window
+    deadlocked while building its Series tab; the collector was the window's then, made after
+    its first queues and stopped when the previous window closed)."""
+    global _COLLECTOR
+    if _COLLECTOR is None:
+        from pyqtgraph.util.garbage_collector import GarbageCollector
+
+        _COLLECTOR = GarbageCollector(interval=1.0)
+
+
 def describe_error(exc: BaseException) -> str:
     text = str(exc) or type(exc).__name__
     return text.splitlines()[0]
@@ -41,6 +59,7 @@ class BackgroundQueue(QtCore.QObject):
 
     def __init__(self, name: str, parent: QtCore.QObject | None = None) -> None:
         super().__init__(parent)  # created in the GUI thread, so the slots run there
+        collect_garbage_on_the_gui_thread()      # before this queue's thread exists
         self._executor = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix=name)
         self._done.connect(self._deliver)
         self._failed.connect(self._deliver)

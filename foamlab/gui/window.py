@@ -18,7 +18,6 @@ import gc
 import logging
 from pathlib import Path
 
-from pyqtgraph.util.garbage_collector import GarbageCollector
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from foamlab import FoamlabError
@@ -126,10 +125,8 @@ class MainWindow(FileActions, QtWidgets.QMainWindow):
         main.setStretchFactor(1, 1)
         self.setCentralWidget(main)
 
-        # Garbage is collected in the GUI thread only, on a timer (pyqtgraph's collector): a Qt
-        # object collected in the engine's or an analysis thread is destroyed through the GUI
-        # thread and can deadlock it (seen: a plot menu while a run started).
-        self.collector = GarbageCollector(interval=1.0)
+        # Garbage is collected in the GUI thread only, on a timer, once per process: from the first
+        # background queue on (foamlab.gui.background.collect_garbage_on_the_gui_thread).
         self.frame_timer = QtCore.QTimer(self)
         self.frame_timer.setInterval(int(1000 / FRAME_HZ))
         self.resize(1400, 900)
@@ -411,8 +408,6 @@ class MainWindow(FileActions, QtWidgets.QMainWindow):
         self.browser.queue.shutdown(wait=False)
         self.series_view.queue.shutdown(wait=False)
         self.link.shutdown()
-        self.collector.timer.stop()
-        gc.enable()                       # the process goes on without this window's collector
         event.accept()
 
     def _close_timeout(self) -> None:
