@@ -307,6 +307,7 @@ def test_closing_mid_run_stops_the_machine_and_keeps_the_data(qtbot, tmp_path, m
     assert not sim.running
 
 
+@pytest.mark.timeout(300)
 def test_open_measured_file_shows_curves(qtbot, window):
     w = window
     # Diagnosing the 18 000-sample real file takes ~25 s: left out here (the full-run test diagnoses).
@@ -321,7 +322,8 @@ def test_open_measured_file_shows_curves(qtbot, window):
     rows = dict(w.results.report.run)
     assert rows["cycles"] == "3"
     # The fit comes from the analysis thread: parameters, statistics and the fitted curve.
-    qtbot.waitUntil(lambda: "fitting" not in w.results.summary.text(), timeout=30_000)
+    # an event, bounded only against a hang: the fit took over 30 s with one core kept busy (ci21)
+    qtbot.waitUntil(lambda: "fitting" not in w.results.summary.text(), timeout=240_000)
     assert w.results.parameters.rowCount() > 0 and w.results.statistics.rowCount() > 0
     x_fit, f_fit = w.plots.fit_fd.getData()   # the fit's samples: those taken on schedule
     assert len(x_fit) == len(w.shown_analysis.fit.predicted_force_N) >= 0.99 * len(run)
