@@ -76,6 +76,15 @@ class Analysis:
         return [p for p in (self.path, self.fit_path, self.diagnosis_path) if p is not None]
 
 
+def schedule_gaps(n_samples: int, missed: int, settings: AcquisitionSettings = ACQUISITION) -> tuple[float, str]:
+    """The share of a run's sample deadlines it missed, and the data-quality flag's name ('' when
+    the share is within settings.gaps_warn_fraction): one definition for both front ends."""
+    total = n_samples + missed
+    share = missed / total if total else 0.0
+    flag = f"{share:.1%} of the samples missed ({missed} of {total})" if share > settings.gaps_warn_fraction else ""
+    return share, flag
+
+
 @dataclass(frozen=True)
 class AfterRun:
     """What the analysis after a run does, decided once for `foamlab run` and the window (which
@@ -92,10 +101,7 @@ class AfterRun:
     @classmethod
     def of(cls, result, settings: AcquisitionSettings = ACQUISITION) -> AfterRun:
         """From a foamlab.acquisition.RunResult."""
-        total = result.n_samples + result.missed
-        share = result.missed / total if total else 0.0
-        gaps = (f"{share:.1%} of the samples missed ({result.missed} of {total})"
-                if share > settings.gaps_warn_fraction else "")
+        share, gaps = schedule_gaps(result.n_samples, result.missed, settings)
         fit = result.status == "finished" and result.n_samples > 0
         return cls(fit, share, gaps, "" if fit else "not fitted (the run did not finish)")
 

@@ -30,12 +30,12 @@ phase2=$!
 trap 'kill "$phase2" 2>/dev/null; rm -f "$log"' EXIT
 idle "$PY" -m pytest -q -n "$WORKERS" --dist worksteal -m "not schedule" "$@"
 first=$?
-middle=$(date +%s)
+phase1_end=$(date +%s)
 wait "$phase2"
 second=$?
 echo "---- phase 2 (schedule tests, run beside phase 1) ----"
 cat "$log"
-echo "scripts/test.sh: phase 1 (parallel, idle class) $((middle - start)) s, exit $first; phase 2 (schedule, beside it; its time above) exit $second; all $(( $(date +%s) - start )) s"
+echo "scripts/test.sh: phase 1 (parallel, idle class) $((phase1_end - start)) s, exit $first; phase 2 (schedule, beside it; its time above) exit $second; all $(( $(date +%s) - start )) s"
 # exit 5 = no test collected (a -k that selects only one phase's tests) is not a failure
 [ "$first" -eq 5 ] && first=0
 [ "$second" -eq 5 ] && second=0

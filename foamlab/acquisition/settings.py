@@ -39,7 +39,7 @@ class AcquisitionSettings(_Listed):
     stop_retry_s: float = _setting(3.0, "cleanup keeps sending stop / e-stop over a failing link (wall s)")
     # -- tare
     unloaded_fraction: float = _setting(0.01, "unloaded: within this share of the load cell's capacity")
-    # -- after the run (foamlab.pipeline.after_run: both front ends)
+    # -- after the run (foamlab.pipeline.AfterRun: both front ends)
     gaps_warn_fraction: float = _setting(0.005, "a run missing more than this share of its deadlines is flagged")
 
 

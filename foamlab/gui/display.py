@@ -28,7 +28,6 @@ from foamlab.runformat import is_run_file_path
 log = logging.getLogger(__name__)
 
 
-
 def clock(seconds: float) -> str:
     seconds = max(0, int(round(seconds)))
     h, rest = divmod(seconds, 3600)

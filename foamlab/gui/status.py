@@ -5,12 +5,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from foamlab.acquisition.settings import DEFAULT as ACQUISITION
 from foamlab.gui.forms import ERROR_STYLE
+from foamlab.pipeline import schedule_gaps
 
 WARNING_STYLE = "color: #9A5B00; font-weight: bold;"
 OK_STYLE = ""
-
 
 
 @dataclass(frozen=True)
@@ -21,16 +20,11 @@ class Flag:
     meaning: str
 
 
-def missed_fraction(n_samples: int, missed: int) -> float:
-    total = n_samples + missed
-    return missed / total if total else 0.0
-
-
 def missed_flag(n_samples: int, missed: int) -> Flag | None:
-    share = missed_fraction(n_samples, missed)
-    if share <= ACQUISITION.gaps_warn_fraction:     # pipeline.AfterRun's threshold
+    _, name = schedule_gaps(n_samples, missed)     # pipeline.AfterRun's flag
+    if not name:
         return None
-    return Flag(f"{share:.1%} of the samples missed ({missed} of {n_samples + missed})",
+    return Flag(name,
                 "the machine did not answer in time: the curves have gaps, and the fit and the method's "
                 "results may not describe the specimen; test it again.")
 
