@@ -108,11 +108,12 @@ def test_fit_reports_table5_statistics_checks_and_json(default_fit, default_para
     # DESIGN.md's four keys, the samples the RMSE covers, the noise level, whether the optimizer
     # converged and its end (as lmfit reports it), the samples at turns the samples cannot place and
     # the placement of those turns (fitted: counted in the degrees of freedom), the residual form
-    # with every form's scores (identification.forms), the structure (given here), and the fit's
-    # warnings and notes as printed
+    # with every form's scores (identification.forms), the structure (given here), the orders held
+    # apart (identification.apart: the choice, its cost, the free fit), and the fit's warnings and
+    # notes as printed
     assert list(d) == ["parameters", "statistics", "rmse", "constraints", "samples", "noise", "converged",
                        "optimizer", "turn_samples", "turn_placement", "dof", "form", "forms", "structure",
-                       "warnings", "notes"]
+                       "held_apart", "warnings", "notes"]
     assert d["warnings"] == list(result.warnings) and all(isinstance(w, str) for w in d["warnings"])
     n = d["samples"]["rmse"]["count"]                             # an exact history: no turn samples
     assert d["samples"]["rmse"]["set"] == "recorded" and n >= result.n_obs
@@ -252,12 +253,19 @@ def test_sidecar_loads_as_a_simulator_specimen(default_fit, tmp_path):
 # -- real data --------------------------------------------------------------------------
 
 
-def test_real_bluehill_file_fits_to_the_end_with_automatic_starts():
+def test_real_bluehill_file_fits_to_the_end_with_automatic_starts(tmp_path):
     """A 3D-printed lattice, not foam: the model misses the relaxation at the turning
-    points, so the fit is mediocre there; it must still run and report its statistics."""
+    points, so the fit is mediocre there; it must still run and report its statistics. Its
+    fit file is its fit (test_fit_reproduces: the stored parameters stepped along the stored
+    path give the fitted force; the simulator built from the sidecar senses it)."""
+    from foamlab.identification.result import FitReport
     from foamlab.importers import load_run
+    from test_fit_reproduces import assert_reproduces, assert_simulator_senses_it
 
     result = fit_run(load_run(REAL))
+    sidecar = result.save(tmp_path / "real.fit.json")
+    assert_reproduces(FitReport.load(sidecar))
+    assert_simulator_senses_it(FitReport.load(sidecar), sidecar)
     d = result.to_dict()
     assert all(d["statistics"][s]["r2"] is not None for s in ("damping", "residual", "elastic", "joint"))
     # the default structure (3,3,7,3) fits it best; every structure with two residual terms a

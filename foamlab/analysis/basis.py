@@ -56,6 +56,15 @@ TURN_REACH_STEPS = 256
 #: Turning points x grid nodes up to which every turning point's term is exact at every node
 #: (a 3-cycle run with turns between samples: 6 x 14 000; 20 cycles: 40 x 23 000).
 EXACT_SOURCE_NODES = 200_000
+#: At full resolution the damping recursion runs on the nodes between two corners when their steps
+#: fall into fewer than this many stretches of steps equal within EQUAL_STEP_RTOL (a jittery
+#: clock is gridded instead: a Python step per stretch).
+EQUAL_STEP_RTOL = 1e-6
+MAX_STRETCHES = 64
+#: A varying-step recursion is solved in chunks of at most this much decay of its memory (e^-30:
+#: 1 / P stays far from overflow), each step's factor at least TINY_DECAY (exp underflows to 0).
+CHUNK_DECAY = 30.0
+TINY_DECAY = 1e-250
 #: Cached operator outputs are cleared beyond this many entries or bytes (a long run's
 #: full-resolution columns are ~1 MB each: a count alone let a 20-cycle fit hold ~0.5 GB).
 CACHE_LIMIT = 512
@@ -80,38 +89,104 @@ class _Interp:
         return (1.0 - w) * y[self.i0] + w * y[self.i0 + 1]
 
 
+class _OnGrid:
+    """Linear interpolation from a grid of any steps to fixed times (exact at its nodes)."""
+
+    def __init__(self, grid_t: np.ndarray, times: np.ndarray):
+        if len(grid_t) < 2:
+            self.i0, self.w = np.zeros(len(times), int), np.zeros(len(times))
+            return
+        i0 = np.clip(np.searchsorted(grid_t, times, side="right") - 1, 0, len(grid_t) - 2)
+        self.i0 = i0
+        span = grid_t[i0 + 1] - grid_t[i0]
+        self.w = np.clip(np.divide(times - grid_t[i0], span, out=np.zeros(len(times)), where=span > 0), 0.0, 1.0)
+
+    def __call__(self, y: np.ndarray) -> np.ndarray:
+        if len(y) == 1:
+            return np.repeat(y[:1], len(self.i0))
+        return (1.0 - self.w) * y[self.i0] + self.w * y[self.i0 + 1]
+
+
 class _Damping:
-    """Cycle k's loading on its own uniform grid from its start, the peak on the grid
-    (step = the requested one shortened so the loading is a whole number of steps)."""
+    """Cycle k's loading, from its start to its peak. At the run's own step the recursion runs
+    on the path's nodes (the samples and the corners between them, where the crosshead reached
+    a turning point or stopped), so each sample's value is the model's exact step for its own
+    time step (what SpecimenState, the simulator's specimen, computes). On a coarser step (the
+    decimated fit) it runs on a uniform grid from the start with the peak on it (the step
+    shortened to a whole number of steps), interpolated to the samples."""
 
     def __init__(self, t, x, start: int, peak: int, obs: np.ndarray, h: float):
-        t0, duration = float(t[start]), float(t[peak] - t[start])
-        steps = max(int(np.ceil(duration / h - 1e-9)), 1)
-        self.h = duration / steps if duration > 0 else h
-        grid = t0 + self.h * np.arange(steps + 1)
-        grid[-1] = t[peak]
-        self.xk = np.interp(grid, t, x) - x[start]
         self.rows = np.flatnonzero((obs >= start) & (obs <= peak))
-        self.interp = _Interp(t0, self.h, t[obs[self.rows]], len(grid))
+        if len(t) > 1 and h <= (1.0 + EQUAL_STEP_RTOL) * float(np.median(np.diff(t))):
+            steps = np.diff(t[start:peak + 1])
+            # a regular clock: stretches of equal steps (lfilter); a jittery one: every step its own
+            self.stretches = _equal_stretches(steps) or [(0, len(steps), steps)]
+            grid_t = t[start:peak + 1]
+        else:
+            n = max(int(np.ceil((t[peak] - t[start]) / h - 1e-9)), 1)
+            step = float(t[peak] - t[start]) / n if n and t[peak] > t[start] else h
+            grid_t = t[start] + step * np.arange(n + 1)
+            grid_t[-1] = t[peak]
+            self.stretches = [(0, n, step)]
+        self.xk = np.interp(grid_t, t, x) - x[start]
+        self.interp = _OnGrid(grid_t, t[obs[self.rows]])
 
     def columns(self, alpha: complex, derivative: bool):
         """Re z for a unit a (Eq. 9 kernel on the displacement, the model's exact step
         for piecewise-linear x: z_n = E z_n-1 + w_p x_n-1 + w_n x_n, as in
-        HereditaryOperator.batch) and, with derivative, d/d(alpha_re), d/d(alpha_im)
+        HereditaryOperator) and, with derivative, d/d(alpha_re), d/d(alpha_im)
         by differentiating that recursion (z is analytic in alpha)."""
         eps = ALPHA_FD_STEP * max(abs(alpha), 1e-3)
         at = np.array([alpha, alpha + eps, alpha - eps] if derivative else [alpha], dtype=complex)
-        E_all, wp_all, wn_all = step_weights(at, self.h)            # one call for value and derivative
-        E, wp, wn = E_all[0], wp_all[0], wn_all[0]
-        z = lfilter([wn, wp], [1.0, -E], self.xk)
+        xk = self.xk
+        z = np.zeros(len(xk), dtype=complex)
+        dz = np.zeros(len(xk), dtype=complex) if derivative else None
+        for lo, hi, h in self.stretches:             # steps lo..hi-1: nodes lo -> hi
+            # one call for value and derivative; h an array: each step its own coefficients
+            E_all, wp_all, wn_all = step_weights(at[:, None] if np.ndim(h) else at, h)
+            E, wp, wn = E_all[0], wp_all[0], wn_all[0]
+            z[lo + 1:hi + 1] = _recursion(E, wp * xk[lo:hi] + wn * xk[lo + 1:hi + 1], z[lo])
+            if derivative:
+                dE, dwp, dwn = ((c[1] - c[2]) / (2 * eps) for c in (E_all, wp_all, wn_all))
+                u = dE * z[lo:hi] + dwp * xk[lo:hi] + dwn * xk[lo + 1:hi + 1]
+                dz[lo + 1:hi + 1] = _recursion(E, u, dz[lo])
         col = self.interp(z.real)
         if not derivative:
             return col, None, None
-        dE, dwp, dwn = ((c[1] - c[2]) / (2 * eps) for c in (E_all, wp_all, wn_all))
-        u = np.zeros(len(z), dtype=complex)
-        u[1:] = dE * z[:-1] + dwp * self.xk[:-1] + dwn * self.xk[1:]
-        dz = lfilter([1.0], [1.0, -E], u)
         return col, self.interp(dz.real), self.interp(-dz.imag)
+
+
+def _recursion(E, u: np.ndarray, z0: complex) -> np.ndarray:
+    """z_n = E_n z_n-1 + u_n for n = 1..len(u) from z0. One E: lfilter. An E per step (steps
+    of unequal length): in chunks over which the product P of the E falls by at most
+    e^-CHUNK_DECAY, z_n = P_n (z0 + sum_k u_k / P_k) (no loop over steps; the chunks keep 1 / P
+    finite)."""
+    if not len(u):
+        return np.zeros(0, dtype=complex)
+    if np.ndim(E) == 0:
+        # lfilter's state of y_n = u_n + E y_n-1 after the node before: E y_0
+        return lfilter([1.0], [1.0, -E], u, zi=[E * z0])[0]
+    E = np.where(np.abs(E) < TINY_DECAY, TINY_DECAY, E)
+    decay = np.cumsum(-np.log(np.abs(E)))
+    out = np.empty(len(u), dtype=complex)
+    bounds = np.concatenate([[0], np.flatnonzero(np.diff(np.floor(decay / CHUNK_DECAY))) + 1, [len(u)]])
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        P = np.cumprod(E[a:b])
+        out[a:b] = P * (z0 + np.cumsum(u[a:b] / P))
+        z0 = out[b - 1]
+    return out
+
+
+def _equal_stretches(steps: np.ndarray) -> list[tuple[int, int, float]] | None:
+    """The steps as stretches of equal steps (first step, end, step) when they fall into at most
+    MAX_STRETCHES (a regular clock, a few missed samples, a few steps at a stop); else None."""
+    if not len(steps) or not steps.min() > 0:
+        return None
+    new = np.flatnonzero(np.abs(np.diff(steps)) > EQUAL_STEP_RTOL * steps[1:]) + 1
+    if len(new) >= MAX_STRETCHES:
+        return None
+    bounds = np.concatenate([[0], new, [len(steps)]])
+    return [(int(a), int(b), float(np.mean(steps[a:b]))) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 def _slope_changes(t, x, start: int, grid_t: np.ndarray, grid_x: np.ndarray, j0: int, turning,

@@ -286,7 +286,7 @@ def _fit_selected(fd: PreparedRun, largest: Orders, paper, report: Progress, riv
     if first is not chosen:     # the largest structure's fit: what diagnosis extends
         own = _from_core(fd, first.joint, first.core) or _from_core(fd, first.joint, first.core, reproduced=False)
         largest = _result(fd, first.orders, paper, own, time.perf_counter(), first.core)
-    warnings = _cancelling(base, apart) if hold else []
+    warnings = _cancelling(base, apart, hold)
     if unreproduced:
         warnings.append("the model's own evaluation (what the simulator runs) does not reproduce this fit "
                         "within a tenth of its residual")
@@ -357,7 +357,7 @@ def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, 
             base = None
     report("statistics", 0.9)
     return _result(fd, orders, paper, jf, time.perf_counter(), base, apart=apart, free=free,
-                   warnings=_cancelling(base, apart) if hold else [], structure=forced(orders))
+                   warnings=_cancelling(base, apart, hold), structure=forced(orders))
 
 
 def _held_apart(fd: PreparedRun, jf: JointFit, base: Fit, report: Progress, settings: FitSettings = DEFAULT
@@ -370,7 +370,7 @@ def _held_apart(fd: PreparedRun, jf: JointFit, base: Fit, report: Progress, sett
     return (held, apart) if held is not None else (None, None)
 
 
-def _cancelling(core: Fit | None, apart: HeldApart | None) -> list[str]:
+def _cancelling(core: Fit | None, apart: HeldApart | None, hold: bool = True) -> list[str]:
     """Coalesced residual orders left free (holding them apart fitted worse than BIC_TIE, or a
     pair the hold did not reach) are said: which way that choice falls can turn on the last digit
     of a run's numbers, so the result must say which way it fell."""
@@ -382,8 +382,9 @@ def _cancelling(core: Fit | None, apart: HeldApart | None) -> list[str]:
         return []
     phi = core.model.split(core.nu)[0]
     orders = ", ".join(f"{phi[i]:.4g} / {phi[j]:.4g}" for i, j in pairs)
+    why = "held apart they fitted worse" if hold else "not held apart: every order fitted free, as asked"
     return [f"{len(pairs)} pair(s) of residual terms at nearly one order cancel (beta {orders}): "
-            "the data determine each pair's sum, not its terms; held apart they fitted worse"]
+            f"the data determine each pair's sum, not its terms; {why}"]
 
 
 #: A polished fit further than this from the noise level, with structure left in its
@@ -510,12 +511,14 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
                             "errors are optimistic; see the autocorrelation-corrected ones")
     notes = [f"{p.name} = 0 (fixed): {p.why}" for p in parameters.values() if p.name.startswith("alpha") and not p.vary]
     held = {p.name: p.value for p in parameters.values() if not p.vary and p.name.startswith("beta") and not p.tie}
-    if apart is not None:
-        notes.append(apart.note(held))
+    held_orders = apart.record(held, _free_values(fd, jf, apart)) if apart is not None else None
+    if held_orders is not None:
+        notes.append(held_orders.note())
     statistics = {name: step.stats for name, step in paper.steps.items()}
     statistics["joint"] = joint
     samples = FittedSamples(fd.t, fd.run.displacement_mm, fd.f, predicted, response.labels.cycle,
-                            response.labels.direction, np.asarray(fd.observed))
+                            response.labels.direction, np.asarray(fd.observed), fd.nodes.t, fd.nodes.x,
+                            np.asarray(fd.nodes.of_sample))
     return FitReport(
         source=fd.run.source, orders=orders, params=params, parameters=parameters, correlation=correlation,
         statistics=statistics, rmse=float(np.sqrt(np.mean(whole ** 2))), noise_N=float(fd.noise_N),
@@ -527,8 +530,16 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
         turns_between_samples=bool(fd.nodes.between_samples), run_samples=len(fd.t) + int(fd.off_schedule),
         turn_parameters=turn_parameters, turns_flipped=tuple(fd.nodes.flipped),
         turns_flipped_s=tuple(float(fd.t[fd.extremes[k][1]]) for k in fd.nodes.flipped),
-        work=FitWork(fd, base, free if apart is not None else None, largest),
+        work=FitWork(fd, base, free if apart is not None else None, largest), held_orders=held_orders,
     )
+
+
+def _free_values(fd: PreparedRun, jf: JointFit, apart: HeldApart) -> dict[str, float]:
+    """The free fit's parameters by the report's names (canonical order: identification's)."""
+    free = _from_core(fd, jf, apart.free, reproduced=False) if apart.free is not None else None
+    if free is None:
+        return {}
+    return dict(zip(free.params.names(), (float(v) for v in free.params.to_vector())))
 
 
 def _parameters(fd: PreparedRun, orders: Orders, jf: JointFit, tau: float

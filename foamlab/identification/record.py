@@ -73,8 +73,9 @@ def _decode(hint: Any, data: Any) -> Any:
         return _decode_array(data)
     if dataclasses.is_dataclass(hint):
         hints = typing.get_type_hints(hint)
+        # a field with a default may be missing: the record was written before it was added
         values = {f.name: _decode(hints[f.name], data[f.name]) for f in dataclasses.fields(hint)
-                  if f.init and f.metadata.get("saved", True)}
+                  if f.init and f.metadata.get("saved", True) and (f.name in data or not _has_default(f))}
         return hint(**values)
     if origin is dict:
         return {k: _decode(args[1], v) for k, v in data.items()} if args else dict(data)
@@ -89,6 +90,10 @@ def _decode(hint: Any, data: Any) -> Any:
             raise TypeError(f"{data!r} is not {hint.__name__}")
         return data
     return data
+
+
+def _has_default(f: dataclasses.Field) -> bool:
+    return f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
 
 
 def _decode_array(data: dict) -> np.ndarray:

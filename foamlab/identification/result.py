@@ -15,12 +15,13 @@ import numpy as np
 from foamlab import FoamlabError
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import Fit
+from foamlab.identification.apart import HeldOrders
 from foamlab.identification.forms import FormChoice
 from foamlab.identification.parameters import Parameter, Parameters, unit_of
 from foamlab.identification.record import decode, encode, same
 from foamlab.identification.statistics import GoodnessOfFit
 from foamlab.identification.structure import StructureChoice
-from foamlab.model import ModelParameters
+from foamlab.model import ModelParameters, stepped_force
 from foamlab.model.layout import Orders
 
 __all__ = ["FitReport", "FitWork", "FittedSamples", "Parameter", "Parameters", "TurnSamples", "unit_of"]
@@ -72,9 +73,9 @@ class TurnSamples:
 @dataclass(frozen=True, eq=False)
 class FittedSamples:
     """The run's samples and the force the fit reported at each: what every figure of the fit
-    draws. The prediction is stored as the fit reported it, not re-evaluated from the
-    parameters: until the fit-honesty issue (26) makes the parameters reproduce it, the model's
-    causal evaluation differs from it by about the RMSE on real data."""
+    draws; and the path that drove the model (the samples' displacement without its noise, on
+    the run's nominal clock, through the turns placed between samples), with which the stored
+    parameters reproduce that force (FitReport.reproduced_force_N)."""
 
     time_s: np.ndarray
     displacement_mm: np.ndarray
@@ -83,6 +84,9 @@ class FittedSamples:
     cycle: np.ndarray              # 1-based cycle of each sample (the fit's labels)
     direction: np.ndarray          # +1 loading, -1 unloading, 0 neither
     observed: np.ndarray           # indices of the samples the joint fit used
+    path_time_s: np.ndarray = field(default_factory=lambda: np.zeros(0))   # the path's nodes
+    path_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    path_of_sample: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # node of each sample
 
     @property
     def residual_N(self) -> np.ndarray:
@@ -139,6 +143,7 @@ class FitReport:
     turn_parameters: int = 0          # turns the samples cannot place: each one's placement fitted (in n_params)
     turns_flipped: tuple[int, ...] = ()      # of them, the turning points placed the other way from the rest
     turns_flipped_s: tuple[float, ...] = ()  # their extreme samples' instants
+    held_orders: HeldOrders | None = None   # residual orders held apart: the choice, its cost, the free fit
     work: FitWork | None = field(default=None, compare=False, repr=False, metadata={"saved": False})
 
     def __eq__(self, other: object) -> bool:
@@ -179,6 +184,17 @@ class FitReport:
     @property
     def predicted_force_N(self) -> np.ndarray:
         return self.samples.predicted_force_N
+
+    def reproduced_force_N(self) -> np.ndarray:
+        """The force this report's parameters give at its samples when the model is stepped
+        along the stored path, as the simulator steps its specimen (model.stepped_force), read
+        as the load cell reads it (the unloaded reading where the plate is off): the fitted
+        force, to the model's operators' accuracy (tests/test_fit_reproduces.py)."""
+        s = self.samples
+        if not len(s.path_time_s):
+            raise FoamlabError("this fit report holds no path (written by an older foamlab): fit the run again")
+        force = stepped_force(self.params, s.path_time_s, s.path_mm)[s.path_of_sample]
+        return np.maximum(force, self.contact_zero_N)
 
     @property
     def run_time_s(self) -> np.ndarray:
@@ -286,6 +302,7 @@ class FitReport:
                 "dof": {"n_obs": self.n_obs, "n_params": self.n_params, "turn_parameters": self.turn_parameters},
                 "form": self.params.residual_form, "forms": self._forms_dict(),
                 "structure": self.structure.to_dict() if self.structure is not None else None,
+                "held_apart": self.held_orders.to_dict() if self.held_orders is not None else None,
                 "warnings": list(self.warnings), "notes": list(self.notes)}
 
     def _forms_dict(self) -> dict:
@@ -394,7 +411,8 @@ class FitReport:
         held = [p for p in own if not p.vary and p.name.startswith("beta")]
         if held:       # identification.apart
             lines.append("  orders held apart, not fitted (their terms coalesce; the data determine their sum): "
-                         + ", ".join(f"{p.name} {p.value:.3g}" for p in held))
+                         + ", ".join(f"{p.name} {p.value:.3g}" for p in held)
+                         + (f"; {self.held_orders.brief()}" if self.held_orders is not None else ""))
         failed = [k for k, ok in self.constraints.items() if not ok]
         if failed:
             lines.append("  thermodynamic checks failed: " + ", ".join(failed))
@@ -446,6 +464,8 @@ class FitReport:
             lines.append(f"[[Structure]] {self.structure.why}")
             if self.structure.candidates:
                 lines += self.structure.lines()
+        if self.held_orders is not None:
+            lines += self.held_orders.lines()
         if self.notes:
             lines.append("[[Notes]]")
             lines += [f"    - {w}" for w in self.notes]

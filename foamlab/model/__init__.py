@@ -15,12 +15,12 @@ from foamlab.model.history import HistoryLabels, label_history, labels_from_extr
 from foamlab.model.operators import FractionalOperator, HereditaryOperator
 from foamlab.model.params import ModelParameters
 from foamlab.model.response import ModelResponse, closed_form, evaluate, triangular_history
-from foamlab.model.state import ComponentForces, SpecimenState
+from foamlab.model.state import ComponentForces, SpecimenState, stepped_force
 from foamlab.model.thermo import thermodynamic_checks
 
 __all__ = [
     "ComponentForces", "FractionalOperator", "HereditaryOperator", "HistoryLabels",
-    "ModelParameters", "ModelResponse", "SpecimenState", "closed_form", "damping_closed_form",
+    "ModelParameters", "ModelResponse", "SpecimenState", "stepped_force", "closed_form", "damping_closed_form",
     "elastic_force", "evaluate", "label_history", "labels_from_extrema", "residual_eq11",
     "rl_derivative_piecewise_linear", "thermodynamic_checks", "triangular_history",
 ]

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from foamlab.model.components import elastic_force
 import numpy as np
+
+from foamlab.model.components import elastic_force
 
 from foamlab.model.operators import FractionalBank, FractionalOperator, HereditaryOperator
 from foamlab.model.params import ModelParameters
@@ -116,3 +117,10 @@ class SpecimenState:
         damping = self._damping if self._state == 1 else 0.0
         return ComponentForces(float(elastic_force(self.params, x)), damping, residual,
                                self._state, self._cycle)
+
+
+def stepped_force(params: ModelParameters, t: np.ndarray, x: np.ndarray, t_max: float = 2e4) -> np.ndarray:
+    """The model's total force at each instant of a piecewise-linear path x(t), stepped one node
+    at a time as the simulator steps its specimen (SpecimenState; its own step length each)."""
+    state = SpecimenState(params, t_max=max(t_max, float(t[-1] - t[0]) if len(t) else 0.0))
+    return np.array([state.step(float(ti), float(xi)).total for ti, xi in zip(t, x)])
