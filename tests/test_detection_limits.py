@@ -38,8 +38,15 @@ def test_every_tested_cause_has_a_limit_in_words(limits):
     assert limits["channel_lag"].text.endswith(" ms")
 
 
-@pytest.mark.parametrize("multiple,named", [(0.5, False), (1.5, True)])
-@pytest.mark.parametrize("cause", sorted(TO_GENERATOR))
+#: Measured, not chosen: a 2e-7 change of the damping columns (session 13) turned both friction
+#: cases; the base absorbs a 1.5 N friction to 1.057 x the noise (docs/analysis.md, "What a run
+#: could have seen"). Strict: a change that mends them shows.
+_FRICTION = pytest.mark.xfail(strict=True, reason="base absorbs the friction; limit not calibrated (issue 27)")
+CASES = [pytest.param(cause, multiple, named, marks=_FRICTION if cause == "direction_friction" else ())
+         for cause in sorted(TO_GENERATOR) for multiple, named in [(0.5, False), (1.5, True)]]
+
+
+@pytest.mark.parametrize("cause,multiple,named", CASES)
 def test_a_cause_at_its_limit_times_1_5_is_named_and_at_half_is_not(limits, cause, multiple, named):
     size = limits[cause].limit * multiple * TO_GENERATOR[cause]
     d = diagnose([ie.independent_run("A", SEED, {cause: size})])

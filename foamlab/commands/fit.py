@@ -58,6 +58,9 @@ def register(subparsers) -> None:
                    help="the residual force: 'causal' (Eq. 10, a memory of the history), 'paper' (each "
                         "cycle's Eq. 11 in x, in every later half-cycle, as Eqs. 20b-f print it) or "
                         "'auto' (default: both fitted, the one that predicts held-out blocks better kept)")
+    p.add_argument("--free-orders", action="store_true",
+                   help="fit every residual order free: do not hold orders whose terms coalesce apart (by "
+                        "default they are held where that costs at most 10 in BIC; --full shows both fits)")
     p.add_argument("--compare", nargs="+", metavar="N,M,P",
                    help="fit each of these orders too and print their AIC/BIC (lower is better)")
     p.add_argument("--no-store", action="store_true",
@@ -78,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     compare = [Orders.parse(o) for o in args.compare or []]
     run_data = load_run(args.path)
     with terminal_progress("fit", quiet=args.json) as report:
-        result = fit_run(run_data, orders, progress=report, form=args.form)
+        result = fit_run(run_data, orders, progress=report, form=args.form, hold=not args.free_orders)
     notes: list[str] = []
     if not args.no_store:
         from foamlab.identification.store import store_fit  # noqa: PLC0415

@@ -16,6 +16,7 @@ reported as held, not fitted: the data do not determine them.
 from __future__ import annotations
 
 import itertools
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,6 +50,10 @@ ROUNDS = 3
 HOLD = 1e-9
 
 
+#: The rule a held fit is kept by (the structure selection's: fewest parameters within BIC_TIE).
+RULE = f"kept when its BIC is within {BIC_TIE:g} of the free fit's (fewer parameters at no real cost)"
+
+
 @dataclass(frozen=True)
 class HeldApart:
     """A fit with some residual orders held apart, and what it cost."""
@@ -56,13 +61,75 @@ class HeldApart:
     fit: Fit
     held: np.ndarray                  # bool over the base's nonlinear parameters (alpha, beta)
     dchi2: float                      # its RSS minus the free fit's, in noise variances
+    bic: float = np.nan               # its BIC and the free fit's, on the same samples
+    free_bic: float = np.nan
+    free: Fit | None = None           # the free fit it was compared with
 
-    def note(self, held: dict[str, float]) -> str:
-        """The note a fit result carries (held: its held orders by their names in the result)."""
-        values = ", ".join(f"{n} = {v:.3g}" for n, v in held.items())
+    def record(self, held: dict[str, float], free_values: dict[str, float]) -> "HeldOrders":
+        """The report's record of the choice (held: the held orders by their names in the result;
+        free_values: the free fit's parameters by the same names)."""
+        lay = self.fit.params.layout
+        n_free = lay.n_linear + lay.n_nonlinear + 1
+        free = self.free if self.free is not None else self.fit
+        return HeldOrders(held=dict(held), dchi2=float(self.dchi2), bic=float(self.bic), free_bic=float(self.free_bic),
+                          rmse_N=float(np.sqrt(self.fit.rss / self.fit.n)), free_rmse_N=float(np.sqrt(free.rss / free.n)),
+                          samples=int(self.fit.n), n_params=n_free - int(self.held.sum()), free_n_params=n_free,
+                          free_values=dict(free_values), rule=RULE)
+
+
+@dataclass(frozen=True)
+class HeldOrders:
+    """Residual orders held apart: a structure choice by the selection rule, what it cost in
+    likelihood, and the free fit it was chosen over (identification.apart)."""
+
+    held: dict[str, float]            # the held orders by name: their held values
+    dchi2: float                      # held RSS minus free RSS, in noise variances
+    bic: float                        # the held fit's BIC and the free fit's (same samples)
+    free_bic: float
+    rmse_N: float                     # both fits' RMSE on the samples both were fitted on
+    free_rmse_N: float
+    samples: int
+    n_params: int                     # the core's parameters (the held orders not counted)
+    free_n_params: int
+    free_values: dict[str, float]     # the free fit's parameters, by the report's names
+    rule: str
+
+    def to_dict(self) -> dict:
+        return {"held": self.held, "rule": self.rule, "dchi2": self.dchi2, "delta_bic": self.bic - self.free_bic,
+                "samples": self.samples,
+                "held_fit": {"rmse": self.rmse_N, "bic": self.bic, "n_params": self.n_params},
+                "free_fit": {"rmse": self.free_rmse_N, "bic": self.free_bic, "n_params": self.free_n_params,
+                             "values": self.free_values}}
+
+    def brief(self) -> str:
+        return (f"chi2 {self.dchi2:+.1f}, BIC {self.bic - self.free_bic:+.1f} against the free fit "
+                f"({self.rule}; --full shows both)")
+
+    def lines(self) -> list[str]:
+        """Both fits side by side and the free fit's values of the held orders' terms."""
+        out = [f"[[Orders held apart]] {self.rule}; on the {self.samples} samples both were fitted on:",
+               f"    {'fit':<8}{'params':>8}{'RMSE':>12}{'BIC':>14}",
+               f"    {'held':<8}{self.n_params:>8}{self.rmse_N:>12.5g}{self.bic:>14.2f}  (kept)",
+               f"    {'free':<8}{self.free_n_params:>8}{self.free_rmse_N:>12.5g}{self.free_bic:>14.2f}"]
+        cycles = {_cycle(name) for name in self.held}
+        terms = [n for n in self.free_values if _cycle(n) in cycles]
+        if terms:
+            out.append("    the free fit's terms of those cycles: "
+                       + ", ".join(f"{n} {self.free_values[n]:.4g}" for n in terms))
+        return out
+
+    def note(self) -> str:
+        """The note a fit result carries."""
+        values = ", ".join(f"{n} = {v:.3g}" for n, v in self.held.items())
         return (f"{values} held (fixed) {SPREAD:g} apart: free, their terms coalesce into one order whose "
                 "amplitudes cancel (the data determine the terms' sum, not their orders); held where the run "
                 f"fits best, chi2 {self.dchi2:+.1f} against the free fit")
+
+
+def _cycle(name: str) -> str | None:
+    """The cycle of a residual term's parameter name (r2_1, beta2_1: '2'), else None."""
+    match = re.fullmatch(r"(?:r|beta)(\d+)_\d+", name)
+    return match.group(1) if match else None
 
 
 def hold_apart(fd: PreparedRun, free: Fit, polish_nfev: int = POLISH_NFEV, max_nfev: int = 0) -> HeldApart | None:
@@ -101,7 +168,8 @@ def hold_apart(fd: PreparedRun, free: Fit, polish_nfev: int = POLISH_NFEV, max_n
     if _bic(fit, held) > _bic(free, np.zeros_like(held)) + BIC_TIE:
         return None
     fit = converged(fit, max_nfev) if max_nfev else fit     # kept: carried on to convergence
-    return HeldApart(fit, held, (fit.rss - free.rss) / fd.noise_N ** 2)
+    return HeldApart(fit, held, (fit.rss - free.rss) / fd.noise_N ** 2, _bic(fit, held),
+                     _bic(free, np.zeros_like(held)), free)
 
 
 def _holding(free: Fit, phi: np.ndarray, held: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
