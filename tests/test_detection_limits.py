@@ -38,11 +38,12 @@ def test_every_tested_cause_has_a_limit_in_words(limits):
     assert limits["channel_lag"].text.endswith(" ms")
 
 
-#: Measured, not chosen: a 2e-7 change of the damping columns (session 13) turned both friction
-#: cases; the base absorbs a 1.5 N friction to 1.057 x the noise (docs/analysis.md, "What a run
-#: could have seen"). Strict: a change that mends them shows.
-_FRICTION = pytest.mark.xfail(strict=True, reason="base absorbs the friction; limit not calibrated (issue 27)")
-CASES = [pytest.param(cause, multiple, named, marks=_FRICTION if cause == "direction_friction" else ())
+#: Measured, not chosen: friction at half its limit (0.49 N) sits on the rule's line on this seed,
+#: dBIC 9.9 (not named) before the damping columns ran exactly through a stop before a turn
+#: (session 13), 12.9 (named) after: docs/analysis.md, "What a run could have seen". Strict: a
+#: change that puts it back under the line shows.
+_EDGE = pytest.mark.xfail(strict=True, reason="friction at 0.5x its limit: dBIC 12.9 on seed 320 (issue 27)")
+CASES = [pytest.param(cause, multiple, named, marks=_EDGE if (cause, multiple) == ("direction_friction", 0.5) else ())
          for cause in sorted(TO_GENERATOR) for multiple, named in [(0.5, False), (1.5, True)]]
 
 

@@ -222,6 +222,28 @@ def test_the_real_file_memory_lag_predicts_held_out_blocks_better():
     tau = best.values["values"]["tau_s"]
     assert 0.05 < tau < 0.5, tau
     assert d.verdict in ("memory_lag", "unexplained")
+    # what the model misses, in one sentence (issue 28): how large, where, and by cycle
+    miss = d.base_analysis.miss()
+    assert miss.where.startswith("the turning points") and len(miss.by_cycle_N) == 3, miss.sentence()
+    assert d.to_dict()["base"]["miss"]["sentence"] == miss.sentence()
+
+
+def test_the_miss_in_one_sentence():
+    """Where: the turning points when they hold the most power per sample, else the region
+    furthest from zero; by cycle: each cycle's RMS and its change per cycle (least squares)."""
+    from foamlab.diagnosis.residuals import Region, ResidualAnalysis
+
+    white = whiteness(np.random.default_rng(0).normal(size=200))
+    halves = [("", c, d, 0.0, rms) for c, rms in ((1, 0.3), (2, 0.2), (3, 0.1)) for d in (1, -1)]
+    region = Region("", 2, -1, 8.0, 9.0, 40, 0.24, 0.25, 12.0)
+    an = ResidualAnalysis(0.2, 0.02, white, [region], [], None, halves, turning=(0.1, 0.05, 0.6))
+    miss = an.miss()
+    assert miss.by_cycle_N == (0.3, 0.2, 0.1) and miss.change_per_cycle == pytest.approx(-0.5)
+    assert miss.sentence() == ("the model misses the measurement by 0.2 N RMS (10.0 x the noise), most at cycle 2 "
+                               "unloading, x 8-9 mm (mean residual +0.24 N, +12 standard errors); by cycle "
+                               "0.3 / 0.2 / 0.1 N RMS (-50% per cycle)")
+    turning = ResidualAnalysis(0.2, 0.02, white, [region], [], None, halves, turning=(0.35, 0.006, 0.6))
+    assert turning.miss().where.startswith("the turning points (35% of the residual power in the 0.6 s")
 
 
 def _summary(d) -> list:

@@ -108,28 +108,33 @@ class _OnGrid:
 
 
 class _Damping:
-    """Cycle k's loading, from its start to its peak. At the run's own step the recursion runs
-    on the path's nodes (the samples and the corners between them, where the crosshead reached
-    a turning point or stopped), so each sample's value is the model's exact step for its own
-    time step (what SpecimenState, the simulator's specimen, computes). On a coarser step (the
-    decimated fit) it runs on a uniform grid from the start with the peak on it (the step
-    shortened to a whole number of steps), interpolated to the samples."""
+    """Cycle k's loading, from its start to its peak, on a uniform grid from the start with the
+    peak on it (the step shortened to a whole number of steps), interpolated to the samples: at
+    the run's own step that is the model's exact step at every sample to ~2e-7 of the peak
+    (tests/test_fit_reproduces.py) - except where the crosshead stops before it turns (a corner
+    of the path inside the loading), which the grid cuts (2e-4 N on the real Bluehill file).
+    There, at the run's own step, the recursion runs on the path's nodes themselves, each step
+    its own length: what SpecimenState, the simulator's specimen, computes."""
 
-    def __init__(self, t, x, start: int, peak: int, obs: np.ndarray, h: float):
+    def __init__(self, t, x, start: int, peak: int, obs: np.ndarray, h: float, corners=()):
         self.rows = np.flatnonzero((obs >= start) & (obs <= peak))
-        if len(t) > 1 and h <= (1.0 + EQUAL_STEP_RTOL) * float(np.median(np.diff(t))):
+        times = t[obs[self.rows]]
+        own_step = len(t) > 1 and h <= (1.0 + EQUAL_STEP_RTOL) * float(np.median(np.diff(t)))
+        if own_step and any(start < c < peak for c in corners):
             steps = np.diff(t[start:peak + 1])
             # a regular clock: stretches of equal steps (lfilter); a jittery one: every step its own
             self.stretches = _equal_stretches(steps) or [(0, len(steps), steps)]
-            grid_t = t[start:peak + 1]
-        else:
-            n = max(int(np.ceil((t[peak] - t[start]) / h - 1e-9)), 1)
-            step = float(t[peak] - t[start]) / n if n and t[peak] > t[start] else h
-            grid_t = t[start] + step * np.arange(n + 1)
-            grid_t[-1] = t[peak]
-            self.stretches = [(0, n, step)]
+            self.xk = x[start:peak + 1] - x[start]
+            self.interp = _OnGrid(t[start:peak + 1], times)
+            return
+        duration = float(t[peak] - t[start])
+        n = max(int(np.ceil(duration / h - 1e-9)), 1)
+        step = duration / n if duration > 0 else h
+        grid_t = t[start] + step * np.arange(n + 1)
+        grid_t[-1] = t[peak]
+        self.stretches = [(0, n, step)]
         self.xk = np.interp(grid_t, t, x) - x[start]
-        self.interp = _OnGrid(grid_t, t[obs[self.rows]])
+        self.interp = _Interp(float(t[start]), step, times, len(grid_t))
 
     def columns(self, alpha: complex, derivative: bool):
         """Re z for a unit a (Eq. 9 kernel on the displacement, the model's exact step
@@ -139,10 +144,28 @@ class _Damping:
         eps = ALPHA_FD_STEP * max(abs(alpha), 1e-3)
         at = np.array([alpha, alpha + eps, alpha - eps] if derivative else [alpha], dtype=complex)
         xk = self.xk
+        if len(self.stretches) == 1 and np.ndim(self.stretches[0][2]) == 0:   # one step: as batch()
+            E_all, wp_all, wn_all = step_weights(at, self.stretches[0][2])
+            z = lfilter([wn_all[0], wp_all[0]], [1.0, -E_all[0]], xk)
+            dz = None
+            if derivative:
+                dE, dwp, dwn = ((c[1] - c[2]) / (2 * eps) for c in (E_all, wp_all, wn_all))
+                u = np.zeros(len(z), dtype=complex)
+                u[1:] = dE * z[:-1] + dwp * xk[:-1] + dwn * xk[1:]
+                dz = lfilter([1.0], [1.0, -E_all[0]], u)
+        else:
+            z, dz = self._stretched(at, eps, derivative)
+        col = self.interp(z.real)
+        if not derivative:
+            return col, None, None
+        return col, self.interp(dz.real), self.interp(-dz.imag)
+
+    def _stretched(self, at: np.ndarray, eps: float, derivative: bool):
+        """The recursion and its derivative over stretches of steps (an array: each its own)."""
+        xk = self.xk
         z = np.zeros(len(xk), dtype=complex)
         dz = np.zeros(len(xk), dtype=complex) if derivative else None
         for lo, hi, h in self.stretches:             # steps lo..hi-1: nodes lo -> hi
-            # one call for value and derivative; h an array: each step its own coefficients
             E_all, wp_all, wn_all = step_weights(at[:, None] if np.ndim(h) else at, h)
             E, wp, wn = E_all[0], wp_all[0], wn_all[0]
             z[lo + 1:hi + 1] = _recursion(E, wp * xk[lo:hi] + wn * xk[lo + 1:hi + 1], z[lo])
@@ -150,10 +173,7 @@ class _Damping:
                 dE, dwp, dwn = ((c[1] - c[2]) / (2 * eps) for c in (E_all, wp_all, wn_all))
                 u = dE * z[lo:hi] + dwp * xk[lo:hi] + dwn * xk[lo + 1:hi + 1]
                 dz[lo + 1:hi + 1] = _recursion(E, u, dz[lo])
-        col = self.interp(z.real)
-        if not derivative:
-            return col, None, None
-        return col, self.interp(dz.real), self.interp(-dz.imag)
+        return z, dz
 
 
 def _recursion(E, u: np.ndarray, z0: complex) -> np.ndarray:
@@ -486,7 +506,7 @@ class ModelBasis:
             [np.arange(i - CORNER_SAMPLES, i + CORNER_SAMPLES + 1) for i in starts + peaks + list(corners)]
             or [np.zeros(0, int)]))
         turning = turning[(turning >= 0) & (turning < len(self.t))]
-        self.damping_parts = [_Damping(self.t, self.x, s, p, self.obs, step_s)
+        self.damping_parts = [_Damping(self.t, self.x, s, p, self.obs, step_s, corners)
                               for s, p in zip(starts, peaks)]
         self.residual_parts = self._residual_parts(starts, peaks, grid_t, grid_x, turning)
         xs = self.x[self.obs] / self.x_scale_mm

@@ -141,7 +141,8 @@ def _suggest(result, runs, where: str):
 def summary(d) -> str:
     lines = [f"verdict: {d.verdict}",
              f"noise level (from the data): {d.noise_sigma:.4g} N; base model RMSE {d.base.rmse:.4g} N",
-             f"base model: {d.base_form_reason}"]
+             f"base model: {d.base_form_reason}",
+             f"  {d.base_analysis.miss().sentence()}"]
     if d.form_finding is not None:
         lines.append(f"  {d.form_finding.description()}")
     if d.findings:

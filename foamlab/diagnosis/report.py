@@ -235,7 +235,7 @@ def _html(d: Diagnosis, figs: dict[str, str], title: str) -> str:
     for key in FIGURES:
         if key in figs:
             out.append(f"<h2>{e(key.replace('_', ' '))}</h2><p>{e(captions[key])}</p><img src='{figs[key]}'>")
-    out.append("<h2>Where the base model misses</h2><ul>")
+    out.append(f"<h2>Where the base model misses</h2><p>{e(d.base_analysis.miss().sentence().capitalize())}.</p><ul>")
     out += [f"<li>{e(w)}</li>" for w in d.base_analysis.where()] or ["<li>nowhere above 4 standard errors</li>"]
     out.append("</ul>")
     if d.limits:

@@ -54,6 +54,35 @@ class Periodicity:
         return {"period_s": self.period_s, "power_share": self.power_share}
 
 
+@dataclass(frozen=True)
+class Miss:
+    """What the model misses, in one sentence: how large, where in the cycle, and how it changes
+    with cycle number (the RMS per cycle and its change per cycle fitted by least squares)."""
+
+    rmse_N: float
+    noise_N: float
+    where: str                         # the largest structure: turning points, or one region
+    by_cycle_N: tuple[float, ...]      # RMS of the residual per cycle, cycle 1 first
+    change_per_cycle: float            # relative change of that RMS per cycle (nan below 3 cycles)
+
+    def sentence(self) -> str:
+        size = f"{self.rmse_N:.3g} N RMS ({self.rmse_N / self.noise_N:.1f} x the noise)" if self.noise_N > 0 \
+            else f"{self.rmse_N:.3g} N RMS"
+        out = f"the model misses the measurement by {size}, most at {self.where}"
+        if len(self.by_cycle_N) > 1:
+            values = [f"{v:.3g}" for v in self.by_cycle_N]
+            listed = " / ".join(values if len(values) <= 6 else values[:3] + ["..."] + values[-2:])
+            out += f"; by cycle {listed} N RMS"
+            if np.isfinite(self.change_per_cycle):
+                out += f" ({self.change_per_cycle:+.0%} per cycle)"
+        return out
+
+    def to_dict(self) -> dict:
+        return {"sentence": self.sentence(), "rmse": self.rmse_N, "where": self.where,
+                "rmse_by_cycle": list(self.by_cycle_N),
+                "change_per_cycle": self.change_per_cycle if np.isfinite(self.change_per_cycle) else None}
+
+
 @dataclass
 class ResidualAnalysis:
     rmse: float
@@ -86,8 +115,34 @@ class ResidualAnalysis:
                        f"a period of {self.periodicity.period_s:.3g} s")
         return out
 
+    def miss(self) -> Miss:
+        """The largest structure (turning points when they hold the most power per sample, else
+        the region furthest from zero in standard errors) and the RMS per cycle."""
+        power, samples, window = self.turning
+        hot = self.structured_regions(1)
+        if power > 0.2 and power > 3 * samples:
+            where = (f"the turning points ({power:.0%} of the residual power in the {window:.2g} s after each "
+                     f"reversal, {samples:.1%} of the samples)")
+        elif hot:
+            r = hot[0]
+            where = (f"cycle {r.cycle} {r.phase}, x {r.x_lo:.3g}-{r.x_hi:.3g} mm (mean residual {r.mean:+.3g} N, "
+                     f"{r.score:+.0f} standard errors)")
+        else:
+            where = "no region more than its noise (the residuals spread evenly)"
+        sq: dict[int, list[float]] = {}
+        for _, cycle, _, _, rms in self.by_half_cycle:       # half-cycles' RMS, weighted alike
+            if cycle >= 1:
+                sq.setdefault(cycle, []).append(rms ** 2)
+        cycles = sorted(sq)
+        by_cycle = tuple(float(np.sqrt(np.mean(sq[c]))) for c in cycles)
+        change = float("nan")
+        if len(by_cycle) >= 3 and np.mean(by_cycle) > 0:
+            change = float(np.polyfit(cycles, by_cycle, 1)[0] / np.mean(by_cycle))
+        return Miss(self.rmse, self.noise_sigma, where, by_cycle, change)
+
     def to_dict(self) -> dict:
         return {
+            "miss": self.miss().to_dict(),
             "rmse": self.rmse,
             "noise_sigma": self.noise_sigma,
             "excess_ratio": self.excess_ratio,

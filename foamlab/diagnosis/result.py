@@ -129,7 +129,8 @@ class Diagnosis:
                 "explained_share": c.share,
             })
         return {"verdict": self.verdict, "findings": _jsonable(findings),
-                "base": {"form": self.params.residual_form, "why": self.base_form_reason},
+                "base": {"form": self.params.residual_form, "why": self.base_form_reason,
+                         "miss": _jsonable(self.base_analysis.miss().to_dict())},
                 "skipped": dict(self.skipped),
                 "detection_limits": _jsonable([limit.to_dict() for limit in self.limits])}
 

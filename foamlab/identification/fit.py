@@ -536,7 +536,8 @@ def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float
 
 def _free_values(fd: PreparedRun, jf: JointFit, apart: HeldApart) -> dict[str, float]:
     """The free fit's parameters by the report's names (canonical order: identification's)."""
-    free = _from_core(fd, jf, apart.free, reproduced=False) if apart.free is not None else None
+    free = None if apart.free is None else _from_core(
+        fd, jf, apart.free, reproduced=False, held=np.zeros(jf.layout.n_nonlinear, bool))
     if free is None:
         return {}
     return dict(zip(free.params.names(), (float(v) for v in free.params.to_vector())))
@@ -562,7 +563,9 @@ def _parameters(fd: PreparedRun, orders: Orders, jf: JointFit, tau: float
     lower, upper = nonlinear_bounds(orders, lay.C, fd.loading_time_s)
     ranges = np.concatenate([np.full(lay.n_linear, np.inf), (upper - lower)[free],
                              [np.inf] if jf.zero_fitted else []])
-    unc = parameter_uncertainty(jf.jacobian, jf.residual, col_values, col_names, ranges=ranges)
+    # a parameter at a bound of its range is said so once (_bound_warnings), not also as not determined
+    said = {names[i] for i, _ in _at_bounds(names, values, lay, lower, upper)}
+    unc = parameter_uncertainty(jf.jacobian, jf.residual, col_values, col_names, ranges=ranges, said=said)
     order = np.concatenate([lin_idx, nl_idx[free]])       # flat index of each column
     stderr = np.full(len(names), np.nan)
     stderr[order] = unc.stderr[:len(order)]
@@ -594,22 +597,30 @@ def _turn_samples(evidence: np.ndarray, residual: np.ndarray) -> TurnSamples:
                        float(np.abs(at_turns).max()) if len(at_turns) else 0.0)
 
 
+def _at_bounds(names, values, lay, lower, upper) -> list[tuple[int, str]]:
+    """(flat index, 'lower' | 'upper') of each nonlinear parameter at a bound of its search range
+    (a real mode's Im alpha = 0 is the model, not a limit)."""
+    out = []
+    for j, i in enumerate(lay.flat_index_of_nonlinear()):
+        v, span = values[i], upper[j] - lower[j]
+        if names[i].endswith("_im") and v <= lower[j] + 1e-9 * span:
+            continue
+        if v <= lower[j] + AT_BOUND * span or v >= upper[j] - AT_BOUND * span:
+            out.append((int(i), "lower" if v <= lower[j] + AT_BOUND * span else "upper"))
+    return out
+
+
 def _bound_warnings(names, values, lay, lower, upper) -> list[str]:
     out = []
-    flat_nl = lay.flat_index_of_nonlinear()
-    for j, i in enumerate(flat_nl):
-        v = values[i]
-        span = upper[j] - lower[j]
-        if names[i].endswith("_im") and v <= lower[j] + 1e-9 * span:
-            continue                      # a real mode: im = 0 is the model, not a limit
-        if v <= lower[j] + AT_BOUND * span or v >= upper[j] - AT_BOUND * span:
-            which = "lower" if v <= lower[j] + AT_BOUND * span else "upper"
-            hint = (" (fractional orders are limited to beta < 1, Eq. 10)"
-                    if names[i].startswith("beta") and which == "upper" and upper[j] == BETA_HI else
-                    " (search range of beta)" if names[i].startswith("beta") and lower[j] == BETA_LO else
-                    " (decay rates are searched within 0.1..100 per loading time)")
-            out.append(f"{names[i]} = {v:.4g} sits at its {which} bound{hint}: the optimum is "
-                       "outside the model's range; the value is not an estimate")
+    by_flat = {int(i): j for j, i in enumerate(lay.flat_index_of_nonlinear())}
+    for i, which in _at_bounds(names, values, lay, lower, upper):
+        j = by_flat[i]
+        hint = (" (fractional orders are limited to beta < 1, Eq. 10)"
+                if names[i].startswith("beta") and which == "upper" and upper[j] == BETA_HI else
+                " (search range of beta)" if names[i].startswith("beta") and lower[j] == BETA_LO else
+                " (decay rates are searched within 0.1..100 per loading time)")
+        out.append(f"{names[i]} = {values[i]:.4g} sits at its {which} bound{hint}: the optimum is "
+                   "outside the model's range; the value is not an estimate")
     return out
 
 

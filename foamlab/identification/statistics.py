@@ -107,7 +107,7 @@ class Uncertainty:
 
 def parameter_uncertainty(jac: np.ndarray, residual: np.ndarray, values: np.ndarray,
                           names: list[str], n_free: int | None = None,
-                          ranges: np.ndarray | None = None) -> Uncertainty:
+                          ranges: np.ndarray | None = None, said: set[str] = frozenset()) -> Uncertainty:
     """Covariance s^2 (J^T J)^-1 on the determined parameters, and warnings.
 
     A parameter is "not determined" when the data cannot locate it: a (numerically)
@@ -115,7 +115,8 @@ def parameter_uncertainty(jac: np.ndarray, residual: np.ndarray, values: np.ndar
     Jacobian (it trades off exactly against others), or - for a parameter searched
     within bounds (``ranges`` = upper - lower) - a 95 % interval wider than the whole
     range. Those are held fixed for the covariance of the rest and reported without
-    a standard error.
+    a standard error. Those in ``said`` (another warning says what is wrong with them: at a bound of
+    their range) are not listed again.
     """
     n, p = jac.shape
     n_free = p if n_free is None else n_free
@@ -154,7 +155,9 @@ def parameter_uncertainty(jac: np.ndarray, residual: np.ndarray, values: np.ndar
         break
     # one line per reason (a long run's per-cycle terms made dozens of lines of one message)
     for reason in dict.fromkeys(why[i] for i in sorted(why)):
-        which = [f"{names[i]} = {values[i]:.4g}" for i in sorted(why) if why[i] == reason]
+        which = [f"{names[i]} = {values[i]:.4g}" for i in sorted(why) if why[i] == reason and names[i] not in said]
+        if not which:
+            continue
         one = len(which) == 1
         warnings.append(f"{', '.join(which)} {'is' if one else 'are'} not determined: {reason[0 if one else 1]} "
                         "(held fixed for the other standard errors)")
