@@ -3,7 +3,8 @@ stored path by the model as the simulator steps its specimen, give the fitted fo
 sample within 1e-6 of the peak; and the simulator's specimen built from the sidecar senses it.
 
 Runs from tests/independent_model.py (no foamlab model code), turns between samples, both
-residual forms; the real Bluehill file is checked in test_identification (its fit is made there).
+residual forms; the real Bluehill file is checked in test_identification (its fit is made there;
+its jittered clock holds it to 1e-5, docs/identification.md).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ def assert_reproduces(report, tolerance: float = TOLERANCE) -> None:
         f"(t = {report.run_time_s[worst]:.4f} s; peak {np.max(np.abs(fitted)):.3g} N)")
 
 
-def assert_simulator_senses_it(report, sidecar) -> None:
+def assert_simulator_senses_it(report, sidecar, tolerance: float = TOLERANCE) -> None:
     """The simulator's specimen from the sidecar, its plate driven along the fit's path: the
     contact force it senses is the fitted force wherever the fitted reading is above the run's
     unloaded reading and above 0. (The parameters carry the run's load cell zero in k0, the
@@ -48,7 +49,7 @@ def assert_simulator_senses_it(report, sidecar) -> None:
     on = fitted > max(report.contact_zero_N, 0.0)
     gap = np.abs(sensed[on] - fitted[on])
     assert on.mean() > 0.5
-    assert gap.max() <= TOLERANCE * np.max(np.abs(fitted)), f"simulator off the fit by {gap.max():.3g} N"
+    assert gap.max() <= tolerance * np.max(np.abs(fitted)), f"simulator off the fit by {gap.max():.3g} N"
 
 
 @pytest.mark.parametrize("regime,seed,form", CASES, ids=[f"{r.name}-{s}-{f}" for r, s, f in CASES])

@@ -11,7 +11,6 @@ identified raises a FoamlabError that says what is missing, before any optimiser
 
 from __future__ import annotations
 
-
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -258,7 +257,7 @@ def _turning_points(x: np.ndarray, seg: Segmentation) -> tuple[list[int], list[i
 
 def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> PreparedRun:
     """Segment the run and check that it can be identified (FoamlabError if not)."""
-    run, off_schedule = on_clock(run)
+    run, off_schedule = on_schedule(run)
     n = len(run)
     if n < 20:
         raise FoamlabError(f"run has {n} samples: far too few to identify the model")
@@ -341,9 +340,6 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
 #: A sample taken this far (as a fraction of the sampling step) off its schedule is left out
 #: (on_schedule) when at most this share of the samples are.
 OFF_SCHEDULE, RARE_OFF_SCHEDULE = 0.5, 0.02
-#: A clock whose instants lie within this fraction of its step of a regular one is that regular
-#: clock (on_nominal_clock).
-CLOCK_JITTER = 0.01
 
 
 def _nearest_on_grid(t: np.ndarray, t0: float, step: float) -> np.ndarray:
@@ -376,38 +372,6 @@ def on_schedule(run: RunData) -> tuple[RunData, int]:
     if not bad.any() or bad.mean() > RARE_OFF_SCHEDULE:
         return run, 0
     return run.take(~bad), int(bad.sum())
-
-
-def on_clock(run: RunData) -> tuple[RunData, int]:
-    """The run's samples on its sampling schedule (on_schedule: how many were not), on its
-    nominal clock (on_nominal_clock)."""
-    run, off_schedule = on_schedule(run)
-    return on_nominal_clock(run), off_schedule
-
-
-def on_nominal_clock(run: RunData) -> RunData:
-    """The run on its nominal clock when its instants are a regular clock's up to a jitter of at
-    most CLOCK_JITTER of the step (missed samples allowed): each sample at its whole number of
-    steps on the line through them. The jitter is timing noise (a real 50 Hz Bluehill export:
-    +-30 us of 20 ms, the crosshead moving 5 nm meanwhile); on the nominal clock the model's
-    operators step exactly through the samples, so the fit and the model's own stepping
-    (SpecimenState, the simulator's specimen) give the same force (a fit report reproduces its
-    fit: FitReport.reproduced_force_N). Any other clock is kept as it is."""
-    t = np.asarray(run.time_s, float)
-    if len(t) < 10:
-        return run
-    h = float(np.median(np.diff(t)))
-    if not h > 0:
-        return run
-    k = np.round((t - t[0]) / h)
-    if np.any(np.diff(k) < 1):
-        return run
-    slope, intercept = np.polyfit(k, t, 1)
-    nominal = intercept + slope * k
-    jitter = float(np.max(np.abs(nominal - t)))
-    if not 1e-9 * h < jitter <= CLOCK_JITTER * h:      # already regular (to rounding), or not a clock
-        return run
-    return replace(run, time_s=nominal)
 
 
 def _series(run: RunData, name: str, labels: HistoryLabels, nodes: PathNodes,

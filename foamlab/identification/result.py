@@ -73,8 +73,8 @@ class TurnSamples:
 @dataclass(frozen=True, eq=False)
 class FittedSamples:
     """The run's samples and the force the fit reported at each: what every figure of the fit
-    draws; and the path that drove the model (the samples' displacement without its noise, on
-    the run's nominal clock, through the turns placed between samples), with which the stored
+    draws; and the path that drove the model (the samples' displacement without its noise, through
+    the turns placed between samples), with which the stored
     parameters reproduce that force (FitReport.reproduced_force_N)."""
 
     time_s: np.ndarray
