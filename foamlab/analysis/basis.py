@@ -56,9 +56,9 @@ TURN_REACH_STEPS = 256
 #: Turning points x grid nodes up to which every turning point's term is exact at every node
 #: (a 3-cycle run with turns between samples: 6 x 14 000; 20 cycles: 40 x 23 000).
 EXACT_SOURCE_NODES = 200_000
-#: At full resolution the damping recursion runs on the nodes between two corners when their steps
-#: fall into fewer than this many stretches of steps equal within EQUAL_STEP_RTOL (a jittery
-#: clock is gridded instead: a Python step per stretch).
+#: Where it runs on the path's nodes (_Damping: a stop before a turn), the damping recursion takes
+#: the steps as stretches of steps equal within EQUAL_STEP_RTOL (lfilter each: a Python step per
+#: stretch) when there are fewer than MAX_STRETCHES, else every step its own factor (_recursion).
 EQUAL_STEP_RTOL = 1e-6
 MAX_STRETCHES = 64
 #: A varying-step recursion is solved in chunks of at most this much decay of its memory (e^-30:
