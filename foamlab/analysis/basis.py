@@ -29,6 +29,7 @@ at full resolution.
 from __future__ import annotations
 
 import copy
+from functools import partial
 
 import numpy as np
 from scipy import fft as sfft
@@ -89,24 +90,6 @@ class _Interp:
         return (1.0 - w) * y[self.i0] + w * y[self.i0 + 1]
 
 
-class _OnGrid:
-    """Linear interpolation from a grid of any steps to fixed times (exact at its nodes)."""
-
-    def __init__(self, grid_t: np.ndarray, times: np.ndarray):
-        if len(grid_t) < 2:
-            self.i0, self.w = np.zeros(len(times), int), np.zeros(len(times))
-            return
-        i0 = np.clip(np.searchsorted(grid_t, times, side="right") - 1, 0, len(grid_t) - 2)
-        self.i0 = i0
-        span = grid_t[i0 + 1] - grid_t[i0]
-        self.w = np.clip(np.divide(times - grid_t[i0], span, out=np.zeros(len(times)), where=span > 0), 0.0, 1.0)
-
-    def __call__(self, y: np.ndarray) -> np.ndarray:
-        if len(y) == 1:
-            return np.repeat(y[:1], len(self.i0))
-        return (1.0 - self.w) * y[self.i0] + self.w * y[self.i0 + 1]
-
-
 class _Damping:
     """Cycle k's loading, from its start to its peak, on a uniform grid from the start with the
     peak on it (the step shortened to a whole number of steps), interpolated to the samples: at
@@ -118,14 +101,14 @@ class _Damping:
 
     def __init__(self, t, x, start: int, peak: int, obs: np.ndarray, h: float, corners=()):
         self.rows = np.flatnonzero((obs >= start) & (obs <= peak))
-        times = t[obs[self.rows]]
         own_step = len(t) > 1 and h <= (1.0 + EQUAL_STEP_RTOL) * float(np.median(np.diff(t)))
         if own_step and any(start < c < peak for c in corners):
             steps = np.diff(t[start:peak + 1])
             # a regular clock: stretches of equal steps (lfilter); a jittery one: every step its own
             self.stretches = _equal_stretches(steps) or [(0, len(steps), steps)]
             self.xk = x[start:peak + 1] - x[start]
-            self.interp = _OnGrid(t[start:peak + 1], times)
+            # the samples are nodes: no interpolation (a partial, not a lambda: bases are pickled)
+            self.interp = partial(np.take, indices=obs[self.rows] - start, axis=0)
             return
         duration = float(t[peak] - t[start])
         n = max(int(np.ceil(duration / h - 1e-9)), 1)
@@ -134,7 +117,7 @@ class _Damping:
         grid_t[-1] = t[peak]
         self.stretches = [(0, n, step)]
         self.xk = np.interp(grid_t, t, x) - x[start]
-        self.interp = _Interp(float(t[start]), step, times, len(grid_t))
+        self.interp = _Interp(float(t[start]), step, t[obs[self.rows]], len(grid_t))
 
     def columns(self, alpha: complex, derivative: bool):
         """Re z for a unit a (Eq. 9 kernel on the displacement, the model's exact step

@@ -69,11 +69,11 @@ class HeldApart:
         """The report's record of the choice (held: the held orders by their names in the result;
         free_values: the free fit's parameters by the same names)."""
         lay = self.fit.params.layout
-        n_free = lay.n_linear + lay.n_nonlinear + 1
         free = self.free if self.free is not None else self.fit
         return HeldOrders(held=dict(held), dchi2=float(self.dchi2), bic=float(self.bic), free_bic=float(self.free_bic),
                           rmse_N=float(np.sqrt(self.fit.rss / self.fit.n)), free_rmse_N=float(np.sqrt(free.rss / free.n)),
-                          samples=int(self.fit.n), n_params=n_free - int(self.held.sum()), free_n_params=n_free,
+                          samples=int(self.fit.n), n_params=_n_params(lay, self.held),
+                          free_n_params=_n_params(lay, np.zeros_like(self.held)),
                           free_values=dict(free_values), rule=RULE)
 
 
@@ -218,8 +218,11 @@ def _placed(coarse: list[Series], fit: Fit, pairs: list[tuple[int, int]], held: 
     return phi
 
 
+def _n_params(lay, held: np.ndarray) -> int:
+    """The core's free parameters (linear, alpha and beta, the zero) less the held orders."""
+    return lay.n_linear + lay.n_nonlinear - int(held.sum()) + 1
+
+
 def _bic(fit: Fit, held: np.ndarray) -> float:
-    lay = fit.params.layout
-    free = lay.n_linear + lay.n_nonlinear - int(held.sum()) + 1
-    return information_criteria(fit.rss, fit.n, free)[1]
+    return information_criteria(fit.rss, fit.n, _n_params(fit.params.layout, held))[1]
 

@@ -564,7 +564,7 @@ def _parameters(fd: PreparedRun, orders: Orders, jf: JointFit, tau: float
     ranges = np.concatenate([np.full(lay.n_linear, np.inf), (upper - lower)[free],
                              [np.inf] if jf.zero_fitted else []])
     # a parameter at a bound of its range is said so once (_bound_warnings), not also as not determined
-    said = {names[i] for i, _ in _at_bounds(names, values, lay, lower, upper)}
+    said = {names[i] for i, _, _ in _at_bounds(names, values, lay, lower, upper)}
     unc = parameter_uncertainty(jf.jacobian, jf.residual, col_values, col_names, ranges=ranges, said=said)
     order = np.concatenate([lin_idx, nl_idx[free]])       # flat index of each column
     stderr = np.full(len(names), np.nan)
@@ -597,24 +597,22 @@ def _turn_samples(evidence: np.ndarray, residual: np.ndarray) -> TurnSamples:
                        float(np.abs(at_turns).max()) if len(at_turns) else 0.0)
 
 
-def _at_bounds(names, values, lay, lower, upper) -> list[tuple[int, str]]:
-    """(flat index, 'lower' | 'upper') of each nonlinear parameter at a bound of its search range
-    (a real mode's Im alpha = 0 is the model, not a limit)."""
+def _at_bounds(names, values, lay, lower, upper) -> list[tuple[int, int, str]]:
+    """(flat index, index in the bounds, 'lower' | 'upper') of each nonlinear parameter at a bound
+    of its search range (a real mode's Im alpha = 0 is the model, not a limit)."""
     out = []
     for j, i in enumerate(lay.flat_index_of_nonlinear()):
         v, span = values[i], upper[j] - lower[j]
         if names[i].endswith("_im") and v <= lower[j] + 1e-9 * span:
             continue
         if v <= lower[j] + AT_BOUND * span or v >= upper[j] - AT_BOUND * span:
-            out.append((int(i), "lower" if v <= lower[j] + AT_BOUND * span else "upper"))
+            out.append((int(i), j, "lower" if v <= lower[j] + AT_BOUND * span else "upper"))
     return out
 
 
 def _bound_warnings(names, values, lay, lower, upper) -> list[str]:
     out = []
-    by_flat = {int(i): j for j, i in enumerate(lay.flat_index_of_nonlinear())}
-    for i, which in _at_bounds(names, values, lay, lower, upper):
-        j = by_flat[i]
+    for i, j, which in _at_bounds(names, values, lay, lower, upper):
         hint = (" (fractional orders are limited to beta < 1, Eq. 10)"
                 if names[i].startswith("beta") and which == "upper" and upper[j] == BETA_HI else
                 " (search range of beta)" if names[i].startswith("beta") and lower[j] == BETA_LO else
