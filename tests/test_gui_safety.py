@@ -103,7 +103,10 @@ def press_into_specimen(qtbot, w: MainWindow, sim, depth_mm: float = 12.0) -> fl
     w.link.call("move", lambda m: m.crosshead.move_to(top + depth_mm, 300.0))
     qtbot.waitUntil(lambda: not sim.crosshead_status()["moving"]
                     and sim.snapshot()["position_mm"] > top + depth_mm - 0.01, timeout=10_000)
-    qtbot.waitUntil(lambda: float(w.force_label.text()) > 10.0, timeout=5000)
+    # The label shows the last poll, which may predate the stop on a loaded machine: wait
+    # until it has caught up with what the cell reads at rest.
+    qtbot.waitUntil(lambda: float(w.force_label.text()) > 10.0 and abs(
+        float(w.force_label.text()) - sim.snapshot()["sensor_force_N"]) < 0.5, timeout=5000)
     return float(w.force_label.text())
 
 
