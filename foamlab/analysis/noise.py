@@ -16,9 +16,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from statsmodels.regression.linear_model import yule_walker
-from statsmodels.sandbox.stats.runs import runstest_1samp
-from statsmodels.stats.diagnostic import acorr_ljungbox
 
 MAD_TO_SIGMA = 1.0 / 0.6744897501960817
 #: Highest AR order tried when prewhitening.
@@ -76,6 +73,11 @@ def at_the_noise(residual: np.ndarray, noise_N: float) -> bool:
 
 
 def whiteness(residual: np.ndarray) -> Whiteness:
+    # statsmodels (with pandas) costs ~0.6 s to import: only when a test is made, not for
+    # every command that imports this module (`foamlab fit` often needs neither)
+    from statsmodels.sandbox.stats.runs import runstest_1samp
+    from statsmodels.stats.diagnostic import acorr_ljungbox
+
     r = np.asarray(residual, float)
     r = r - r.mean()
     if len(r) < 3 * LJUNG_BOX_LAGS or not np.any(r):
@@ -101,6 +103,8 @@ class ArWhitener:
     @classmethod
     def fit(cls, residuals: list[np.ndarray], max_order: int = MAX_AR_ORDER) -> "ArWhitener":
         """Yule-Walker AR(p) of the pooled residuals, p = 0..max_order by BIC."""
+        from statsmodels.regression.linear_model import yule_walker     # import cost: see whiteness
+
         r = np.concatenate([np.asarray(x, float) - np.mean(x) for x in residuals])
         n = len(r)
         if n < 10 * (max_order + 1) or not np.any(r):
