@@ -40,8 +40,9 @@ def test_json_is_the_design_object_and_the_report_has_its_figures(softened, tmp_
     first = obj["findings"][0]
     assert first["effect"] == "cycle_softening"
     assert set(first["gain"]) == {"rmse_before", "rmse_after", "heldout_rmse_before",
-                                  "heldout_rmse_after", "delta_bic"}
-    assert first["gain"]["heldout_rmse_after"] < first["gain"]["heldout_rmse_before"]
+                                  "heldout_rmse_after", "heldout_gain_se", "delta_bic"}
+    g = first["gain"]     # a clear softening: its held-out gain many standard errors beyond chance
+    assert 0 < g["heldout_gain_se"] and g["heldout_rmse_after"] < g["heldout_rmse_before"] - 2 * g["heldout_gain_se"]
     for name in ("index.html", "measurement.png", "base_simulation.png", "residual_map.png",
                  "cause.png", "extended_simulation.png"):
         assert (tmp_path / "rep" / name).stat().st_size > 0

@@ -6,6 +6,8 @@ extension must predict held-out blocks better than the model it extends).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from foamlab.analysis.design import ExtendedModel, Series, Solution
@@ -35,8 +37,7 @@ def folds(series: list[Series], n_folds: int = HELDOUT_FOLDS,
     for k in range(n_folds):
         masks = []
         for s in series:
-            per_fold = blocks_per_fold or max(HELDOUT_BLOCKS_PER_FOLD,
-                                               int(round(len(s) / (n_folds * HELDOUT_BLOCK_SAMPLES))))
+            per_fold = blocks_per_fold or _per_fold(len(s), n_folds)
             m = np.ones(len(s), dtype=bool)
             edges = np.linspace(0, len(s), n_folds * per_fold + 1).astype(int)
             for b in range(k, n_folds * per_fold, n_folds):
@@ -51,21 +52,72 @@ def folds(series: list[Series], n_folds: int = HELDOUT_FOLDS,
 def heldout_rmse(fit: Fit, on: Fit | None = None, n_folds: int = HELDOUT_FOLDS) -> float:
     """RMSE of every block predicted by the model refitted (all its parameters) without it.
 
-    on: the same model on other (decimated) samples to do it on; the result is stored
+    on: the same model on other (decimated) samples to do it on; the result, and each block's
+    sum of squared prediction errors (``fit.heldout_blocks``, for heldout_gain), are stored
     in ``fit``.
     """
     if fit.heldout_rmse is not None:
         return fit.heldout_rmse
     work = on or fit
-    sq, count = 0.0, 0
+    ids = np.concatenate(_block_ids(work.model.series, n_folds))
+    blocks = np.zeros(int(ids.max()) + 1 if len(ids) else 0)
+    count = 0
     for keep in folds(work.model.series, n_folds):
         sol = _refit_without(work, keep)
         out = ~np.concatenate(keep) & np.concatenate(sol.used)
         r = np.concatenate(sol.residuals)[out]
-        sq += float(r @ r)
+        blocks += np.bincount(ids[out], weights=r * r, minlength=len(blocks))
         count += len(r)
-    fit.heldout_rmse = float(np.sqrt(sq / max(count, 1)))
+    fit.heldout_blocks = blocks
+    fit.heldout_rmse = float(np.sqrt(blocks.sum() / max(count, 1)))
     return fit.heldout_rmse
+
+
+@dataclass(frozen=True)
+class HeldoutGain:
+    """What a model gains over another on the same held-out blocks, and how surely.
+
+    The gain is the drop of the held-out RMSE; its standard error comes from the spread, block to
+    block, of the drop in squared prediction error (blocks are short and many, so their drops are
+    nearly independent), carried to the RMSE. The gain passes when it exceeds z standard errors."""
+
+    before_rmse: float
+    after_rmse: float
+    gain_se: float              # N, standard error of before_rmse - after_rmse (nan: too few blocks)
+    z: float
+
+    @property
+    def passed(self) -> bool:
+        margin = self.z * self.gain_se if self.z > 0 and np.isfinite(self.gain_se) else 0.0
+        return self.before_rmse - self.after_rmse > margin
+
+
+def heldout_gain(before: Fit, after: Fit, z: float, before_on: Fit | None = None,
+                 after_on: Fit | None = None) -> HeldoutGain:
+    """The held-out gain of `after` over `before` (each held out on its `*_on` samples, the same
+    blocks), with its standard error from the block-to-block spread."""
+    rb, ra = heldout_rmse(before, before_on), heldout_rmse(after, after_on)
+    b, a = before.heldout_blocks, after.heldout_blocks
+    if b is None or a is None or len(b) != len(a) or len(b) < 3 or rb + ra <= 0:
+        return HeldoutGain(rb, ra, float("nan"), z)
+    count = b.sum() / rb ** 2                  # held-out samples: before's sum over its RMSE squared
+    se_squares = float(np.sqrt(len(b)) * np.std(b - a, ddof=1)) / count
+    return HeldoutGain(rb, ra, se_squares / (rb + ra), z)     # rb - ra = (rb^2 - ra^2) / (rb + ra)
+
+
+def _per_fold(n: int, n_folds: int) -> int:
+    return max(HELDOUT_BLOCKS_PER_FOLD, int(round(n / (n_folds * HELDOUT_BLOCK_SAMPLES))))
+
+
+def _block_ids(series: list[Series], n_folds: int) -> list[np.ndarray]:
+    """Each sample's block (numbered across the runs), the blocks `folds` cuts."""
+    out, first = [], 0
+    for s in series:
+        per_fold = _per_fold(len(s), n_folds)
+        edges = np.linspace(0, len(s), n_folds * per_fold + 1).astype(int)
+        out.append(first + np.searchsorted(edges, np.arange(len(s)), side="right") - 1)
+        first += n_folds * per_fold
+    return out
 
 
 def _refit_without(fit: Fit, keep: list[np.ndarray]) -> Solution:

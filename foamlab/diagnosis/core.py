@@ -176,7 +176,7 @@ class Procedure:
         c.coarse_fit = self._coarse(alone)
         c.reason = (rule_evidence(c, self.settings) or rule_not_pinned(c, self.settings)
                     or rule_effect_determined(c, self.settings)
-                    or rule_heldout(c, self.base, self._coarse(self.base)))
+                    or rule_heldout(c, self.base, self._coarse(self.base), self.settings))
         if c.reason or not explains(c, self.settings):
             return
         c.passed = True
@@ -338,7 +338,7 @@ class Procedure:
             # judged from the optimum it reports, as the model it extends is (current_coarse): from
             # the search's unpolished optimum a few refit steps can fall short of it by 2x
             c.coarse_fit = self._coarse(c.fit)
-            c.reason = rule_heldout(c, self.current, current_coarse)
+            c.reason = rule_heldout(c, self.current, current_coarse, self.settings)
             if c.reason:
                 continue
             if not explains(c, self.settings):

@@ -9,7 +9,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from foamlab.analysis.design import ExtendedModel, Solution
-from foamlab.analysis.heldout import heldout_rmse
+from foamlab.analysis.heldout import heldout_gain
 from foamlab.analysis.noise import WHITE_P, ArWhitener, whiteness
 from foamlab.analysis.solve import Fit
 from foamlab.diagnosis.result import Candidate
@@ -91,8 +91,13 @@ def rule_explains(c: Candidate, s: DiagnosisSettings, first_round: bool) -> str:
     return f"explains {c.share:.0%} of the structure left (< {s.explained_share_min:.0%})"
 
 
-def rule_heldout(c: Candidate, current: Fit, current_coarse: Fit) -> str:
-    """Held out on the search's samples (every k-th): the same prediction error, cheaper."""
-    before = heldout_rmse(current, current_coarse)
-    after = heldout_rmse(c.fit, c.coarse_fit)
-    return "" if after < before else f"held-out RMSE not lower ({after:.4g} >= {before:.4g})"
+def rule_heldout(c: Candidate, current: Fit, current_coarse: Fit, s: DiagnosisSettings) -> str:
+    """Held out on the search's samples (every k-th): the same prediction error, cheaper. The
+    candidate must predict the held-out blocks better, by s.heldout_margin_z standard errors of
+    the gain's block-to-block spread (0 by default: any gain; docs/settings.md says why)."""
+    g = heldout_gain(current, c.fit, s.heldout_margin_z, current_coarse, c.coarse_fit)
+    c.heldout_gain_se = g.gain_se
+    if g.passed:
+        return ""
+    margin = f" by {g.z:g} standard errors of its gain ({g.gain_se:.2g} N)" if g.z > 0 else ""
+    return f"held-out RMSE not lower{margin} ({g.after_rmse:.4g} vs {g.before_rmse:.4g} N)"

@@ -32,6 +32,7 @@ class Candidate:
     lr_p: float = float("nan")
     passed: bool = False
     reason: str = ""
+    heldout_gain_se: float | None = None  # N: standard error of its held-out RMSE gain (rule_heldout)
 
     @property
     def name(self) -> str:
@@ -75,6 +76,7 @@ class Candidate:
             "rmse_after": self.fit.rmse,
             "heldout_rmse_before": self.before.heldout_rmse,
             "heldout_rmse_after": self.fit.heldout_rmse,
+            "heldout_gain_se": self.heldout_gain_se,
             "delta_bic": self.delta_bic,
         }
 
