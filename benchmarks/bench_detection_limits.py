@@ -1,6 +1,6 @@
 """Does a run's reported detection limit mean what it says? (issue 27, item 2 and its done-when)
 
-    python benchmarks/bench_detection_limits.py [--seeds 10] [--causes a,b,...] [--out FILE]
+    python benchmarks/bench_detection_limits.py [--seeds 10] [--first 0] [--causes a,b,...] [--out FILE]
     python benchmarks/bench_detection_limits.py --publish-only
 
 For each fixed seed (3000 + i, regime/form (A causal, B paper, B causal, A paper)[i % 4]; set
@@ -131,6 +131,7 @@ def table(records: list[dict]) -> list[str]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--first", type=int, default=0, help="first seed index (split the seeds between processes)")
     ap.add_argument("--causes", default=",".join(TO_GENERATOR))
     ap.add_argument("--out", type=Path, default=Path(tempfile.gettempdir()) / "bench_detection_limits.jsonl")
     ap.add_argument("--publish-only", action="store_true")
@@ -150,7 +151,7 @@ def main(argv=None) -> int:
                 print(f"seed {rec['seed']} {rec['regime']}/{rec['form']:<6} {rec['cause']:>22} x{rec['multiple']:g}: "
                       f"{rec['verdict']:<22} {rec['seconds']:6.1f} s", flush=True)
 
-            for i in range(a.seeds):
+            for i in range(a.first, a.seeds):
                 done = {(r["cause"], float(r["multiple"]), int(r["seed"])) for r in load(a.out)}
                 if all((c, m, SEED0 + i) in done for c in causes for m in MULTIPLES) and ("clean", 0.0, SEED0 + i) in done:
                     continue

@@ -76,11 +76,9 @@ HIDDEN = [
     ("cycle_softening", 3.0),            # %/cycle
     ("damping_cycle_change", 100.0),     # %/cycle
     ("channel_lag", 100.0),              # ms
-    # open (issue 27 item 4): Delta BIC 1078, refused on held-out 0.1489 >= 0.1488 N, no margin
-    # either way: a change in the last digits can flip it on another machine, so it is not run
-    # (a non-strict xfail cannot fail; 17 s to learn nothing)
-    pytest.param("force_zero_drift", 0.4, marks=pytest.mark.xfail(
-        run=False, reason="issue 27: held-out check without margin refuses a clear drift by 1e-4 N")),
+    # refused before session 14 on held-out 0.1489 >= 0.1488 N with Delta BIC 1078: the check never
+    # scored the off-specimen samples, where a drift shows (docs/analysis.md)
+    ("force_zero_drift", 0.4),           # N/min
     ("machine_compliance", 250.0),       # N/mm frame
     ("direction_friction", 3.0),         # N
     ("memory_lag", 300.0),               # ms
@@ -89,7 +87,7 @@ HIDDEN = [
 SEED = 501
 
 
-@pytest.mark.parametrize("cause,size", HIDDEN, ids=[c.values[0] if hasattr(c, "marks") else c[0] for c in HIDDEN])
+@pytest.mark.parametrize("cause,size", HIDDEN, ids=[c[0] for c in HIDDEN])
 def test_hidden_effect_on_a_paper_form_run_is_named(cause, size):
     if cause == "rate_dependence":
         runs = ie.rate_pair("B", SEED, size, form="paper")
