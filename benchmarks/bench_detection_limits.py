@@ -25,6 +25,7 @@ import argparse
 import tempfile
 import json
 import os
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -124,6 +125,9 @@ def table(records: list[dict]) -> list[str]:
         none = sum(r["verdict"] == "none" for r in clean)
         lines += ["", f"Clean runs: `none` in {none}/{len(clean)}; the others: "
                       f"{', '.join(r['verdict'] for r in clean if r['verdict'] != 'none') or '-'}."]
+    seconds = [r["seconds"] for r in records if r["seconds"] > 0]
+    lines.append(f"Time per diagnosis (identification included, wall, this machine): median "
+                 f"{statistics.median(seconds):.1f} s, max {max(seconds):.1f} s over {len(seconds)}.")
     lines.append("Done-when (issue 27): named in >= 90 % at 1.5x, <= 10 % at 0.5x; clean `none` >= 95 %.")
     return lines
 
