@@ -73,7 +73,7 @@ def at_the_noise(residual: np.ndarray, noise_N: float) -> bool:
 
 
 def whiteness(residual: np.ndarray) -> Whiteness:
-    # statsmodels (with pandas) costs ~0.6 s to import: only when a test is made, not for
+    # statsmodels costs 0.1-0.4 s to import (beside pandas): only when a test is made, not for
     # every command that imports this module (`foamlab fit` often needs neither)
     from statsmodels.sandbox.stats.runs import runstest_1samp
     from statsmodels.stats.diagnostic import acorr_ljungbox
