@@ -86,7 +86,7 @@ def first(archive, cluster, tmp_path_factory):
     return table, out
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(300)     # the module's cluster and batch (30-117 s) are set up in it
 def test_ten_runs_and_three_broken_files_are_ten_results_and_three_error_rows(first, archive):
     table, out = first
     assert len(table) == N_RUNS + len(BROKEN)

@@ -97,7 +97,7 @@ def test_paper_protocol_through_foamlab_run(tmp_path, capsys):
         assert [r.path for r in catalog.runs()] == [str(run_file.resolve())]
 
 
-@pytest.mark.timeout(200)
+@pytest.mark.timeout(400)
 def test_twenty_cycles_through_foamlab_run(tmp_path, capsys):
     """A long run through the drivers (configs/methods/cyclic-20.toml on a 10 mm specimen:
     20 cycles, ~1 500 samples), fitted with the later cycles sharing the third's terms."""

@@ -56,7 +56,7 @@ def diagnosed_with(monkeypatch):
 
 
 @pytest.mark.hil
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(300)
 def test_foamlab_run_fits_the_run_once_and_diagnoses_that_fit(tmp_path, capsys, fits, diagnosed_with):
     out = tmp_path / "data"
     method = short_method(tmp_path, **SHORT)
@@ -77,7 +77,7 @@ def test_foamlab_run_fits_the_run_once_and_diagnoses_that_fit(tmp_path, capsys, 
 
 @pytest.mark.gui
 @pytest.mark.hil
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(300)
 def test_the_window_fits_the_run_once_and_diagnoses_that_fit(qtbot, tmp_path, fits, diagnosed_with):
     from PySide6 import QtCore
 

@@ -109,7 +109,7 @@ def test_report_of_a_foamlab_run_has_every_section_and_the_run_files_sha256(reco
 
 
 @pytest.mark.hil
-@pytest.mark.timeout(60)
+@pytest.mark.timeout(300)     # may set up the recorded run (20 s idle, 2-3x with a core busy)
 @needs_poppler
 def test_report_renders_to_an_a4_page_with_its_figures(recorded, tmp_path):
     run_file, _ = recorded
