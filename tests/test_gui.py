@@ -69,9 +69,9 @@ def click(qtbot, button):
     qtbot.mouseClick(button, QtCore.Qt.MouseButton.LeftButton)
 
 
-# its own waits add up to 210 s (run, analysis, verdict): a loaded machine (one core busy: 2-3x
+# its own waits add up to 360 s (run, analysis, verdict): a loaded machine (one core busy: 2-3x
 # the 38 s it takes on an idle one) must not be cut off by a shorter hang guard
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(420)
 def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
     w = window
     connect(qtbot, w)
@@ -128,8 +128,9 @@ def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
         # Then the diagnosis verdict (foamlab.diagnosis), computed off the GUI thread - for a
         # run with gaps too (a busy computer made the sped-up machine miss samples: flagged,
         # and analysed as `foamlab run` does, pipeline.AfterRun).
+        # a hang guard, not a speed check: with one core busy the verdict took over 90 s (ci33)
         qtbot.waitUntil(lambda: bool(w.results.report.verdict) or "failed" in w.results.verdict.text(),
-                        timeout=90_000)
+                        timeout=240_000)
         assert w.results.verdict.text().startswith("<b>Diagnosis verdict:</b>"), w.results.verdict.text()
         side = result.path.with_name(result.path.stem + ".diagnosis.json")
         assert side.exists()                       # kept with the run, so the browser shows it
