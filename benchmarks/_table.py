@@ -12,6 +12,15 @@ from pathlib import Path
 DOC = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"
 
 
+def load_jsonl(out: Path) -> list[dict]:
+    """The records a resumable benchmark has written so far, one JSON object a line."""
+    import json
+
+    if not out.exists():
+        return []
+    return [json.loads(line) for line in out.read_text(encoding="utf-8").splitlines() if line.strip()]
+
+
 def publish(section: str, lines: list[str]) -> None:
     """Print the lines and replace (or append) `## section` in docs/benchmarks.md."""
     text = "\n".join(lines)

@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from _table import publish  # noqa: E402
+from _table import load_jsonl as load, publish  # noqa: E402
 
 SECTION = "Diagnosis: detection on independent runs (benchmarks/bench_detection_independent.py)"
 #: (small, large) size of each cause, in independent_effects.UNITS; large is the hidden-effect tests'.
@@ -97,11 +97,6 @@ def key(case: tuple) -> tuple:
 def record_key(r: dict) -> tuple:
     return (r["cause"], float(r["size"]), int(r["seed"]), r["regime"], r["form"], float(r["hz"]))
 
-
-def load(out: Path) -> list[dict]:
-    if not out.exists():
-        return []
-    return [json.loads(line) for line in out.read_text(encoding="utf-8").splitlines() if line.strip()]
 
 
 def run_all(cases: list[tuple], out: Path, workers: int) -> None:

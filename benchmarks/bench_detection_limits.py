@@ -22,11 +22,11 @@ in docs/benchmarks.md from whatever the file holds.
 from __future__ import annotations
 
 import argparse
-import tempfile
 import json
 import os
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from _table import publish  # noqa: E402
+from _table import load_jsonl as load, publish  # noqa: E402
 
 SECTION = "Diagnosis: do the detection limits mean what they say? (benchmarks/bench_detection_limits.py)"
 COMBOS = (("A", "causal"), ("B", "paper"), ("B", "causal"), ("A", "paper"))
@@ -84,11 +84,6 @@ def run_seed(i: int, causes: list[str], done: set, keep) -> None:
             d, seconds = diagnose_one(regime, form, seed, {cause: size})
             keep(dict(rec, size=size, verdict=d.verdict, seconds=seconds))
 
-
-def load(out: Path) -> list[dict]:
-    if not out.exists():
-        return []
-    return [json.loads(line) for line in out.read_text(encoding="utf-8").splitlines() if line.strip()]
 
 
 def table(records: list[dict]) -> list[str]:
