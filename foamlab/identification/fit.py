@@ -18,7 +18,7 @@ from threadpoolctl import threadpool_limits
 
 from foamlab.analysis.noise import AT_NOISE_RATIO, at_the_noise
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
-from foamlab.analysis.solve import Fit, converged, polish, solved_at
+from foamlab.analysis.solve import Fit, at_full_resolution, converged, polish, solved_at
 from foamlab.identification.apart import HeldApart, coalesced, hold_apart
 from foamlab.identification.forms import choose as forms_choose
 from foamlab.identification.joint import (
@@ -161,6 +161,8 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
         placements.append(fd.other_turns())
     kept = result
     for placed in placements:
+        if not select and not _fits_better_placed(result, placed, settings):
+            continue
         other = _fit_prepared(placed, orders if select else result.orders, select, progress, hold=hold,
                               settings=settings)
         if other.rmse < kept.rmse:
@@ -168,6 +170,17 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
                            notes=other.notes + (f"{_placement(other)}: the whole run fits {result.rmse:.4g} N "
                                                 f"with every one placed {_rule(result)}",))
     return kept
+
+
+def _fits_better_placed(result: FitReport, placed: PreparedRun, settings: FitSettings) -> bool:
+    """Whether the other placement is worth a whole fit: the fit's free optimum, polished with
+    the turns placed the other way, fits the run better. A misplaced turn misfits its samples by
+    several times the noise, so the polish from the fit's own optimum shows the gain; where it
+    shows none, a fit from the start (three steps, searches, hold) would be spent to lose."""
+    free = result.free_core or result.core_fit
+    if free is None:
+        return True
+    return at_full_resolution(free, [placed.series], settings.polish_nfev).rss < free.rss
 
 
 def _rule(report: FitReport) -> str:
