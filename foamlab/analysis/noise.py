@@ -4,8 +4,7 @@
   measured force (a slowly varying signal has second differences far below the
   noise at the sampling rates of a compression test), MAD-based so the jumps at
   turning points and contact changes do not count.
-- whiteness: Ljung-Box (statsmodels) and the Wald-Wolfowitz runs test
-  (statsmodels.sandbox) on residuals.
+- whiteness: the Ljung-Box and the Wald-Wolfowitz runs tests on residuals.
 - ArWhitener: an AR(p) filter (Yule-Walker, order by BIC) estimated on one residual
   series and applied to others, so nested models are compared on the same
   prewhitened scale (generalised least squares with the noise's correlation).
@@ -16,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import erfc, gammaincc
 
 MAD_TO_SIGMA = 1.0 / 0.6744897501960817
 #: Highest AR order tried when prewhitening.
@@ -73,21 +73,47 @@ def at_the_noise(residual: np.ndarray, noise_N: float) -> bool:
 
 
 def whiteness(residual: np.ndarray) -> Whiteness:
-    # statsmodels costs 0.1-0.4 s to import (beside pandas): only when a test is made, not for
-    # every command that imports this module (`foamlab fit` often needs neither)
-    from statsmodels.sandbox.stats.runs import runstest_1samp
-    from statsmodels.stats.diagnostic import acorr_ljungbox
-
     r = np.asarray(residual, float)
     r = r - r.mean()
     if len(r) < 3 * LJUNG_BOX_LAGS or not np.any(r):
         return Whiteness(1.0, 1.0, 0.0)
-    lb = acorr_ljungbox(r, lags=[LJUNG_BOX_LAGS], return_df=True)
-    lb_p = float(lb["lb_pvalue"].iloc[0])
     nonzero = r[r != 0]
-    runs_p = float(runstest_1samp(nonzero, cutoff=0.0)[1]) if len(nonzero) > 10 else 1.0
+    runs_p = runs_test_p(nonzero > 0) if len(nonzero) > 10 else 1.0
     lag1 = float(r[1:] @ r[:-1] / (r @ r))
-    return Whiteness(lb_p, runs_p, lag1)
+    return Whiteness(ljung_box_p(r, LJUNG_BOX_LAGS), runs_p, lag1)
+
+
+# The two tests are written out rather than taken from statsmodels (acorr_ljungbox,
+# runstest_1samp): each is a few lines of numpy, and statsmodels' import (0.25-0.3 s with the
+# pandas it pulls in) was a tenth of `foamlab fit` as a process. tests/test_noise.py checks
+# both against statsmodels.
+
+def ljung_box_p(r: np.ndarray, lags: int) -> float:
+    """Ljung-Box p-value of a zero-mean series at ``lags`` (Q = n(n+2) sum rho_k^2 / (n-k),
+    chi-squared with ``lags`` degrees of freedom; rho_k with the biased autocovariance)."""
+    n = len(r)
+    denom = float(r @ r)
+    rho = np.array([r[k:] @ r[:n - k] for k in range(1, lags + 1)]) / denom
+    q = n * (n + 2.0) * float(np.sum(rho ** 2 / (n - np.arange(1, lags + 1))))
+    return float(gammaincc(lags / 2.0, q / 2.0))
+
+
+def runs_test_p(above: np.ndarray) -> float:
+    """Wald-Wolfowitz runs test of a two-valued sequence, two-sided normal p-value (with the
+    0.5 continuity correction below 50 values, as SAS and statsmodels)."""
+    above = np.asarray(above, bool)
+    n, n_pos = len(above), int(above.sum())
+    n_neg = n - n_pos
+    runs = 1 + int(np.count_nonzero(above[1:] != above[:-1]))
+    if n_pos == 0 or n_neg == 0:
+        return float(2.0 ** (1 - min(n, 1024)) * 2)      # one run: binomial, as statsmodels
+    npn = float(n_pos) * n_neg
+    mean = 2.0 * npn / n + 1.0
+    std = np.sqrt(2.0 * npn * (2.0 * npn - n) / n ** 2 / (n - 1.0))
+    d = runs - mean
+    if n < 50:
+        d = d - 0.5 if d > 0.5 else d + 0.5 if d < 0.5 else 0.0
+    return float(erfc(abs(d / std) / np.sqrt(2.0)))
 
 
 @dataclass
@@ -103,7 +129,7 @@ class ArWhitener:
     @classmethod
     def fit(cls, residuals: list[np.ndarray], max_order: int = MAX_AR_ORDER) -> "ArWhitener":
         """Yule-Walker AR(p) of the pooled residuals, p = 0..max_order by BIC."""
-        from statsmodels.regression.linear_model import yule_walker     # import cost: see whiteness
+        from statsmodels.regression.linear_model import yule_walker     # 0.25-0.3 s: diagnosis only
 
         r = np.concatenate([np.asarray(x, float) - np.mean(x) for x in residuals])
         n = len(r)
