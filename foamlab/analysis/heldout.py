@@ -25,31 +25,20 @@ CONTACT_EDGE_SAMPLES = 2
 HELDOUT_NFEV = 3
 
 
-def folds(series: list[Series], n_folds: int = HELDOUT_FOLDS,
-          blocks_per_fold: int | None = None) -> list[list[np.ndarray]]:
-    """Keep-masks per fold. Each run is cut into n_folds x blocks_per_fold contiguous
-    blocks (default: blocks of ~HELDOUT_BLOCK_SAMPLES samples); fold k leaves out blocks
-    k, k + n_folds, ... (interleaved), so every cycle keeps data that determine its own
-    parameters and each held-out block is predicted, not extrapolated past the end of
-    what was fitted. Samples measured off the specimen next to contact (CONTACT_EDGE_SAMPLES
-    either side) stay in every fit: they say where the plate leaves the specimen, and a fit
-    without them is free to put contact there. Those further off are held out and scored like
-    any other: the model predicts the unloaded reading there, and an effect seen there (a
-    drifting zero) is seen held out too (docs/analysis.md, "Held-out blocks")."""
-    out = []
-    for k in range(n_folds):
-        masks = []
-        for s in series:
-            per_fold = blocks_per_fold or _per_fold(len(s), n_folds)
-            m = np.ones(len(s), dtype=bool)
-            edges = np.linspace(0, len(s), n_folds * per_fold + 1).astype(int)
-            for b in range(k, n_folds * per_fold, n_folds):
-                m[edges[b]:edges[b + 1]] = False
-            if s.no_contact is not None:
-                m |= _contact_edges(s.no_contact)
-            masks.append(m)
-        out.append(masks)
-    return out
+def folds(series: list[Series], n_folds: int = HELDOUT_FOLDS) -> list[list[np.ndarray]]:
+    """Keep-masks per fold. Each run is cut into contiguous blocks of ~HELDOUT_BLOCK_SAMPLES
+    samples (_blocks); fold k leaves out blocks k, k + n_folds, ... (interleaved), so every
+    cycle keeps data that determine its own parameters and each held-out block is predicted,
+    not extrapolated past the end of what was fitted. Samples measured off the specimen next
+    to contact (CONTACT_EDGE_SAMPLES either side) stay in every fit: they say where the plate
+    leaves the specimen, and a fit without them is free to put contact there. Those further off
+    are held out and scored like any other: the model predicts the unloaded reading there, and
+    an effect seen there (a drifting zero) is seen held out too (docs/analysis.md, "Held-out
+    blocks")."""
+    blocks = [_blocks(len(s), n_folds)[0] for s in series]
+    always = [_contact_edges(s.no_contact) if s.no_contact is not None else np.zeros(len(s), bool)
+              for s in series]
+    return [[(b % n_folds != k) | a for b, a in zip(blocks, always)] for k in range(n_folds)]
 
 
 def heldout_rmse(fit: Fit, on: Fit | None = None, n_folds: int = HELDOUT_FOLDS) -> float:
@@ -62,7 +51,7 @@ def heldout_rmse(fit: Fit, on: Fit | None = None, n_folds: int = HELDOUT_FOLDS) 
     if fit.heldout_rmse is not None:
         return fit.heldout_rmse
     work = on or fit
-    ids = np.concatenate(_block_ids(work.model.series, n_folds))
+    ids = _block_ids(work.model.series, n_folds)
     blocks = np.zeros(int(ids.max()) + 1 if len(ids) else 0)
     count = 0
     for keep in folds(work.model.series, n_folds):
@@ -115,19 +104,22 @@ def _contact_edges(no_contact: np.ndarray, width: int = CONTACT_EDGE_SAMPLES) ->
     return no_contact & near
 
 
-def _per_fold(n: int, n_folds: int) -> int:
-    return max(HELDOUT_BLOCKS_PER_FOLD, int(round(n / (n_folds * HELDOUT_BLOCK_SAMPLES))))
+def _blocks(n: int, n_folds: int) -> tuple[np.ndarray, int]:
+    """Each of a run's n samples' block, and the number of blocks: n_folds x per-fold contiguous
+    blocks of about HELDOUT_BLOCK_SAMPLES samples (at least HELDOUT_BLOCKS_PER_FOLD per fold)."""
+    count = n_folds * max(HELDOUT_BLOCKS_PER_FOLD, int(round(n / (n_folds * HELDOUT_BLOCK_SAMPLES))))
+    edges = np.linspace(0, n, count + 1).astype(int)
+    return np.searchsorted(edges, np.arange(n), side="right") - 1, count
 
 
-def _block_ids(series: list[Series], n_folds: int) -> list[np.ndarray]:
-    """Each sample's block (numbered across the runs), the blocks `folds` cuts."""
+def _block_ids(series: list[Series], n_folds: int) -> np.ndarray:
+    """Each sample's block, numbered across the runs (the blocks `folds` holds out)."""
     out, first = [], 0
     for s in series:
-        per_fold = _per_fold(len(s), n_folds)
-        edges = np.linspace(0, len(s), n_folds * per_fold + 1).astype(int)
-        out.append(first + np.searchsorted(edges, np.arange(len(s)), side="right") - 1)
-        first += n_folds * per_fold
-    return out
+        blocks, count = _blocks(len(s), n_folds)
+        out.append(first + blocks)
+        first += count
+    return np.concatenate(out) if out else np.zeros(0, int)
 
 
 def _refit_without(fit: Fit, keep: list[np.ndarray]) -> Solution:
