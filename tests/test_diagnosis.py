@@ -197,9 +197,17 @@ def test_a_disturbance_outside_the_catalogue_is_unexplained_and_located():
 def test_clean_runs_give_none():
     """No effect: 'none' in at least 5 of the first 6 seeded runs (the false-alarm rate on
     independent runs is benchmarks/bench_detection_independent.py's)."""
-    verdicts = [diagnose([hidden_effect_run(None, seed=100 + s, sampling_hz=1.0)]).verdict
+    seen = []
+    verdicts = [diagnose([hidden_effect_run(None, seed=100 + s, sampling_hz=1.0)],
+                         progress=(lambda stage, f: seen.append((stage, f))) if s == 0 else None).verdict
                 for s in range(6)]
     assert verdicts.count("none") >= 5, verdicts
+    # the progress of the first: never backwards, and it names each candidate as it is tried
+    fractions = [f for _, f in seen]
+    assert all(b >= a - 1e-12 for a, b in zip(fractions, fractions[1:])) and fractions[-1] == 1.0, seen
+    stages = " | ".join(stage for stage, _ in seen)
+    assert all(f"testing {name}" in stages and f"candidate {name}" in stages
+               for name in ("cycle_softening", "channel_lag", "memory_lag")), stages
 
 
 # ----------------------------------------------------------------------------- the real file

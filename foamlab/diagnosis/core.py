@@ -205,10 +205,10 @@ class Procedure:
         accepted = [c.cause for c in self.findings]
         probes = []
         for i, cause in enumerate(self.remaining):
-            self._progress(f"testing {cause.name} ({i + 1} of {len(self.remaining)})", i / len(self.remaining))
+            self._progress(f"testing {cause.name} ({i + 1} of {len(self.remaining)})", 0.6 * i / len(self.remaining))
             probes.append(probe(self.ref, self.coarse, current_coarse, accepted + [cause]))
         probes.sort(key=lambda f: f.rss)
-        self._progress("fitting the strongest candidates jointly", 0.8)
+        self._progress("fitting the strongest candidates jointly", 0.6)
         fits = [fit_joint(self.coarse, f, current_coarse)
                 if i < self.settings.joint_candidates or f.causes[-1].imitated_by_base else f
                 for i, f in enumerate(probes)]
@@ -219,6 +219,7 @@ class Procedure:
         self.shown = set()
         reach = self.settings.multistart_reach * max((c.delta_bic for c in coarse_cands), default=0.0)
         for i, c in enumerate(coarse_cands):
+            self._progress(f"candidate {c.name} ({i + 1} of {len(coarse_cands)})", 0.6 + 0.3 * i / len(coarse_cands))
             if (c.cause.always_multistart and not self.findings) or (
                     c.cause.imitated_by_base and 0 < c.delta_bic and (c.delta_bic >= reach or i == 0)):
                 # one joint fit from the base stays in the base's basin: several starts (_imitated),

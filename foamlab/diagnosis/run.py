@@ -35,7 +35,7 @@ def diagnose(runs: list[RunData], fit: FitReport | None = None,
     A base in a form the user named is checked against the other form first (diagnosis.form).
     settings: the thresholds (foamlab.diagnosis.settings; docs/settings.md).
     """
-    report = progress or (lambda stage, fraction: None)
+    report = _forward(progress)
     if not runs:
         raise FoamlabError("no run to diagnose")
     names = _names(runs)
@@ -57,8 +57,9 @@ def diagnose(runs: list[RunData], fit: FitReport | None = None,
         # unless the extended model leaves only noise, the other form's base is diagnosed too
         # and the better extended model kept
         other.prepared.series.name = names[0]
-        d2 = _diagnose_on(other, rest, causes, lambda stage, f: report(f"{other.params.residual_form} form: {stage}", f),
-                          settings)
+        so_far = report.fraction
+        d2 = _diagnose_on(other, rest, causes, lambda stage, f: report(f"{other.params.residual_form} form: {stage}",
+                                                                        so_far + (1.0 - so_far) * f), settings)
         if bic(d2.final) < bic(d.final):
             d2.base_form_reason = (f"{other.params.residual_form} residual form: with the extension found it "
                                    f"explains the run better (BIC {bic(d2.final):.1f} vs {bic(d.final):.1f} in the "
@@ -68,7 +69,21 @@ def diagnose(runs: list[RunData], fit: FitReport | None = None,
         d.form_finding, d.verdict = form_finding, NAME
     d.notes += [f"{name}: {p.off_schedule} samples taken off the sampling schedule left out "
                 "(their instants are unsure)" for name, p in zip(names, [fit.prepared] + rest) if p.off_schedule]
+    report("done", 1.0)
     return d
+
+
+class _forward:
+    """The caller's progress, never backwards (a round or a form that ends early leaves its
+    share unused); fraction: the last one reported."""
+
+    def __init__(self, progress: Progress | None):
+        self.progress, self.fraction = progress, 0.0
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        self.fraction = max(self.fraction, fraction)
+        if self.progress is not None:
+            self.progress(stage, self.fraction)
 
 
 def _diagnose_on(fit: FitReport, rest: list, causes: list[str] | None, progress: Progress,
