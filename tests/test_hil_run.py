@@ -98,9 +98,16 @@ def test_paper_protocol_through_foamlab_run(tmp_path, capsys):
 
 
 @pytest.mark.timeout(400)
+@pytest.mark.schedule
 def test_twenty_cycles_through_foamlab_run(tmp_path, capsys):
     """A long run through the drivers (configs/methods/cyclic-20.toml on a 10 mm specimen:
-    20 cycles, ~1 500 samples), fitted with the later cycles sharing the third's terms."""
+    20 cycles, ~1 500 samples), fitted with the later cycles sharing the third's terms.
+
+    A schedule test: the run keeps its real-time deadlines, and a device that does not answer
+    within its reply timeout twice aborts it (the safety path). In phase 1's idle class the
+    client could be starved past its 40 ms timeout with the reply already waiting (ci36: "no
+    reply to read of motor_position (2 attempts of 40 ms)", the late replies then read as
+    stale transaction ids)."""
     out = tmp_path / "data"
     code = cli.main(["run", "--method", "cyclic-20", "--specimen-height", "10", "--speedup", "20",
                      "--out", str(out), "--quiet", "--specimen-label", "long", "--no-diagnose", "--no-predict"])
