@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import platform
 import re
 import statistics
@@ -14,8 +15,6 @@ DOC = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"
 
 def load_jsonl(out: Path) -> list[dict]:
     """The records a resumable benchmark has written so far, one JSON object a line."""
-    import json
-
     if not out.exists():
         return []
     return [json.loads(line) for line in out.read_text(encoding="utf-8").splitlines() if line.strip()]

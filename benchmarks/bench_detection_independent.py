@@ -98,7 +98,6 @@ def record_key(r: dict) -> tuple:
     return (r["cause"], float(r["size"]), int(r["seed"]), r["regime"], r["form"], float(r["hz"]))
 
 
-
 def run_all(cases: list[tuple], out: Path, workers: int) -> None:
     done = {record_key(r) for r in load(out)}
     todo = [c for c in cases if key(c) not in done]

@@ -85,7 +85,6 @@ def run_seed(i: int, causes: list[str], done: set, keep) -> None:
             keep(dict(rec, size=size, verdict=d.verdict, seconds=seconds))
 
 
-
 def table(records: list[dict]) -> list[str]:
     import independent_effects as ie
 
