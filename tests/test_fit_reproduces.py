@@ -3,8 +3,8 @@ stored path by the model as the simulator steps its specimen, give the fitted fo
 sample within 1e-6 of the peak; and the simulator's specimen built from the sidecar senses it.
 
 Runs from tests/independent_model.py (no foamlab model code), turns between samples, both
-residual forms; the real Bluehill file is checked in test_identification (its fit is made there;
-its jittered clock holds it to 1e-5, docs/identification.md).
+residual forms; the real Bluehill file (a clock 10-30 us off its 50 Hz) is checked in
+test_identification, where its fit is made, to the same 1e-6.
 """
 
 from __future__ import annotations

@@ -264,10 +264,10 @@ def test_real_bluehill_file_fits_to_the_end_with_automatic_starts(tmp_path):
 
     result = fit_run(load_run(REAL))
     sidecar = result.save(tmp_path / "real.fit.json")
-    # its clock is +-30 us off a regular 50 Hz one: the fractional columns' uniform grid misses the
-    # exact memory at a jittered sample by up to 3.1e-6 of the peak (docs/identification.md)
-    assert_reproduces(FitReport.load(sidecar), tolerance=1e-5)
-    assert_simulator_senses_it(FitReport.load(sidecar), sidecar, tolerance=1e-5)
+    # its clock is 10-30 us off a regular 50 Hz one: the samples just after a grid node are exact
+    # nodes of the fractional columns (basis._just_after_nodes), so 1e-6 holds here too
+    assert_reproduces(FitReport.load(sidecar))
+    assert_simulator_senses_it(FitReport.load(sidecar), sidecar)
     d = result.to_dict()
     assert all(d["statistics"][s]["r2"] is not None for s in ("damping", "residual", "elastic", "joint"))
     # the default structure (3,3,7,3) fits it best; every structure with two residual terms a
