@@ -118,12 +118,14 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
         def scaled(stage: str, fraction: float, i=i, f=f) -> None:
             report(f"{f} form: {stage}" if len(forms) > 1 else stage, (i + fraction) / steps)
         rival = min((r.rmse for r in results), default=np.inf)
-        results.append(_fit_placed(fd, replace(orders, form=f), select and len(forms) == 1, scaled, paper, rival,
-                                   hold, settings))
+        # the turns' placement is the path's, not the form's: a form starts where the last one placed them
+        placed = results[-1].prepared if results and results[-1].prepared is not None else fd
+        results.append(_fit_placed(placed, replace(orders, form=f), select and len(forms) == 1, scaled, paper,
+                                   rival, hold, settings))
     chosen = forms_choose(results, forced=form != "auto")
     if select and len(forms) > 1:
         choice, alternatives = chosen.form_choice, chosen.alternatives
-        chosen = _fit_placed(fd, replace(orders, form=choice.chosen), True,
+        chosen = _fit_placed(chosen.prepared or fd, replace(orders, form=choice.chosen), True,
                              lambda stage, fraction: report(f"structure: {stage}", (steps - 1 + fraction) / steps),
                              paper, hold=hold, settings=settings)
         chosen = replace(chosen, form_choice=choice).with_work(alternatives=alternatives)
@@ -145,7 +147,9 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
     fraction of a millisecond before the extreme sample: only that sample's force says it
     was already unloading); where they misfit more than their neighbours, every turn is; the
     placement whose whole run fits best is kept."""
-    result = _fit_prepared(fd, orders, select, progress, paper, rival, hold, settings)
+    # progress: the first fit to FIRST_SHARE, each other placement's an equal part of the rest
+    result = _fit_prepared(fd, orders, select, lambda stage, f: progress(stage, FIRST_SHARE * f), paper,
+                           rival, hold, settings)
     at_turns, around = _misfit_at_turns(result, fd)
     # a structure chosen with a turn misplaced can misfit everywhere, the turn's neighbours no more
     # than the rest (one cycle at 10 Hz: every structure 3-4 x the noise, 0.99 x placed the other way)
@@ -154,21 +158,26 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
     # a form far off its rival's RMSE is not kept (forms.choose): its turns are not placed one by one
     misplaced = _misplaced_turns(result, fd) if result.rmse <= RIVAL_RATIO * rival else ()
     if misplaced and len(misplaced) < len(fd.nodes.turns_between):
-        placements.append(fd.with_flipped(misplaced))
+        placements.append(fd.with_flipped(tuple(sorted(set(fd.nodes.flipped) ^ set(misplaced)))))
     if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around) or lost:
         # the structure the data chose, or chosen again (with the turn misplaced, a 28 N miss at
         # one peak sample chose (0, 2): 4 x the noise placed right)
         placements.append(fd.other_turns())
     kept = result
-    for placed in placements:
-        if not select and not _fits_better_placed(result, fd, placed):
+    for i, placed in enumerate(placements):
+        # worth a whole fit only if the best fit so far, its turns placed this way, already fits better
+        if not select and not _fits_better_placed(kept, kept.prepared or fd, placed):
             continue
-        other = _fit_prepared(placed, orders if select else result.orders, select, progress, hold=hold,
+        def within(stage: str, fraction: float, i=i) -> None:
+            progress(f"turns placed the other way: {stage}",
+                     FIRST_SHARE + (1.0 - FIRST_SHARE) * (i + fraction) / len(placements))
+        other = _fit_prepared(placed, orders if select else result.orders, select, within, hold=hold,
                               settings=settings)
         if other.rmse < kept.rmse:
             kept = replace(other, structure=other.structure if select else result.structure,
                            notes=other.notes + (f"{_placement(other)}: the whole run fits {result.rmse:.4g} N "
                                                 f"with every one placed {_rule(result)}",))
+    progress("done", 1.0)
     return kept
 
 
@@ -216,6 +225,8 @@ def _misplaced_turns(result: FitReport, fd: PreparedRun) -> tuple[int, ...]:
     return tuple(k for k, m in misfit if m > bar)
 
 
+#: The share of a form's progress its first fit takes; refits with turns placed otherwise the rest.
+FIRST_SHARE = 0.6
 #: The samples next to turns without a stop misfit by more than this many times the noise
 #: and the samples around them: the turn is at the other place.
 TURN_MISFIT_MULTIPLE = 3.0
