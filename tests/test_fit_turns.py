@@ -56,3 +56,17 @@ def test_the_turn_parameters_are_counted_and_reported(case, tmp_path):
     assert loaded.turns_flipped == result.turns_flipped
     again = resumed(loaded, run.to_rundata())
     assert again.prepared.nodes.flipped == result.prepared.nodes.flipped
+
+
+def test_both_forms_place_the_turns_alike_and_progress_never_goes_back():
+    """The turns' placement is the path's, not the form's: the second form starts where the first
+    placed them (A seed 12: two fits instead of five); the refits' progress stays within the form's
+    share, never restarting at 0."""
+    run = im.generate(im.REGIME_A, 12)
+    seen: list[float] = []
+    result = fit_run(run.to_rundata(), progress=lambda stage, fraction: seen.append(fraction))
+    assert result.rmse / run.sigma <= TOLERANCE
+    assert result.alternatives and all(a.turns_flipped == result.turns_flipped for a in result.alternatives)
+    assert len(result.turns_flipped) >= 1
+    assert all(b >= a for a, b in zip(seen, seen[1:])), seen
+    assert seen[-1] == pytest.approx(1.0)

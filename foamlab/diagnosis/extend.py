@@ -178,8 +178,14 @@ def probe(ref: PreparedRun, series: list[Series], current: Fit, causes: list[typ
     if cause.absorbed_by_identification:
         lo, hi = cause.bounds()
         side = -1.0 if screened.eta[-1] < 0 and lo[0] < 0 else 1.0
-        for size in (abs(cause.joint_start(series)), abs(cause.scale(series))):
+        tries = [side * abs(cause.joint_start(series)), side * abs(cause.scale(series))]
+        if lo[0] < 0 < hi[0]:
+            # the screening's lean is the base's, which has taken the effect up: a large change the
+            # base holds can lean it the wrong way (independent B seed 1004, damping +100 %/cycle:
+            # screened at -5 %); the scale is tried on the other side too
+            tries.append(-side * abs(cause.scale(series)))
+        for value in tries:
             eta = fit.eta.copy()
-            eta[-1] = float(np.clip(side * size, lo[0], hi[0]))
+            eta[-1] = float(np.clip(value, lo[0], hi[0]))
             fit = reidentify(ref, series, fit, eta)
     return fit
