@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 from PySide6 import QtCore, QtWidgets
 
+from foamlab.diagnosis import CAUSES
+from foamlab.diagnosis.form import NAME as FORM_VERDICT
 from foamlab.gui.window import MainWindow
 from tests.gui_support import shut_window
 from foamlab.importers import load_run
@@ -134,9 +136,9 @@ def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
         assert w.results.verdict.text().startswith("<b>Diagnosis verdict:</b>"), w.results.verdict.text()
         side = result.path.with_name(result.path.stem + ".diagnosis.json")
         assert side.exists()                       # kept with the run, so the browser shows it
-        assert w.results.report.verdict in (
-            "cycle_softening", "damping_cycle_change", "channel_lag", "force_zero_drift",
-            "machine_compliance", "direction_friction", "rate_dependence", "unexplained", "none")
+        # any verdict the catalogue can give: the simulated run's timing is the computer's
+        # (a loaded one lags the channels), so which one is not this test's to say
+        assert w.results.report.verdict in (*CAUSES, FORM_VERDICT, "unexplained", "none")
 
     # The run is in the catalog's browser; opening it from there shows the same curves (and fit).
     w.browser.refresh()
