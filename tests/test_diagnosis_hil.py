@@ -61,7 +61,9 @@ def _tested(d) -> list:
     return [(c.name, round(c.delta_bic, 1), c.description(), c.reason) for r in d.tested for c in r]
 
 
-@pytest.mark.timeout(60)
+# recording ~15 s and diagnosis 25-40 s alone; a timeout ends the whole phase-2 process (thread
+# method), so it is a hang guard, not a speed check: ci42 (slower AVX2 machine) passed 60 s
+@pytest.mark.timeout(240)
 @pytest.mark.parametrize("case", list(CASES))
 def test_hidden_effect_through_the_real_drivers_is_named(tmp_path, case):
     transport, speedup, name, magnitude, rel = CASES[case]

@@ -86,7 +86,7 @@ def recorded(tmp_path_factory):
 
 
 @pytest.mark.hil
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(300)     # may set up the recorded run, as the next test may
 @needs_poppler
 def test_report_of_a_foamlab_run_has_every_section_and_the_run_files_sha256(recorded, capsys):
     run_file, code = recorded
