@@ -125,9 +125,10 @@ def test_hidden_effect_is_named_and_the_extension_predicts_held_out_data_better(
 
 def test_damping_cycle_change_is_fitted_at_its_size():
     """Identification gives a per-cycle damping change to the earlier cycles' residual terms;
-    the search's probe continues the joint fit from the base with the effect at a visible size
-    and finds it. The base leans the screening to -5 %/cycle here: the scale is tried on the
-    other side too (extend.probe; docs/analysis.md, "Restarts")."""
+    the extension restarted from identification with the effect taken out finds its size. The
+    base leans the screening to -5 %/cycle here: the restart is tried on the other side too
+    (extend.probe), each from the base with the effect at that size first (extend._joint_at:
+    from identification alone, the size was found on one CPU and not another)."""
     d = diagnose([ie.independent_run("B", SEED, {"damping_cycle_change": 100.0}, form="causal")])
     assert d.verdict == "damping_cycle_change", _summary(d)
     assert d.findings[0].values["values"]["d"] == pytest.approx(1.0, rel=0.1)

@@ -206,7 +206,7 @@ class Procedure:
         probes = []
         for i, cause in enumerate(self.remaining):
             self._progress(f"testing {cause.name} ({i + 1} of {len(self.remaining)})", 0.6 * i / len(self.remaining))
-            probes.append(probe(self.coarse, current_coarse, accepted + [cause]))
+            probes.append(probe(self.ref, self.coarse, current_coarse, accepted + [cause]))
         probes.sort(key=lambda f: f.rss)
         self._progress("fitting the strongest candidates jointly", 0.6)
         fits = [fit_joint(self.coarse, f, current_coarse)

@@ -3,8 +3,7 @@
 screen: the effect's parameter scanned and refined with the base's alpha/beta held (cheap);
 fit_joint: everything free (the base may have bent its alpha/beta to mimic the effect);
 reidentify: a restart from identification's search on the data with the effect taken out;
-probe: the first two, short, for one cause (an absorbed one also from the base with the effect at
-its size: _joint_at); without: the model without one of its effects, refitted.
+probe: the three, short, for one cause; without: the model without one of its effects, refitted.
 All fits are the analysis core's (foamlab.analysis.solve.varpro).
 """
 
@@ -169,10 +168,10 @@ def reidentify(ref: PreparedRun, series: list[Series], fit: Fit, eta: np.ndarray
     return out if out.rss < fit.rss else fit
 
 
-def probe(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
+def probe(ref: PreparedRun, series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
     """A short fit of base + causes: screening, a joint probe and, for a last cause that
-    identification's staged fit absorbs, the joint fit continued from the base with the effect
-    at a visible size (on the side the screening leaned to, and at its scale on both sides)."""
+    identification's staged fit absorbs, a restart from identification with the effect
+    taken out at a visible size (on the side the screening leaned to)."""
     screened = screen(series, current, causes)
     fit = fit_joint(series, screened, current, PROBE_NFEV)
     cause = causes[-1]
@@ -188,17 +187,16 @@ def probe(series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
         for value in tries:
             eta = fit.eta.copy()
             eta[-1] = float(np.clip(value, lo[0], hi[0]))
-            fit = _joint_at(series, fit, eta)
+            fit = reidentify(ref, series, _joint_at(series, fit, eta), eta)
     return fit
 
 
 def _joint_at(series: list[Series], fit: Fit, eta: np.ndarray) -> Fit:
     """The joint fit continued from the fit's own base with the effect set to eta, if better.
-    A restart from identification on the data with the effect taken out (reidentify) can start
-    far off (a base that holds the effect bends the correction too); the fit's own base, the
-    effect at its size, reaches it in a few steps (independent A seed 500, damping +100 %/cycle:
-    rss 66 -> 56.6 in 12 steps, d = 1.03, where that restart needed 40 steps and only on some
-    CPUs), at a tenth of its cost (docs/analysis.md, "Restarts")."""
+    Identification on the corrected data can start far off (a base that holds the effect bends
+    the correction too); the fit's own base, the effect at its size, reaches it in a few steps
+    (independent A seed 500, damping +100 %/cycle: rss 66 -> 56.6 in 12 steps, d = 1.03, where
+    the restart from identification needed 40 steps and only on some CPUs)."""
     model = model_like(fit, series, free_base=True)
     nu0 = model.start(fit.eta) if not fit.model.free_base else fit.nu.copy()
     nu0[model.n_phi:] = eta
