@@ -174,9 +174,11 @@ def test_an_effect_pinned_at_the_limit_of_its_range_is_not_named():
     assert all("limit of its range" in c.reason for c in stronger), _summary(d)
 
 
-@pytest.mark.xfail(run=False, reason="issue 27: the two-speed base fit of independent runs is not at the noise (a clean pair is 'unexplained' too); not run: 42 s to confirm a known miss")
 def test_rate_dependence_needs_two_speeds_and_is_named_with_them():
-    """The damping scaled by (v / v_ref)^0.5 at 60 and 120 mm/min (regime A, seeds 510/511)."""
+    """The damping scaled by (v / v_ref)^0.5 at 60 and 120 mm/min (regime A, seeds 510/511).
+    The second run's turns are placed as the first run's fit fits them (PreparedRun.placed_for):
+    placed at the extreme sample, the shared base fitted the second run at 7x the noise and a
+    clean pair was 'unexplained'."""
     runs = ie.rate_pair("A", 510, 0.5, form="causal")
     one = diagnose(runs[:1])
     assert "rate_dependence" in one.skipped and one.verdict != "rate_dependence"

@@ -46,7 +46,8 @@ def diagnose(runs: list[RunData], fit: FitReport | None = None,
     fit, form_finding = check_other_form(fit, lambda stage, f: report(f"the other residual form: {stage}",
                                                                          FIT_SHARE * f), settings)
     fit.prepared.series.name = names[0]
-    rest = [prepare(r, name=n) for r, n in zip(runs[1:], names[1:])]
+    # the other runs' turns placed as the fitted specimen fits them (PreparedRun.placed_for)
+    rest = [prepare(r, name=n).placed_for(fit.params) for r, n in zip(runs[1:], names[1:])]
     start = FIT_SHARE if progress else 0.0
     d = _diagnose_on(fit, rest, causes, lambda stage, f: report(stage, start + (1.0 - start) * f), settings)
     d.base_form_reason = base_form_reason(fit)
