@@ -9,6 +9,12 @@ run (other speeds, a dwell at the peak, a smaller stroke, more cycles), built as
 Method objects from the reference run's own protocol. They are ranked by the predicted RMS
 difference of the two models' forces over the noise level, and the best is written as a
 method file `foamlab run --method FILE` accepts (docs/analysis.md, "The next test").
+
+A protocol decides when its predicted evidence - the likelihood ratio the two models' difference
+would give on the samples the protocol takes, sum of (difference / noise)^2 - reaches
+DECISIVE_EVIDENCE; the shortest protocol that decides is proposed (ranked by the difference
+alone, a 59-min run was proposed where a 3.7-min one would do: issue 27), the one with the
+most evidence when none does.
 """
 
 from __future__ import annotations
@@ -41,6 +47,11 @@ SPEED_FACTORS = (4.0, 0.25)
 DWELL_S = 60.0
 STROKE_FACTOR = 0.5
 CYCLE_FACTOR = 2
+#: Predicted evidence (-2 ln likelihood ratio of the two contenders on the protocol's samples) at
+#: which a protocol decides: ten times the close call's margin, for what the parameters both runs
+#: share absorb of the difference when the runs are fitted together (the prediction keeps them
+#: at the first run's values).
+DECISIVE_EVIDENCE = 10 * CLOSE_DELTA_BIC
 #: Protocols longer than this are not proposed (s).
 MAX_DURATION_S = 3600.0
 #: Crosshead speeds a protocol may use (mm/min).
@@ -80,6 +91,11 @@ class Prediction:
     rms_difference_N: float        # of the two contenders' predicted forces
     over_noise: float              # rms_difference_N / the noise level
     duration_s: float
+    evidence: float                # sum of (difference / noise)^2 over the samples the protocol takes
+
+    @property
+    def decides(self) -> bool:
+        return self.evidence >= DECISIVE_EVIDENCE
 
 
 @dataclass
@@ -106,7 +122,8 @@ class Suggestion:
         a, b = self.contenders
         comment = (f"foamlab diagnose --suggest: the test that best tells {a.name} from {b.name}\n"
                    f"({self.why}).\n{best.protocol.description}: predicted RMS difference "
-                   f"{best.rms_difference_N:.3g} N = {best.over_noise:.3g} x the noise.\n"
+                   f"{best.rms_difference_N:.3g} N = {best.over_noise:.3g} x the noise, evidence "
+                   f"{best.evidence:.3g} ({'decides' if best.decides else 'the most of any protocol'}).\n"
                    f"Strains are for a specimen {best.protocol.height_mm:.4g} mm high{self.height_note}.\n"
                    "Run it on the same specimen, then diagnose both runs together, the first run first.")
         return method_toml(best.protocol.method, comment)
@@ -123,9 +140,10 @@ class Suggestion:
         a, b = self.contenders
         out = [f"suggest: {a.name} or {b.name}? ({self.why})",
                f"  predicted difference of the two fitted models (noise {self.noise_sigma:.3g} N):",
-               f"  {'protocol':<52}{'RMS diff N':>11}{'x noise':>9}{'min':>7}"]
+               f"  {'protocol':<52}{'RMS diff N':>11}{'x noise':>9}{'evidence':>10}{'min':>7}"]
         out += [f"  {p.protocol.description:<52}{p.rms_difference_N:>11.3g}{p.over_noise:>9.3g}"
-                f"{p.duration_s / 60:>7.1f}" for p in self.ranking]
+                f"{p.evidence:>10.3g}{p.duration_s / 60:>7.1f}" for p in self.ranking]
+        out.append(f"  decides: predicted evidence >= {DECISIVE_EVIDENCE:g}; the shortest that decides is first")
         if self.path is not None:
             out.append(f"  best: {self.best.protocol.description}; method written to {self.path}")
             out.append(f"  run it: foamlab run --method {self.path}; then foamlab diagnose FIRST NEW")
@@ -139,7 +157,8 @@ class Suggestion:
                 "best": self.best.protocol.key,
                 "ranking": [{"protocol": p.protocol.key, "description": p.protocol.description,
                              "method": p.protocol.method.name, "rms_difference_N": p.rms_difference_N,
-                             "over_noise": p.over_noise, "duration_s": p.duration_s} for p in self.ranking]}
+                             "over_noise": p.over_noise, "duration_s": p.duration_s,
+                             "evidence": p.evidence, "decides": p.decides} for p in self.ranking]}
 
 
 def suggest(d: Diagnosis, height_mm: float | None = None) -> Suggestion:
@@ -151,9 +170,13 @@ def suggest(d: Diagnosis, height_mm: float | None = None) -> Suggestion:
     why, pair = call
     shape = RunShape.of(d)
     height, note = shape.height(height_mm)
-    ranking = [predict(pair, p, d.noise_sigma) for p in protocols(shape, height)]
-    ranking.sort(key=lambda p: (-p.over_noise, p.duration_s))
+    ranking = sorted((predict(pair, p, d.noise_sigma) for p in protocols(shape, height)), key=_rank)
     return Suggestion(why, pair, ranking, d.noise_sigma, note)
+
+
+def _rank(p: Prediction) -> tuple:
+    """The protocols that decide first, shortest first; then the others, most evidence first."""
+    return (0, p.duration_s, -p.evidence) if p.decides else (1, -p.evidence, p.duration_s)
 
 
 def close_call(d: Diagnosis) -> tuple[str, tuple[Contender, Contender]] | None:
@@ -252,7 +275,9 @@ def predict(pair: tuple[Contender, Contender], protocol: Protocol, noise_sigma: 
     t, x = method.history(protocol.height_mm, hz)
     diff = pair[0].force(t, x) - pair[1].force(t, x)
     rms = float(np.sqrt(np.mean(np.square(diff))))
-    return Prediction(protocol, rms, rms / noise_sigma if noise_sigma > 0 else float("inf"), duration)
+    over = rms / noise_sigma if noise_sigma > 0 else float("inf")
+    # the difference is simulated on a coarser grid; the evidence counts the samples the run takes
+    return Prediction(protocol, rms, over, duration, over ** 2 * duration * method.sampling_hz)
 
 
 def default_path(reference_name: str, folder: str | Path = ".") -> Path:
