@@ -97,13 +97,17 @@ def test_method_file_round_trip_and_cli(tmp_path, capsys):
 
 
 def test_no_close_call_no_suggestion():
-    """Two runs at two speeds of a clean specimen: nothing close, nothing waiting for a run.
-    Before every run's turns were placed by the shared base (diagnosis.run._shared_base), this
-    pair named a frame compliance (Delta BIC 63, shared base 0.22 N, noise 0.15 N)."""
+    """Two runs at two speeds of a clean specimen, the second tared otherwise (its load cell's
+    zero -0.5 N, the first's +0.3 N): nothing close, nothing waiting for a run, each run's zero
+    its own. Before every run's turns were placed by the shared base (diagnosis.run._shared_base),
+    this pair (one zero) named a frame compliance (Delta BIC 63, shared base 0.22 N, noise 0.15 N)."""
     runs = [ie.independent_run(REGIME, 640, {}, hz=HZ),
-            ie.independent_run(REGIME, 641, {}, hz=HZ, speed_mm_min=2 * REGIME.speed_mm_min)]
+            ie.independent_run(REGIME.with_(zero_offset_N=-0.5), 641, {}, hz=HZ,
+                               speed_mm_min=2 * REGIME.speed_mm_min)]
     d = diagnose(runs)
     assert d.verdict == "none", _tested(d)
+    zeros = d.final.solution.theta[-2:]
+    assert zeros == pytest.approx([REGIME.zero_offset_N, -0.5], abs=0.05)
     s = suggest(d, REGIME.height_mm)
     assert not s.made and f"{CLOSE_DELTA_BIC:g}" in s.why
     assert s.to_dict() == {"made": False, "why": s.why}

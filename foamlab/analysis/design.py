@@ -23,7 +23,8 @@ effects of foamlab.model.effects act on it as follows:
   displacement history, so their columns at x_s are those of x minus C times
   those of G (exact except where the effect keeps x_s monotone after a turning
   point: a few samples, see tests/test_diagnosis.py).
-- the load cell's zero offset (its unloaded reading) is one more linear column.
+- the load cell's zero offset (its unloaded reading) is one more linear column per run: each run
+  its own zero (another day, another tare), the specimen's parameters shared.
 
 Given the nonlinear vector nu = [phi (when the base is free), effect parameters],
 the linear parameters are solved by least squares (variable projection); the
@@ -250,7 +251,7 @@ _AFFINE_CHECKED: set[tuple[type, ...]] = set()
 
 @dataclass
 class Solution:
-    theta: np.ndarray                  # model linear parameters + zero offset
+    theta: np.ndarray                  # model linear parameters + each run's zero offset
     predictions: list[np.ndarray]      # per series, every sample
     residuals: list[np.ndarray]        # measured - predicted, per series, every sample
     masks: list[np.ndarray]            # contact set per series
@@ -297,7 +298,7 @@ class ExtendedModel:
         self.base_bounds = base_bounds
         self.effect_bounds = effect_bounds or {}   # narrower than the effect's own (physics)
         self.n_model = self.layout.n_linear
-        self.n_linear = self.n_model + 1          # + the load cell's zero offset
+        self.n_linear = self.n_model + len(series)  # + each run's load-cell zero offset
         lay = self.layout
         self._component = np.array([0] * (lay.P + 1) + [1] * lay.N + [2] * (lay.C * lay.M))
         self._column_of = lay.derivative_pairs[1]      # design column of each derivative column
@@ -421,13 +422,14 @@ class ExtendedModel:
             out[:, j] = self._sensor(chain, s.t, columns[:, j]) - zero
         return out
 
-    def _measured_design(self, s: Series, chain: EffectChain, cols, offset, mask):
-        """Measured force = M theta + const for a fixed contact set; M's last column is the
-        load cell's zero offset (its unloaded reading, there in and out of contact)."""
+    def _measured_design(self, k: int, s: Series, chain: EffectChain, cols, offset, mask):
+        """Measured force = M theta + const for a fixed contact set of series k; M's last
+        columns are each run's load-cell zero offset (its unloaded reading, there in and out of
+        contact): 1 in series k's own."""
         n, p = cols.shape
-        m = np.empty((n, p + 1))
+        m = np.zeros((n, p + len(self.series)))
         m[:, :p] = self._through_sensor(s, chain, cols * mask[:, None])
-        m[:, p] = 1.0
+        m[:, p + k] = 1.0
         const = self._sensor(chain, s.t, offset * mask) if chain.sensor_effects else offset * mask
         return m, const
 
@@ -460,8 +462,8 @@ class ExtendedModel:
         best = None
         seen: list[list[np.ndarray]] = []
         for _ in range(MAX_CONTACT_ITERATIONS):
-            designs = [self._measured_design(s, chain, cols, offset, mask)
-                       for (s, cols, offset, _), mask in zip(columns, masks)]
+            designs = [self._measured_design(k, s, chain, cols, offset, mask)
+                       for k, ((s, cols, offset, _), mask) in enumerate(zip(columns, masks))]
             a = np.vstack([m[rows[k]] for k, (m, _) in enumerate(designs)])
             b = np.concatenate([(s.y - c)[rows[k]] for k, ((s, *_), (_, c)) in enumerate(zip(columns, designs))])
             normal = NormalSolve(a)
@@ -471,7 +473,7 @@ class ExtendedModel:
                            list(masks), [s.used for s in self.series], designs, normal)
             if best is None or sol.rss(keep_all) < best.rss(keep_all):
                 best = sol
-            new_masks = [compressed & (cols @ theta[:-1] + offset > 0)
+            new_masks = [compressed & (cols @ theta[:self.n_model] + offset > 0)
                          for _, cols, offset, compressed in columns]
             # only the fitted rows' contact set shapes the fit: iterate on them alone
             fitted = [m[r] for m, r in zip(new_masks, rows)]
@@ -492,10 +494,10 @@ class ExtendedModel:
         for i, ((s, cols, offset, compressed), r) in enumerate(zip(prepared, rows)):
             if r.all():
                 continue
-            mask = np.where(r, sol.masks[i], compressed & (cols @ theta[:-1] + offset > 0))
+            mask = np.where(r, sol.masks[i], compressed & (cols @ theta[:self.n_model] + offset > 0))
             if np.array_equal(mask, sol.masks[i]):
                 continue
-            m, c = self._measured_design(s, chain, cols, offset, mask)
+            m, c = self._measured_design(i, s, chain, cols, offset, mask)
             sol.masks[i], sol.designs[i] = mask, (m, c)
             sol.predictions[i] = m @ theta + c
             sol.residuals[i] = s.y - sol.predictions[i]
@@ -534,7 +536,7 @@ class ExtendedModel:
         chain = EffectChain(self.effects(eta))
         theta = sol.theta
         blocks = []
-        for s, mask, (m, const) in zip(self.series, sol.masks, sol.designs):
+        for k, (s, mask, (m, const)) in enumerate(zip(self.series, sol.masks, sol.designs)):
             out = np.empty((len(s), self.n_nonlinear))
             if self.free_base:
                 _, _, _, deriv = self._columns(s, chain, phi, derivative=True)
@@ -547,7 +549,7 @@ class ExtendedModel:
                 step[j] = h
                 chain_j = EffectChain(self.effects(eta + step))
                 cols, offset, _, _ = self._columns(s, chain_j, phi)
-                mj, cj = self._measured_design(s, chain_j, cols, offset, mask)
+                mj, cj = self._measured_design(k, s, chain_j, cols, offset, mask)
                 out[:, self.n_phi + j] = (mj @ theta + cj - base_pred) / h
             blocks.append(out)
         return np.vstack(blocks)
@@ -558,10 +560,10 @@ class ExtendedModel:
         chain = EffectChain(self.effects(eta))
         theta = np.asarray(theta, float)
         out = []
-        for s in self.series:
+        for k, s in enumerate(self.series):
             cols, offset, x_s, _ = self._columns(s, chain, phi)
-            mask = (x_s > 0) & (cols @ theta[:-1] + offset > 0)
-            m, const = self._measured_design(s, chain, cols, offset, mask)
+            mask = (x_s > 0) & (cols @ theta[:self.n_model] + offset > 0)
+            m, const = self._measured_design(k, s, chain, cols, offset, mask)
             out.append(m @ theta + const)
         return out
 
@@ -571,9 +573,9 @@ class ExtendedModel:
         phi, eta = self.split(nu)
         chain = EffectChain(self.effects(eta))
         theta = np.asarray(theta, float)
-        return [cols @ theta[:-1] + offset for s in self.series
+        return [cols @ theta[:self.n_model] + offset for s in self.series
                 for cols, offset, _, _ in [self._columns(s, chain, phi)]]
 
     def linear_start(self) -> np.ndarray:
-        """The given parameters' linear values, zero offset 0."""
-        return np.append(self.linear0, 0.0)
+        """The given parameters' linear values, every run's zero offset 0."""
+        return np.append(self.linear0, np.zeros(len(self.series)))
