@@ -21,7 +21,7 @@ import pytest
 
 from foamlab import cli
 from foamlab.diagnosis import diagnose
-from foamlab.diagnosis.suggest import CLOSE_DELTA_BIC, DECISIVE_EVIDENCE, suggest
+from foamlab.diagnosis.suggest import CLOSE_DELTA_BIC, DECISIVE_EVIDENCE, Prediction, _rank, suggest
 from foamlab.methods import Method, load_method, method_toml, parse_method
 
 #: Regime A of the independent generator (62 mm high, 80 % stroke at 60 mm/min), sampled at 2 Hz
@@ -52,7 +52,7 @@ def _loop(causes: dict[str, float], seed: int, tmp_path):
     d = diagnose([first])
     s = suggest(d, REGIME.height_mm)
     assert s.made, (s.why, _tested(d))
-    ranking = [(p.decides, p.duration_s, -p.evidence) for p in s.ranking]
+    ranking = [(p.decides, p.duration_s) for p in s.ranking]
     deciding = [r for r in ranking if r[0]]
     assert ranking[:len(deciding)] == sorted(deciding, key=lambda r: r[1]), s.lines()   # shortest first
     method = load_method(s.write(tmp_path / "next.toml"))       # what `foamlab run --method FILE` loads
@@ -116,7 +116,6 @@ def test_no_close_call_no_suggestion():
 def test_the_shortest_protocol_that_decides_comes_first():
     """Ranked by evidence alone, a long run that separates the models more would win over a short
     one that already decides (issue 27: a 59-min run over a 3.7-min one)."""
-    from foamlab.diagnosis.suggest import Prediction, _rank
     p = lambda minutes, evidence: Prediction(None, 0.0, 0.0, 60.0 * minutes, evidence)
     long, short, weak, weaker = p(59, 1e5), p(3.7, DECISIVE_EVIDENCE), p(1, 50.0), p(0.5, 5.0)
     assert sorted([weaker, long, weak, short], key=_rank) == [short, long, weak, weaker]

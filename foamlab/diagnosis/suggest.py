@@ -6,13 +6,13 @@ diagnosis does not have (rate_dependence: runs at two or more speeds), each cont
 extended model - the fitted one: the base parameters and effects of its fit, evaluated by
 foamlab.model on a new displacement history - is simulated under a few protocols foamlab can
 run (other speeds, a dwell at the peak, a smaller stroke, more cycles), built as foamlab
-Method objects from the reference run's own protocol. They are ranked by the predicted RMS
-difference of the two models' forces over the noise level, and the best is written as a
-method file `foamlab run --method FILE` accepts (docs/analysis.md, "The next test").
+Method objects from the reference run's own protocol, and each is given the predicted RMS
+difference of the two models' forces over the noise level. The best is written as a method
+file `foamlab run --method FILE` accepts (docs/analysis.md, "The next test").
 
-A protocol decides when its predicted evidence - the likelihood ratio the two models' difference
-would give on the samples the protocol takes, sum of (difference / noise)^2 - reaches
-DECISIVE_EVIDENCE; the shortest protocol that decides is proposed (ranked by the difference
+Which is best: a protocol decides when its predicted evidence - the likelihood ratio the two
+models' difference would give on the samples the protocol takes, sum of (difference / noise)^2 -
+reaches DECISIVE_EVIDENCE; the shortest protocol that decides is proposed (ranked by the difference
 alone, a 59-min run was proposed where a 3.7-min one would do: issue 27), the one with the
 most evidence when none does.
 """
