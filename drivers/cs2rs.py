@@ -142,18 +142,18 @@ class Cs2rsCrosshead(Crosshead):
 
     def stop(self) -> None:
         # 0x40 (quick stop, Pr8.23's deceleration) is the drive's only documented stop.
-        self.drive.command("trigger", "quick_stop")
+        self.drive.command("trigger", "quick_stop", repeatable=True)
 
     def emergency_stop(self) -> None:
         self._estop_latched = True   # first: even if the write fails, nothing moves from here
-        self.drive.command("trigger", "quick_stop")
+        self.drive.command("trigger", "quick_stop", repeatable=True)
 
     def reset_fault(self) -> None:
-        self.drive.command("control_word", "reset_alarm")
+        self.drive.command("control_word", "reset_alarm", repeatable=True)
         self._estop_latched = False
 
     def set_zero(self) -> None:
-        self.drive.command("trigger", "set_zero")
+        self.drive.command("trigger", "set_zero", repeatable=True)
 
     def set_travel_limits(self, upper_mm: float, lower_mm: float) -> None:
         """Recorded for this driver's checks (move_to refuses targets beyond them; jog ends at them).

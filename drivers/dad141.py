@@ -44,10 +44,10 @@ class Dad141LoadCell(LoadCell):
         return ForceReading(self._to_N * float(values["net"]), self._status(int(values["qualifier"])))
 
     def zero(self) -> None:
-        self.device.command("bit_commands", "set_zero")
+        self.device.command("bit_commands", "set_zero", repeatable=True)
 
     def tare(self) -> None:
-        self.device.command("bit_commands", "set_tare")
+        self.device.command("bit_commands", "set_tare", repeatable=True)
         # ST is disabled while the reading moves (S3 §10.5) and S1 does not say how Modbus
         # answers then: the qualifier's "tare set" bit says whether the tare was taken.
         word = int(self.device.read("qualifier"))

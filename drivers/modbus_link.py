@@ -14,6 +14,7 @@ import select
 import socket
 import struct
 import threading
+import time
 from typing import Callable, Sequence
 
 import serial
@@ -104,6 +105,13 @@ def _is_other_transaction(got: bytes, sent: bytes) -> bool:
         return False
     _, protocol, length, unit = struct.unpack(">HHHB", got[:7])
     return protocol == 0 and length == len(got) - 6 and unit == sent[6] and got[:2] != sent[:2]
+
+
+#: How long an unanswered repeatable write (a stop, a reset, a zero: the same effect however
+#: often it arrives) is sent again. Such commands are not on the sample clock, and a reply later
+#: than the sample-period timeout (a loaded host, a busy drive) must not report a stop or a
+#: reset the drive carried out as failed: on a loaded CI host a reset was answered after 80 ms.
+REPEAT_FOR_S = 1.0
 
 
 class ModbusLink:
@@ -240,17 +248,31 @@ class ModbusLink:
         return words
 
     def write_words(self, unit: int, address: int, words: Sequence[int], label: str,
-                    meanings: dict[int, str] | None = None, single: bool = True) -> None:
+                    meanings: dict[int, str] | None = None, single: bool = True, repeatable: bool = False) -> None:
         """Function 6 for one register, function 16 for several (one request: atomic on the device);
-        `single=False`: function 16 always (a device without function 6, such as the Laumas TLU)."""
+        `single=False`: function 16 always (a device without function 6, such as the Laumas TLU).
+        `repeatable`: the write has the same effect however often it arrives, so while it goes
+        unanswered it is sent again for up to REPEAT_FOR_S (each send with the link's retries)."""
         words = list(words)
         action = f"write of {label}"
         if len(words) == 1 and single:
-            self._execute(action, unit, lambda: self._client.write_register(address, words[0], device_id=unit),
-                          meanings)
+            def call():
+                return self._client.write_register(address, words[0], device_id=unit)
         else:
-            self._execute(action, unit, lambda: self._client.write_registers(address, words, device_id=unit),
-                          meanings)
+            def call():
+                return self._client.write_registers(address, words, device_id=unit)
+        deadline = time.monotonic() + REPEAT_FOR_S
+        sends = 0
+        while True:
+            sends += 1
+            try:
+                self._execute(action, unit, call, meanings)
+                return
+            except DeviceTimeout as timeout:
+                if not repeatable or time.monotonic() >= deadline:
+                    if sends > 1:
+                        raise DeviceTimeout(f"{timeout}, sent {sends} times in {REPEAT_FOR_S:g} s") from None
+                    raise
 
 
 class DeviceOnLink:
@@ -282,9 +304,10 @@ class DeviceOnLink:
         self.link.write_words(self.unit, block.address, block.encode(values, self.device.word_order),
                               f"{block.label()}: {shown}", self._meanings, self._single)
 
-    def command(self, register: str, name: str) -> None:
-        """Write one of the register's documented values (the device file's [values.<register>])."""
+    def command(self, register: str, name: str, repeatable: bool = False) -> None:
+        """Write one of the register's documented values (the device file's [values.<register>]);
+        `repeatable`: see ModbusLink.write_words."""
         value = self.device.value(register, name)
         reg = self.device.registers[register]
         self.link.write_words(self.unit, reg.address, reg.encode(value, self.device.word_order),
-                              f"{reg.label()} = 0x{value:04X} ({name})", self._meanings, self._single)
+                              f"{reg.label()} = 0x{value:04X} ({name})", self._meanings, self._single, repeatable)

@@ -138,7 +138,7 @@ class _Wire:
     def read_words(self, unit, address, count, label, meanings=None):
         return [0x2710] if address == 0x0001 else [0] * count
 
-    def write_words(self, unit, address, words, label, meanings=None, single=True):
+    def write_words(self, unit, address, words, label, meanings=None, single=True, repeatable=False):
         self.writes.append((address, list(words)))
 
 
