@@ -46,8 +46,8 @@ def diagnose(runs: list[RunData], fit: FitReport | None = None,
     fit, form_finding = check_other_form(fit, lambda stage, f: report(f"the other residual form: {stage}",
                                                                          FIT_SHARE * f), settings)
     fit.prepared.series.name = names[0]
-    # the other runs' turns placed as the fitted specimen fits them (PreparedRun.placed_for)
-    rest = [prepare(r, name=n).placed_for(fit.params) for r, n in zip(runs[1:], names[1:])]
+    # the other runs' turns are placed as each form's base fits them (_shared_base)
+    rest = [prepare(r, name=n) for r, n in zip(runs[1:], names[1:])]
     start = FIT_SHARE if progress else 0.0
     d = _diagnose_on(fit, rest, causes, lambda stage, f: report(stage, start + (1.0 - start) * f), settings)
     d.base_form_reason = base_form_reason(fit)
@@ -113,7 +113,10 @@ def _shared_base(prepared: list[PreparedRun], params) -> tuple[list[PreparedRun]
     """The base of several runs with the parameters they share, each run's turns placed the way
     that base fits them (PreparedRun.placed_for), the first run's too: its own fit placed them for
     parameters bent to one run (independent A seeds 640/641 at 60 and 120 mm/min, 2 Hz: one turn
-    of the first run the other way, the shared base 0.220 N; placed again, 0.154 N, noise 0.15 N)."""
+    of the first run the other way, the shared base 0.220 N; placed again, 0.154 N, noise 0.15 N).
+    The other runs are first placed as the given parameters, the diagnosed form's, fit them (the
+    other form's base was started from runs placed for the first form's)."""
+    prepared = [prepared[0]] + [p.placed_for(params) for p in prepared[1:]]
     base = polish([p.series for p in prepared], params)
     for _ in range(PLACEMENT_ROUNDS):
         placed = [p.placed_for(base.params) for p in prepared]
