@@ -120,7 +120,10 @@ def test_fit_reports_table5_statistics_checks_and_json(default_fit, default_para
     assert d["turn_samples"] == {"count": 0, "rmse_without": d["rmse"], "max_abs": 0.0,
                                  "rmse_without_samples": {"set": "evidence", "count": n}}
     assert d["structure"]["forced"] and d["structure"]["chosen"] == str(result.orders)
-    assert d["form"] == d["forms"]["chosen"] and {s["form"] for s in d["forms"]["scores"]} == {"causal", "paper"}
+    # both forms scored, or the first left only the noise and settled the choice (identification.forms)
+    fitted = {s["form"] for s in d["forms"]["scores"]}
+    assert d["form"] == d["forms"]["chosen"]
+    assert fitted == {"causal", "paper"} or (d["forms"]["settled"] and fitted == {d["form"]}), d["forms"]
     assert set(d["optimizer"]) == {"success", "status", "message", "meaning"} and d["optimizer"]["message"]
     assert d["optimizer"]["success"] == (d["optimizer"]["status"] > 0) == d["converged"]
     assert list(d["statistics"]) == ["damping", "residual", "elastic", "joint"]

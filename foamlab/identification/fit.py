@@ -21,6 +21,7 @@ from foamlab.analysis.prepared import PreparedRun, model_response, prepare
 from foamlab.analysis.solve import Fit, converged, polish, solved_at
 from foamlab.identification.apart import HeldApart, coalesced, hold_apart
 from foamlab.identification.forms import choose as forms_choose
+from foamlab.identification.forms import settles as forms_settle
 from foamlab.identification.joint import (
     AT_BOUND,
     MIN_CENSORED,
@@ -122,6 +123,8 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
         placed = results[-1].prepared if results and results[-1].prepared is not None else fd
         results.append(_fit_placed(placed, replace(orders, form=f), select and len(forms) == 1, scaled, paper,
                                    rival, hold, settings))
+        if form == "auto" and forms_settle(results[-1]):
+            break
     chosen = forms_choose(results, forced=form != "auto")
     if select and len(forms) > 1:
         choice, alternatives = chosen.form_choice, chosen.alternatives
@@ -129,6 +132,7 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
                              lambda stage, fraction: report(f"structure: {stage}", (steps - 1 + fraction) / steps),
                              paper, hold=hold, settings=settings)
         chosen = replace(chosen, form_choice=choice).with_work(alternatives=alternatives)
+    report("done", 1.0)      # also where the first form settled the choice (the rest skipped)
     # the report of the whole fit: a new frozen record with the whole time (reports are not changed)
     return replace(chosen, elapsed_s=time.perf_counter() - started)
 

@@ -5,6 +5,11 @@ same count, so neither is favoured by its size: each is fitted in full and the o
 predicts held-out blocks of the run better is kept (foamlab.analysis.heldout, the check
 diagnosis applies to its extensions). BIC is reported beside it; with equal parameter
 counts its difference is n log(RSS ratio), the same ranking on all the samples.
+
+A first form that leaves only the noise (RMSE within AT_NOISE_RATIO of the noise level and
+white residuals) settles the choice: the other, with as many parameters, could at best tie,
+and is not fitted (40 % of `foamlab fit`; the causal form on independent paper-form runs, A and
+B seeds 1-3: 3.5-8 x the noise, never white).
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import numpy as np
 
 from foamlab.analysis.design import ExtendedModel
 from foamlab.analysis.heldout import heldout_rmse
+from foamlab.analysis.noise import AT_NOISE_RATIO, WHITE_P, whiteness
 from foamlab.analysis.solve import Fit, at_full_resolution, decimation
 
 if TYPE_CHECKING:
@@ -39,6 +45,7 @@ class FormChoice:
     chosen: str
     scores: tuple[FormScore, ...]
     forced: bool                 # the user named the form (--form): no choice was made
+    settled: bool = False        # the chosen form left only the noise: the other was not fitted
 
     def score(self, form: str) -> FormScore | None:
         return next((s for s in self.scores if s.form == form), None)
@@ -52,6 +59,9 @@ class FormChoice:
 
     def reason(self) -> str:
         mine = self.score(self.chosen)
+        if self.settled and mine is not None:
+            return (f"{self.chosen} residual form: it leaves only the noise (RMSE {mine.rmse:.4g} N, white "
+                    f"residuals), so the other form was not fitted")
         if self.forced or mine is None or len(self.scores) < 2:
             return f"{self.chosen} residual form (asked for with --form)"
         others = ", ".join(f"{s.heldout_rmse:.4g} N {s.form}" for s in self.scores if s.form != self.chosen)
@@ -82,6 +92,16 @@ def heldout_of(core: Fit) -> float:
     return heldout_rmse(core, coarse)
 
 
+def settles(result: "FitReport") -> bool:
+    """The fit leaves only the noise: RMSE within AT_NOISE_RATIO of the run's noise level, and
+    white residuals (analysis.noise). Both, since either alone can hold for a form that misses."""
+    fd = result.prepared
+    if fd is None or result.rmse > AT_NOISE_RATIO * fd.noise_N:
+        return False
+    residual = (fd.f - result.predicted_force_N)[fd.observed]
+    return whiteness(residual).min_p >= WHITE_P
+
+
 def choose(results: list["FitReport"], forced: bool) -> "FitReport":
     """The result whose form predicts held-out blocks best, with every form's score and the
     others' results attached (the report shows both forms' statistics)."""
@@ -89,5 +109,7 @@ def choose(results: list["FitReport"], forced: bool) -> "FitReport":
         FormScore(results[0].params.residual_form, float(results[0].rmse), float("nan"), float(results[0].bic))]
     best = min(range(len(results)), key=lambda i: scores[i].heldout_rmse) if len(results) > 1 else 0
     chosen = results[best]
-    return replace(chosen, form_choice=FormChoice(chosen.params.residual_form, tuple(scores), forced)).with_work(
+    settled = len(results) == 1 and not forced
+    choice = FormChoice(chosen.params.residual_form, tuple(scores), forced, settled)
+    return replace(chosen, form_choice=choice).with_work(
         alternatives=tuple(r for i, r in enumerate(results) if i != best))

@@ -311,7 +311,7 @@ class FitReport:
         if choice is None:
             return {"chosen": self.params.residual_form, "reason": "", "scores": []}
         mine = choice.score(choice.chosen)
-        return {"chosen": choice.chosen, "reason": choice.reason(), "forced": choice.forced,
+        return {"chosen": choice.chosen, "reason": choice.reason(), "forced": choice.forced, "settled": choice.settled,
                 "rmse_samples": RECORDED, "heldout_rmse_samples": HELDOUT,
                 "scores": [{"form": s.form, "rmse": _num(s.rmse), "heldout_rmse": _num(s.heldout_rmse),
                             "bic": _num(s.bic), "delta_bic": _num(s.bic - mine.bic) if mine else None}

@@ -162,6 +162,8 @@ def fit(doc: Document, c: ReportContent, png: Path | None) -> None:
                   [[sc.form, f"{num(sc.rmse)} N", f"{num(sc.heldout_rmse)} N", num(sc.bic - mine.bic, ".1f"),
                     "yes" if sc.form == choice.chosen else ""] for sc in choice.scores],
                   [0.28, 0.18, 0.18, 0.18, 0.18])
+    elif choice is not None and choice.settled:
+        doc.paragraph(text(f"Residual force: {choice.reason()}."))
     params = [p for p in f.parameters.values() if p.determined]
     doc.paragraph(text(f"Parameters the data determine ({len(params)} of {len(f.names)}: varied, with a "
                        "standard error, 95 % interval excluding zero):"))
