@@ -17,8 +17,12 @@ from tests.gui_support import shut_window
 from tests.hil_support import short_method
 from tests.synthetic import triangle_run
 
-SPEEDUP = 12.0
-#: Three short cycles (15 % of the 72.5 mm specimen at 100 mm/min): ~4 s of wall time at x12.
+#: At x12 a 16 Hz sample is due every 5.2 ms of wall time: on a loaded CI host (replies up to
+#: 22 ms) the window's run kept 394 of ~630 samples, each force read up to 0.26 machine-seconds
+#: from its position; the model misfit 1.3x the noise and its diagnosis took 162 s (session 19's
+#: CI 49). At x4 (15.6 ms) these pipeline tests get a run like a machine's.
+SPEEDUP = 4.0
+#: Three short cycles (15 % of the 72.5 mm specimen at 100 mm/min): ~10 s of wall time at x4.
 SHORT = dict(strain=0.15, speed=100.0, cycles=3)
 
 
@@ -77,7 +81,7 @@ def test_foamlab_run_fits_the_run_once_and_diagnoses_that_fit(tmp_path, capsys, 
 
 @pytest.mark.gui
 @pytest.mark.hil
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(600)
 def test_the_window_fits_the_run_once_and_diagnoses_that_fit(qtbot, tmp_path, fits, diagnosed_with):
     from PySide6 import QtCore
 
@@ -105,7 +109,7 @@ def test_the_window_fits_the_run_once_and_diagnoses_that_fit(qtbot, tmp_path, fi
         assert w.results.parameters.rowCount() > 0 and "not run" in w.results.verdict.text()
         # ...the diagnosis on request, in the background, of that same fit.
         w.diagnose_shown_run()
-        qtbot.waitUntil(lambda: w.results.report.diagnosis_note != "running…", timeout=60_000)
+        qtbot.waitUntil(lambda: w.results.report.diagnosis_note != "running…", timeout=240_000)   # a hang only
         assert w.shown_analysis.diagnosis is not None, w.shown_analysis.diagnosis_error
         assert "Diagnosis verdict:" in w.results.verdict.text()
         assert fits.count(str(result.path)) == 1, fits
