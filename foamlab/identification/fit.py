@@ -21,6 +21,7 @@ from foamlab.analysis.prepared import PreparedRun, model_response, prepare
 from foamlab.analysis.solve import Fit, converged, polish, solved_at
 from foamlab.identification.apart import HeldApart, coalesced, hold_apart
 from foamlab.identification.forms import choose as forms_choose
+from foamlab.identification.forms import likelier_first
 from foamlab.identification.forms import settles as forms_settle
 from foamlab.identification.joint import (
     AT_BOUND,
@@ -46,7 +47,6 @@ from foamlab.model import thermodynamic_checks
 from foamlab.model.layout import (
     BETA_HI,
     BETA_LO,
-    RESIDUAL_FORMS,
     Orders,
     check_form,
     nonlinear_bounds,
@@ -105,11 +105,12 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
     select = select or (orders is None and len(fd.labels.starts) == 1)
     given = None if select else (_orders(orders) or LARGEST)
     orders = given or LARGEST
-    forms = RESIDUAL_FORMS if form == "auto" else (check_form(form),)
     report = progress or (lambda stage, fraction: None)
     started = time.perf_counter()
     with threadpool_limits(1, user_api="blas"):
         paper = paper_steps(fd, orders)          # the same in either form (identification.paper)
+        # the likelier form first: one that leaves only the noise settles the choice alone
+        forms = likelier_first(fd, orders, paper.start) if form == "auto" else (check_form(form),)
     select = given is None
     # with the form to choose, both are fitted in the largest structure and the structure the
     # data determine is selected in the form kept only (a selection costs two to three fits)

@@ -9,7 +9,9 @@ counts its difference is n log(RSS ratio), the same ranking on all the samples.
 A first form that leaves only the noise (RMSE within AT_NOISE_RATIO of the noise level and
 white residuals) settles the choice: the other, with as many parameters, could at best tie,
 and is not fitted (40 % of `foamlab fit`; the causal form on independent paper-form runs, A and
-B seeds 1-3: 3.5-8 x the noise, never white).
+B seeds 1-3: 3.5-8 x the noise, never white). The likelier form is fitted first (likelier_first:
+a short probe of each from the paper's three-step start, 0.04 s), so a run of either form can
+settle with one fit; the order changes what is fitted, never which form is kept.
 """
 
 from __future__ import annotations
@@ -23,9 +25,14 @@ from foamlab.analysis.design import ExtendedModel
 from foamlab.analysis.heldout import heldout_rmse
 from foamlab.analysis.noise import AT_NOISE_RATIO, WHITE_P, whiteness
 from foamlab.analysis.solve import Fit, at_full_resolution, decimation
+from foamlab.identification.joint import DecimatedProblem
+from foamlab.model.layout import RESIDUAL_FORMS
 
 if TYPE_CHECKING:
+    from foamlab.analysis.prepared import PreparedRun
     from foamlab.identification.result import FitReport
+    from foamlab.model import ModelParameters
+    from foamlab.model.layout import Orders
 
 
 @dataclass(frozen=True)
@@ -67,6 +74,17 @@ class FormChoice:
         others = ", ".join(f"{s.heldout_rmse:.4g} N {s.form}" for s in self.scores if s.form != self.chosen)
         return (f"{self.chosen} residual form: it predicts held-out blocks better "
                 f"({mine.heldout_rmse:.4g} N vs {others}; dBIC {self.delta_bic:.1f})")
+
+
+def likelier_first(fd: "PreparedRun", orders: "Orders", start: "ModelParameters") -> tuple[str, ...]:
+    """The residual forms, the one that fits better after a short probe from ``start`` (the
+    paper's three-step values, the same in either form) first. On 20 independent runs (both forms,
+    regimes A and B, seeds 1-5) the form generated was first in all, its probe's SSE 2-600 x lower."""
+    sse = {}
+    for form in RESIDUAL_FORMS:
+        problem = DecimatedProblem(fd, replace(orders, form=form))
+        sse[form] = problem.probe(problem.lay.from_flat(start.to_vector())[1]).sse
+    return tuple(sorted(RESIDUAL_FORMS, key=lambda f: sse[f]))
 
 
 def core_fit_of(result: "FitReport") -> Fit:
