@@ -1,9 +1,11 @@
 """`foamlab fit` and `foamlab diagnose` on runs of the independent generator (tests/independent_model.py).
 
     python benchmarks/bench_fit_independent.py [--seeds N] [--grid] [--no-diagnose] [--cycles C] [--hz F]
+                                               [--form causal|paper]
 
 For each regime (A, B; with --grid also A-grid, B-grid, turning points on samples) and
-seed 1..N (C cycles, default the regime's three; sampled at F Hz, default 16): the run is written as a plain CSV into a temporary directory, then
+seed 1..N (C cycles, default the regime's three; sampled at F Hz, default 16; generated in
+the residual form given, default the regime's causal one): the run is written as a plain CSV into a temporary directory, then
 `python -m foamlab.cli fit PATH --json --no-store` and `python -m foamlab.cli diagnose
 PATH --no-store` run on it (subprocesses of this checkout). One line per run:
 
@@ -96,10 +98,14 @@ def main(argv=None) -> int:
     ap.add_argument("--no-diagnose", action="store_true", help="fit only")
     ap.add_argument("--cycles", type=int, default=None, help="cycles per run (default: the regime's, 3)")
     ap.add_argument("--hz", type=float, default=None, help="sampling rate (default: the regime's, 16 Hz)")
+    ap.add_argument("--form", choices=("causal", "paper"), default=None,
+                    help="residual form the runs are generated in (default: the regime's, causal)")
     args = ap.parse_args(argv)
     regimes = list(im.REGIMES.values()) + (list(im.GRID_REGIMES.values()) if args.grid else [])
     if args.hz:
         regimes = [r.with_(sampling_hz=args.hz) for r in regimes]
+    if args.form:
+        regimes = [r.with_(form=args.form) for r in regimes]
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_fit_independent_") as tmp:
         for regime in regimes:
