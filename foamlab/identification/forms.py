@@ -76,10 +76,13 @@ class FormChoice:
                 f"({mine.heldout_rmse:.4g} N vs {others}; dBIC {self.delta_bic:.1f})")
 
 
-def likelier_first(fd: "PreparedRun", orders: "Orders", start: "ModelParameters") -> tuple[str, ...]:
+def likelier_first(fd: "PreparedRun", orders: "Orders", start: "ModelParameters | None") -> tuple[str, ...]:
     """The residual forms, the one that fits better after a short probe from ``start`` (the
     paper's three-step values, the same in either form) first. On 20 independent runs (both forms,
-    regimes A and B, seeds 1-5) the form generated was first in all, its probe's SSE 2-600 x lower."""
+    regimes A and B, seeds 1-5) the form generated was first in all, its probe's SSE 2-600 x lower.
+    Without a start (the three steps found none) the forms in their usual order."""
+    if start is None:
+        return RESIDUAL_FORMS
     sse = {}
     for form in RESIDUAL_FORMS:
         problem = DecimatedProblem(fd, replace(orders, form=form))
