@@ -127,9 +127,13 @@ class Procedure:
         Whiteness alone is not enough: a second cause can leave residuals the whiteness tests
         pass at 1.5 x the noise variance, or 1.01 x and far from white (docs/analysis.md,
         "Two causes")."""
+        return bool(self.findings) and self._quiet()
+
+    def _quiet(self) -> bool:
+        """The current model leaves white noise at the noise level (or any residuals at it)."""
         c = self.current
         excess = c.rss / (c.n * self.sigma ** 2) - 1
-        return bool(self.findings) and (excess < self.settings.at_noise or (
+        return bool(excess < self.settings.at_noise or (
             excess < self.settings.near_noise and whiteness(c.solution.residual).min_p >= WHITE_P))
 
     # -- the procedure
@@ -203,10 +207,11 @@ class Procedure:
         """Stages 1-3: every cause probed on the decimated runs, the best fitted jointly,
         compared, and the best and every strong one carried to every sample."""
         accepted = [c.cause for c in self.findings]
+        deep = not (self.settings.deep_only_on_structure and self._quiet())
         probes = []
         for i, cause in enumerate(self.remaining):
             self._progress(f"testing {cause.name} ({i + 1} of {len(self.remaining)})", 0.6 * i / len(self.remaining))
-            probes.append(probe(self.ref, self.coarse, current_coarse, accepted + [cause]))
+            probes.append(probe(self.ref, self.coarse, current_coarse, accepted + [cause], restarts=deep))
         probes.sort(key=lambda f: f.rss)
         self._progress("fitting the strongest candidates jointly", 0.6)
         fits = [fit_joint(self.coarse, f, current_coarse)
@@ -220,7 +225,7 @@ class Procedure:
         reach = self.settings.multistart_reach * max((c.delta_bic for c in coarse_cands), default=0.0)
         for i, c in enumerate(coarse_cands):
             self._progress(f"candidate {c.name} ({i + 1} of {len(coarse_cands)})", 0.6 + 0.3 * i / len(coarse_cands))
-            if (c.cause.always_multistart and not self.findings) or (
+            if (c.cause.always_multistart and not self.findings) or (deep and
                     c.cause.imitated_by_base and 0 < c.delta_bic and (c.delta_bic >= reach or i == 0)):
                 # one joint fit from the base stays in the base's basin: several starts (_imitated),
                 # where the search's joint fit shows the effect and it could lead this round

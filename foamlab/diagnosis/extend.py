@@ -168,14 +168,15 @@ def reidentify(ref: PreparedRun, series: list[Series], fit: Fit, eta: np.ndarray
     return out if out.rss < fit.rss else fit
 
 
-def probe(ref: PreparedRun, series: list[Series], current: Fit, causes: list[type[Cause]]) -> Fit:
+def probe(ref: PreparedRun, series: list[Series], current: Fit, causes: list[type[Cause]],
+          restarts: bool = True) -> Fit:
     """A short fit of base + causes: screening, a joint probe and, for a last cause that
-    identification's staged fit absorbs, a restart from identification with the effect
-    taken out at a visible size (on the side the screening leaned to)."""
+    identification's staged fit absorbs (and ``restarts``), a restart from identification with
+    the effect taken out at a visible size (on the side the screening leaned to)."""
     screened = screen(series, current, causes)
     fit = fit_joint(series, screened, current, PROBE_NFEV)
     cause = causes[-1]
-    if cause.absorbed_by_identification:
+    if cause.absorbed_by_identification and restarts:
         lo, hi = cause.bounds()
         side = -1.0 if screened.eta[-1] < 0 and lo[0] < 0 else 1.0
         tries = [side * abs(cause.joint_start(series)), side * abs(cause.scale(series))]
