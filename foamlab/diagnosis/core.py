@@ -107,6 +107,8 @@ class Procedure:
         self.tested: list[list[Candidate]] = []
         #: Causes the base imitates whose joint fit in this round's search showed them (multistarted).
         self.shown: set[type[Cause]] = set()
+        #: Joint fits of the search's probes, by the probe's id (the probe kept alive beside it).
+        self._joint: dict[int, tuple[Fit, Fit]] = {}
 
     # -- helpers
     def _full(self, fit: Fit) -> Fit:
@@ -213,10 +215,11 @@ class Procedure:
         run, B seed 2018: frame compliance Delta BIC 35.8 decimated, 21.8 on every sample without
         them, 6.8 with)."""
         deep = not (self.settings.deep_only_on_structure and self._quiet())
-        coarse_cands = self._probed(current_coarse, restarts=deep)
+        probes = self._probes(current_coarse, restarts=deep)
+        coarse_cands = self._compared(probes, current_coarse)
         if not deep and max((c.delta_bic for c in coarse_cands), default=0.0) > self.settings.delta_bic_min:
-            deep = True
-            coarse_cands = self._probed(current_coarse, restarts=True)
+            deep = True      # only the causes identification absorbs are probed again
+            coarse_cands = self._compared(self._probes(current_coarse, True, probes), current_coarse)
         cands = []
         self.shown = set()
         reach = self.settings.multistart_reach * max((c.delta_bic for c in coarse_cands), default=0.0)
@@ -239,19 +242,34 @@ class Procedure:
                 cands.append(c)
         return cands
 
-    def _probed(self, current_coarse: Fit, restarts: bool) -> list[Candidate]:
-        """Every remaining cause probed on the decimated runs (extend.probe), the strongest and
-        every imitated one fitted jointly, compared with the current model: best first."""
+    def _probes(self, current_coarse: Fit, restarts: bool, before: list[Fit] | None = None) -> list[Fit]:
+        """Every remaining cause probed on the decimated runs (extend.probe); with ``before`` (the
+        same probes without restarts), only those the restarts change are probed again."""
         accepted = [c.cause for c in self.findings]
-        probes = []
+        out = []
         for i, cause in enumerate(self.remaining):
+            if before is not None and not cause.absorbed_by_identification:
+                out.append(before[i])
+                continue
             self._progress(f"testing {cause.name} ({i + 1} of {len(self.remaining)})", 0.6 * i / len(self.remaining))
-            probes.append(probe(self.ref, self.coarse, current_coarse, accepted + [cause], restarts=restarts))
-        probes.sort(key=lambda f: f.rss)
+            out.append(probe(self.ref, self.coarse, current_coarse, accepted + [cause], restarts=restarts))
+        return out
+
+    def _compared(self, probes: list[Fit], current_coarse: Fit) -> list[Candidate]:
+        """The strongest probes and every imitated cause's fitted jointly (each probe once: a
+        probe kept from an earlier call keeps its joint fit), compared with the current model,
+        best first."""
         self._progress("fitting the strongest candidates jointly", 0.6)
-        fits = [fit_joint(self.coarse, f, current_coarse)
-                if i < self.settings.joint_candidates or f.causes[-1].imitated_by_base else f
-                for i, f in enumerate(probes)]
+        ranked = sorted(probes, key=lambda f: f.rss)
+        fits = []
+        for i, f in enumerate(ranked):
+            if i < self.settings.joint_candidates or f.causes[-1].imitated_by_base:
+                key = id(f)
+                if key not in self._joint:
+                    self._joint[key] = (f, fit_joint(self.coarse, f, current_coarse))
+                fits.append(self._joint[key][1])
+            else:
+                fits.append(f)
         coarse_cands = [Candidate(f.causes[-1], f, current_coarse) for f in fits]
         compare(coarse_cands, current_coarse)
         return sorted(coarse_cands, key=lambda c: -c.delta_bic)

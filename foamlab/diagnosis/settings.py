@@ -44,7 +44,8 @@ class DiagnosisSettings:
     multistart_samples: int = _setting(int(1.6 * SEARCH_SAMPLES), "samples per run a cause the base imitates "
                                                                   "is fitted on from several starts")
     deep_only_on_structure: bool = _setting(True, "restarts from identification and several starts (the search's "
-                                                  "costly fits) only where the current model leaves structure")
+                                                  "costly fits) only where the current model leaves structure or "
+                                                  "a candidate clears delta_bic_min without them")
     multistart_reach: float = _setting(0.3, "several starts when its joint fit is within this fraction of "
                                             "the round's best Delta BIC")
 
