@@ -50,4 +50,5 @@ def test_diagnose_full_prints_the_settings(softened, tmp_path, capsys):
     out = capsys.readouterr().out
     for f in dataclasses.fields(DiagnosisSettings):
         line = next(ln for ln in out.splitlines() if ln.strip().startswith(f.name + " "))
-        assert float(line.split("=", 1)[1].split()[0]) == getattr(DEFAULT, f.name)
+        shown, value = line.split("=", 1)[1].split()[0], getattr(DEFAULT, f.name)
+        assert shown == str(value).lower() if isinstance(value, bool) else float(shown) == value, line

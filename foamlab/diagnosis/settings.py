@@ -52,7 +52,12 @@ class DiagnosisSettings:
     def lines(self) -> list[str]:
         """`name = value  (meaning)`, one line each, in declaration order."""
         width = max(len(f.name) for f in fields(self))
-        return [f"{f.name:<{width}} = {getattr(self, f.name):<8g} {f.metadata['meaning']}" for f in fields(self)]
+        return [f"{f.name:<{width}} = {_shown(getattr(self, f.name)):<8} {f.metadata['meaning']}" for f in fields(self)]
+
+
+def _shown(value) -> str:
+    """A setting's value as `--full` prints it (a switch as true/false, a number as %g)."""
+    return str(value).lower() if isinstance(value, bool) else f"{value:g}"
 
 
 #: The values every diagnosis uses unless given others.
