@@ -107,8 +107,6 @@ class Procedure:
         self.tested: list[list[Candidate]] = []
         #: Causes the base imitates whose joint fit in this round's search showed them (multistarted).
         self.shown: set[type[Cause]] = set()
-        #: Joint fits of the search's probes, by the probe's id (the probe kept alive beside it).
-        self._joint: dict[int, tuple[Fit, Fit]] = {}
 
     # -- helpers
     def _full(self, fit: Fit) -> Fit:
@@ -215,11 +213,11 @@ class Procedure:
         run, B seed 2018: frame compliance Delta BIC 35.8 decimated, 21.8 on every sample without
         them, 6.8 with)."""
         deep = not (self.settings.deep_only_on_structure and self._quiet())
-        probes = self._probes(current_coarse, restarts=deep)
-        coarse_cands = self._compared(probes, current_coarse)
+        probes, joint = self._probes(current_coarse, restarts=deep), {}
+        coarse_cands = self._compared(probes, current_coarse, joint)
         if not deep and max((c.delta_bic for c in coarse_cands), default=0.0) > self.settings.delta_bic_min:
             deep = True      # only the causes identification absorbs are probed again
-            coarse_cands = self._compared(self._probes(current_coarse, True, probes), current_coarse)
+            coarse_cands = self._compared(self._probes(current_coarse, True, probes), current_coarse, joint)
         cands = []
         self.shown = set()
         reach = self.settings.multistart_reach * max((c.delta_bic for c in coarse_cands), default=0.0)
@@ -255,19 +253,18 @@ class Procedure:
             out.append(probe(self.ref, self.coarse, current_coarse, accepted + [cause], restarts=restarts))
         return out
 
-    def _compared(self, probes: list[Fit], current_coarse: Fit) -> list[Candidate]:
-        """The strongest probes and every imitated cause's fitted jointly (each probe once: a
-        probe kept from an earlier call keeps its joint fit), compared with the current model,
-        best first."""
+    def _compared(self, probes: list[Fit], current_coarse: Fit, joint: dict[int, Fit]) -> list[Candidate]:
+        """The strongest probes and every imitated cause's fitted jointly, compared with the
+        current model, best first. joint: the joint fits so far by their probe's id (the caller
+        keeps the probes), so a probe kept from an earlier call is not fitted again."""
         self._progress("fitting the strongest candidates jointly", 0.6)
         ranked = sorted(probes, key=lambda f: f.rss)
         fits = []
         for i, f in enumerate(ranked):
             if i < self.settings.joint_candidates or f.causes[-1].imitated_by_base:
-                key = id(f)
-                if key not in self._joint:
-                    self._joint[key] = (f, fit_joint(self.coarse, f, current_coarse))
-                fits.append(self._joint[key][1])
+                if id(f) not in joint:
+                    joint[id(f)] = fit_joint(self.coarse, f, current_coarse)
+                fits.append(joint[id(f)])
             else:
                 fits.append(f)
         coarse_cands = [Candidate(f.causes[-1], f, current_coarse) for f in fits]
