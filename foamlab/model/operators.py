@@ -3,7 +3,7 @@
 Both operators act on a displacement history x(t) sampled at t_n and taken as
 piecewise LINEAR between samples (what a crosshead does between two readings).
 Each is a bank of first-order modes with an exact per-step update, so the batch
-evaluation (scipy.signal.lfilter on a uniform grid) and the online stepper (one
+evaluation (filters.recursion on a uniform grid) and the online stepper (one
 update per sample, any step) are the same discretisation.
 
 - HereditaryOperator:  z(t) = int_{t0}^t sum_i a_i exp(-alpha_i (t - tau)) x(tau) dtau
@@ -25,8 +25,9 @@ import functools
 import math
 
 import numpy as np
-from scipy.signal import lfilter
 from scipy.special import gamma
+
+from foamlab.model.filters import recursion
 
 # Relative accuracy targets of the SOE (see docs/model.md for the measured error).
 SOE_STEP = 0.6          # trapezoid step in log(u): discretisation error ~ exp(-pi^2/step) ~ 7e-8
@@ -98,7 +99,7 @@ class HereditaryOperator:
             return out
         for a_i, al in zip(self.a, self.alpha):
             E, wp, wn = step_weights(np.array([al]), h)
-            z = lfilter([wn[0], wp[0]], [1.0, -E[0]], x)
+            z = recursion(E[0], x, wn[0], wp[0])
             z -= z[0]  # state is zero at the start, whatever x[0] is (x[0] is 0 in use)
             out += np.real(a_i * z)
         return out
@@ -230,7 +231,7 @@ class FractionalOperator:
             for lam, c in zip(self.soe.lam, self.soe.c):
                 E, w_prev, w_new = step_weights(np.array([lam]), h)
                 b = w_prev + w_new                      # constant input: the whole step's weight
-                s = lfilter([b[0]], [1.0, -E[0]], u)          # s_n after step n
+                s = recursion(E[0], u, b[0])        # s_n after step n
                 y[1:] += c * E[0] * s[:-1]
             return y
         w = np.asarray(x, float)
@@ -240,7 +241,7 @@ class FractionalOperator:
         y = hf * (w * self.local - dw * self.local_slope)
         for lam, c in zip(self.soe.lam, self.soe.c):
             E, wp, wn = step_weights(np.array([lam]), h)
-            s = lfilter([wn[0], wp[0]], [1.0, -E[0]], w)       # s_n after step n
+            s = recursion(E[0], w, wn[0], wp[0])     # s_n after step n
             y[1:] += c * E[0] * s[:-1]
         return y
 
