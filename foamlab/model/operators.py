@@ -219,31 +219,50 @@ class FractionalOperator:
 
     def batch(self, h: float, x: np.ndarray) -> np.ndarray:
         """Uniform step h; x[0] = 0 at the operator's start. Same numbers as step()."""
-        n = len(x)
-        if n < 2:
-            return np.zeros(n)
+        return fractional_sum([(1.0, self)], h, x)
+
+    def _input(self, h: float, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What I^f integrates (xdot, or w = I^j x), and this order's last-step part on it."""
         hf = h**self.f
         if not self.linear_input:
-            u = np.empty(n)
+            u = np.empty(len(x))
             u[0] = 0.0
             u[1:] = np.diff(x) / h
-            y = u * (self.local * hf)
-            for lam, c in zip(self.soe.lam, self.soe.c):
-                E, w_prev, w_new = step_weights(np.array([lam]), h)
-                b = w_prev + w_new                      # constant input: the whole step's weight
-                s = recursion(E[0], u, b[0])        # s_n after step n
-                y[1:] += c * E[0] * s[:-1]
-            return y
+            return u, u * (self.local * hf)
         w = np.asarray(x, float)
         for _ in range(self.j):
             w = np.concatenate([[0.0], np.cumsum(0.5 * h * (w[1:] + w[:-1]))])
         dw = np.concatenate([[w[0]], np.diff(w)])
-        y = hf * (w * self.local - dw * self.local_slope)
-        for lam, c in zip(self.soe.lam, self.soe.c):
-            E, wp, wn = step_weights(np.array([lam]), h)
-            s = recursion(E[0], w, wn[0], wp[0])     # s_n after step n
-            y[1:] += c * E[0] * s[:-1]
+        return w, hf * (w * self.local - dw * self.local_slope)
+
+
+def fractional_sum(terms: list[tuple[float, FractionalOperator]], h: float, x: np.ndarray) -> np.ndarray:
+    """sum_i r_i D^beta_i x on a uniform step h (x[0] = 0 at the start). Orders that integrate
+    the same input (all with nu <= 1; those with the same j above) share the SOE's decay rates,
+    so each mode's recursion runs once for them all, weighted by sum_i r_i c_i: a cycle's
+    residual terms cost one operator's recursions, not one each (the model's evaluation is most
+    of a fit's polish; docs/benchmarks.md "Fit time")."""
+    n = len(x)
+    y = np.zeros(n)
+    if n < 2:
         return y
+    groups: dict[tuple, list[tuple[float, FractionalOperator]]] = {}
+    for r, op in terms:
+        groups.setdefault((op.linear_input, op.j, op.soe.lam.tobytes()), []).append((r, op))
+    for members in groups.values():
+        first = members[0][1]
+        inp = first._input(h, x)[0]
+        weights = np.zeros(len(first.soe.lam))
+        for r, op in members:
+            y += r * op._input(h, x)[1]
+            weights += r * op.soe.c
+        E, wp, wn = step_weights(first.soe.lam, h)
+        if not first.linear_input:
+            wn, wp = wp + wn, np.zeros_like(wp)        # constant input: the whole step's weight
+        for E_l, wn_l, wp_l, c_l in zip(E, wn, wp, weights):
+            s = recursion(E_l, inp, wn_l, wp_l)        # s_n after step n
+            y[1:] += c_l * E_l * s[:-1]
+    return y
 
 
 class FractionalBank:

@@ -21,7 +21,7 @@ from foamlab.model.components import (
     rl_derivative_piecewise_linear,
 )
 from foamlab.model.history import HistoryLabels, label_history, labels_from_extrema
-from foamlab.model.operators import FractionalOperator, HereditaryOperator, is_uniform
+from foamlab.model.operators import FractionalOperator, HereditaryOperator, fractional_sum, is_uniform
 from foamlab.model.params import ModelParameters
 
 
@@ -112,10 +112,8 @@ def evaluate(
 def _memory(params: ModelParameters, cycle: int, h: float, t_span: float, u: np.ndarray) -> np.ndarray:
     """The residual memory of a 1-based cycle (Eq. 10) for the input u on a uniform step h."""
     r, beta = params.residual_terms(cycle)
-    total = np.zeros(len(u))
-    for r_i, b_i in zip(r, beta):
-        total += r_i * FractionalOperator(b_i, h_min=h, t_max=t_span).batch(h, u)
-    return total
+    return fractional_sum([(r_i, FractionalOperator(b_i, h_min=h, t_max=t_span)) for r_i, b_i in zip(r, beta)],
+                          h, np.asarray(u, float))
 
 
 def _shared_memories(params: ModelParameters, h: float, t_span: float, x: np.ndarray,
