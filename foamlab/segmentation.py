@@ -36,9 +36,9 @@ from dataclasses import dataclass, field
 from typing import NamedTuple, Protocol
 
 import numpy as np
+from scipy import signal
 
 from foamlab import FoamlabError
-from foamlab.model.filters import savgol
 
 LOADING = "loading"
 UNLOADING = "unloading"
@@ -426,7 +426,7 @@ def _odd(w: int, n: int) -> int:
 def _smooth(a: np.ndarray, window: int, deriv: int = 0) -> np.ndarray:
     if window < 3 or len(a) < window:
         return np.gradient(a) if deriv else a.copy()
-    return savgol(a, window, 2, deriv=deriv)
+    return signal.savgol_filter(a, window, 2, deriv=deriv, mode="interp")
 
 
 def _zigzag(x: np.ndarray, h: float) -> list[tuple[int, bool]]:

@@ -33,10 +33,10 @@ from functools import partial
 
 import numpy as np
 from scipy import fft as sfft
+from scipy.signal import lfilter
 from scipy.special import digamma, gammaln
 
 from foamlab.model.components import residual_static
-from foamlab.model.filters import recursion
 from foamlab.model.history import HistoryLabels
 from foamlab.model.layout import Layout
 from foamlab.model.operators import (
@@ -60,7 +60,7 @@ JUST_AFTER_STEPS = 0.02
 #: (a 3-cycle run with turns between samples: 6 x 14 000; 20 cycles: 40 x 23 000).
 EXACT_SOURCE_NODES = 200_000
 #: Where it runs on the path's nodes (_Damping: a stop before a turn), the damping recursion takes
-#: the steps as stretches of steps equal within EQUAL_STEP_RTOL (one recursion each: a Python step per
+#: the steps as stretches of steps equal within EQUAL_STEP_RTOL (lfilter each: a Python step per
 #: stretch) when there are fewer than MAX_STRETCHES, else every step its own factor (_recursion).
 EQUAL_STEP_RTOL = 1e-6
 MAX_STRETCHES = 64
@@ -106,7 +106,7 @@ class _Damping:
         own_step = len(t) > 1 and h <= (1.0 + EQUAL_STEP_RTOL) * float(np.median(np.diff(t)))
         if own_step and any(start < c < peak for c in corners):
             steps = np.diff(t[start:peak + 1])
-            # a regular clock: stretches of equal steps (one recursion each); a jittery one: every step its own
+            # a regular clock: stretches of equal steps (lfilter); a jittery one: every step its own
             self.stretches = _equal_stretches(steps) or [(0, len(steps), steps)]
             self.xk = x[start:peak + 1] - x[start]
             # the samples are nodes: no interpolation (a partial, not a lambda: bases are pickled)
@@ -131,13 +131,13 @@ class _Damping:
         xk = self.xk
         if len(self.stretches) == 1 and np.ndim(self.stretches[0][2]) == 0:   # one step: as batch()
             E_all, wp_all, wn_all = step_weights(at, self.stretches[0][2])
-            z = recursion(E_all[0], xk, wn_all[0], wp_all[0])
+            z = lfilter([wn_all[0], wp_all[0]], [1.0, -E_all[0]], xk)
             dz = None
             if derivative:
                 dE, dwp, dwn = ((c[1] - c[2]) / (2 * eps) for c in (E_all, wp_all, wn_all))
                 u = np.zeros(len(z), dtype=complex)
                 u[1:] = dE * z[:-1] + dwp * xk[:-1] + dwn * xk[1:]
-                dz = recursion(E_all[0], u)
+                dz = lfilter([1.0], [1.0, -E_all[0]], u)
         else:
             z, dz = self._stretched(at, eps, derivative)
         col = self.interp(z.real)
@@ -162,14 +162,15 @@ class _Damping:
 
 
 def _recursion(E, u: np.ndarray, z0: complex) -> np.ndarray:
-    """z_n = E_n z_n-1 + u_n for n = 1..len(u) from z0. One E: filters.recursion. An E per step (steps
+    """z_n = E_n z_n-1 + u_n for n = 1..len(u) from z0. One E: lfilter. An E per step (steps
     of unequal length): in chunks over which the product P of the E falls by at most
     e^-CHUNK_DECAY, z_n = P_n (z0 + sum_k u_k / P_k) (no loop over steps; the chunks keep 1 / P
     finite)."""
     if not len(u):
         return np.zeros(0, dtype=complex)
     if np.ndim(E) == 0:
-        return recursion(E, u, z0=z0)
+        # lfilter's state of y_n = u_n + E y_n-1 after the node before: E y_0
+        return lfilter([1.0], [1.0, -E], u, zi=[E * z0])[0]
     E = np.where(np.abs(E) < TINY_DECAY, TINY_DECAY, E)
     decay = np.cumsum(-np.log(np.abs(E)))
     out = np.empty(len(u), dtype=complex)

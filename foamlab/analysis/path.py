@@ -9,10 +9,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.signal import savgol_filter
 
 from foamlab.analysis.basis import ModelBasis
 from foamlab.model import HistoryLabels, labels_from_extrema
-from foamlab.model.filters import savgol
 from foamlab.model.layout import Layout
 
 #: The displacement that drives the model is the crosshead's path estimated from the
@@ -84,7 +84,8 @@ def displacement_path(t: np.ndarray, x: np.ndarray, corners) -> np.ndarray:
         if w <= PATH_ORDER + 1:
             continue                                      # too short to estimate: as measured
         grid = np.linspace(ts[0], ts[-1], n_grid)
-        path[a + 1:b] = np.interp(ts, grid, savgol(np.interp(grid, ts, xs), w, PATH_ORDER))
+        path[a + 1:b] = np.interp(ts, grid, savgol_filter(np.interp(grid, ts, xs), w, PATH_ORDER,
+                                                          mode="interp"))
     return path
 
 

@@ -32,9 +32,9 @@ from typing import Any, Callable, ClassVar, Iterable, Mapping
 
 import numpy as np
 from scipy.optimize import brentq
+from scipy.signal import savgol_filter
 
 from foamlab.model.history import HistoryLabels
-from foamlab.model.filters import savgol
 from foamlab.model.params import ModelParameters
 from foamlab.model.response import ModelResponse, evaluate
 
@@ -533,7 +533,7 @@ def estimate_velocity(t, x, labels: HistoryLabels | None = None, window_s: float
         m = b - a
         window = min(int(round(window_s / h)) | 1, m if m % 2 else m - 1) if uniform else 0
         if window >= 3:
-            v[a:b] = savgol(seg_x, window, 1, deriv=1, delta=h)
+            v[a:b] = savgol_filter(seg_x, window, 1, deriv=1, delta=h, mode="interp")
         elif m >= 2:
             v[a:b] = np.gradient(seg_x, seg_t)
         else:   # a single sample between two cuts: the motion that brought it there

@@ -3,7 +3,7 @@
 Both operators act on a displacement history x(t) sampled at t_n and taken as
 piecewise LINEAR between samples (what a crosshead does between two readings).
 Each is a bank of first-order modes with an exact per-step update, so the batch
-evaluation (filters.recursion on a uniform grid) and the online stepper (one
+evaluation (scipy.signal.lfilter on a uniform grid) and the online stepper (one
 update per sample, any step) are the same discretisation.
 
 - HereditaryOperator:  z(t) = int_{t0}^t sum_i a_i exp(-alpha_i (t - tau)) x(tau) dtau
@@ -25,9 +25,8 @@ import functools
 import math
 
 import numpy as np
+from scipy.signal import lfilter
 from scipy.special import gamma
-
-from foamlab.model.filters import recursion
 
 # Relative accuracy targets of the SOE (see docs/model.md for the measured error).
 SOE_STEP = 0.6          # trapezoid step in log(u): discretisation error ~ exp(-pi^2/step) ~ 7e-8
@@ -99,7 +98,7 @@ class HereditaryOperator:
             return out
         for a_i, al in zip(self.a, self.alpha):
             E, wp, wn = step_weights(np.array([al]), h)
-            z = recursion(E[0], x, wn[0], wp[0])
+            z = lfilter([wn[0], wp[0]], [1.0, -E[0]], x)
             z -= z[0]  # state is zero at the start, whatever x[0] is (x[0] is 0 in use)
             out += np.real(a_i * z)
         return out
@@ -260,7 +259,7 @@ def fractional_sum(terms: list[tuple[float, FractionalOperator]], h: float, x: n
         if not first.linear_input:
             wn, wp = wp + wn, np.zeros_like(wp)        # constant input: the whole step's weight
         for E_l, wn_l, wp_l, c_l in zip(E, wn, wp, weights):
-            s = recursion(E_l, inp, wn_l, wp_l)        # s_n after step n
+            s = lfilter([wn_l, wp_l], [1.0, -E_l], inp)        # s_n after step n
             y[1:] += c_l * E_l * s[:-1]
     return y
 
