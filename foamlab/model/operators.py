@@ -239,8 +239,8 @@ def fractional_sum(terms: list[tuple[float, FractionalOperator]], h: float, x: n
     """sum_i r_i D^beta_i x on a uniform step h (x[0] = 0 at the start). Orders that integrate
     the same input (all with nu <= 1; those with the same j above) share the SOE's decay rates,
     so each mode's recursion runs once for them all, weighted by sum_i r_i c_i: a cycle's
-    residual terms cost one operator's recursions, not one each (the model's evaluation is most
-    of a fit's polish; docs/benchmarks.md "Fit time")."""
+    residual terms cost one operator's recursions, not one each (a fit evaluates the model 4-6
+    times; docs/benchmarks.md, "The residual form the data choose", session 21)."""
     n = len(x)
     y = np.zeros(n)
     if n < 2:
