@@ -76,6 +76,22 @@ def test_rate_dependence_with_one_run_gets_another_speed(tmp_path):
     assert both.findings[0].values["values"]["m"] == pytest.approx(0.5, abs=0.15)
 
 
+#: A cause below what one 2 Hz run holds (the first run says `none`): the suggested run, at another
+#: speed, diagnosed with the first names it. Seeds fixed before looking (session 21); the frame of
+#: 1 000 N/mm (seed 700) was named too but only 2 of Delta BIC above rate_dependence, a margin the
+#: rounding of another CPU can cross (docs/analysis.md, "Verdicts that turn on the last bits"), and
+#: memory_lag 120 ms (seed 706) was `unexplained`: both in docs/analysis.md, "Two runs".
+BELOW_ONE_RUN = [({"direction_friction": 1.0}, 702), ({"damping_cycle_change": 30.0}, 704)]
+
+
+@pytest.mark.parametrize("causes, seed", BELOW_ONE_RUN, ids=[next(iter(c)) for c, _ in BELOW_ONE_RUN])
+def test_a_cause_one_run_cannot_show_is_named_with_the_suggested_run(causes, seed, tmp_path):
+    (cause,) = causes
+    d, s, both = _loop(causes, seed, tmp_path)
+    assert d.verdict == "none", _tested(d)
+    assert both.verdict == cause, _tested(both)
+
+
 def test_method_file_round_trip_and_cli(tmp_path, capsys):
     """`--suggest FILE --json`: the JSON carries the suggestion, FILE is a method that loads."""
     run = ie.independent_run(REGIME, 630, {"rate_dependence": 0.5}, hz=1.0)
