@@ -220,19 +220,25 @@ class FractionalOperator:
         """Uniform step h; x[0] = 0 at the operator's start. Same numbers as step()."""
         return fractional_sum([(1.0, self)], h, x)
 
-    def _input(self, h: float, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """What I^f integrates (xdot, or w = I^j x), and this order's last-step part on it."""
-        hf = h**self.f
+    def _input(self, h: float, x: np.ndarray) -> np.ndarray:
+        """What I^f integrates: xdot, or w = I^j x (the same for every order of one j)."""
         if not self.linear_input:
             u = np.empty(len(x))
             u[0] = 0.0
             u[1:] = np.diff(x) / h
-            return u, u * (self.local * hf)
+            return u
         w = np.asarray(x, float)
         for _ in range(self.j):
             w = np.concatenate([[0.0], np.cumsum(0.5 * h * (w[1:] + w[:-1]))])
-        dw = np.concatenate([[w[0]], np.diff(w)])
-        return w, hf * (w * self.local - dw * self.local_slope)
+        return w
+
+    def _last_step(self, h: float, inp: np.ndarray) -> np.ndarray:
+        """This order's exact integral of the last step, on its input (_input)."""
+        hf = h**self.f
+        if not self.linear_input:
+            return inp * (self.local * hf)
+        dw = np.concatenate([[inp[0]], np.diff(inp)])
+        return hf * (inp * self.local - dw * self.local_slope)
 
 
 def fractional_sum(terms: list[tuple[float, FractionalOperator]], h: float, x: np.ndarray) -> np.ndarray:
@@ -250,10 +256,10 @@ def fractional_sum(terms: list[tuple[float, FractionalOperator]], h: float, x: n
         groups.setdefault((op.linear_input, op.j, op.soe.lam.tobytes()), []).append((r, op))
     for members in groups.values():
         first = members[0][1]
-        inp = first._input(h, x)[0]
+        inp = first._input(h, x)                       # one input for the whole group
         weights = np.zeros(len(first.soe.lam))
         for r, op in members:
-            y += r * op._input(h, x)[1]
+            y += r * op._last_step(h, inp)
             weights += r * op.soe.c
         E, wp, wn = step_weights(first.soe.lam, h)
         if not first.linear_input:
