@@ -127,6 +127,10 @@ class Series:
     def __len__(self) -> int:
         return len(self.t)
 
+    def __getstate__(self) -> dict:
+        # its columns stay behind (tens of MB): a copy computes its own (analysis.parallel)
+        return {**self.__dict__, "_bases": {}}
+
     @property
     def source(self) -> "Series":
         return self.full if self.full is not None else self

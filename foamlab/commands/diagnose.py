@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 
 from foamlab import FoamlabError
 from foamlab.commands.progress import terminal_progress
@@ -61,7 +62,20 @@ def register(subparsers) -> None:
                         "run (rate_dependence), rank the tests that would tell them apart and write the best "
                         "as a method file for `foamlab run --method` (default ./suggested-<run>.toml, never "
                         "overwriting: numbered instead)")
+    p.add_argument("--workers", type=_workers, default=0, metavar="N",
+                   help="processes the search's fits run on (default 0: every core; 1: this process only). "
+                        "The verdict and its figures are the same at any N")
     p.set_defaults(func=run)
+
+
+def _workers(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of processes (0: every core)")
+    return n
 
 
 def _causes(text: str | None) -> list[str] | None:
@@ -79,6 +93,7 @@ def _causes(text: str | None) -> list[str] | None:
 
 def run(args: argparse.Namespace) -> int:
     from foamlab.diagnosis import diagnose  # noqa: PLC0415 (keep `foamlab --help` fast)
+    from foamlab.diagnosis.settings import DEFAULT  # noqa: PLC0415
     from foamlab.importers import load_run  # noqa: PLC0415
 
     causes = _causes(args.causes)
@@ -88,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
                            "(put --suggest after the data paths)")
     runs = [load_run(p) for p in args.paths]
     with terminal_progress("diagnose", quiet=args.json) as report:
-        result = diagnose(runs, causes=causes, progress=report, form=args.form)
+        result = diagnose(runs, causes=causes, progress=report, form=args.form,
+                          settings=replace(DEFAULT, workers=args.workers))
     obj = result.to_dict()
     notes: list[str] = []
     suggestion = None

@@ -24,11 +24,15 @@ def terminal_progress(title: str, quiet: bool = False) -> Iterator[Callback]:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn  # noqa: PLC0415
     bar = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f} %"),
                    TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn(),
-                   console=Console(stderr=True), transient=True)
+                   console=Console(stderr=True), transient=True,
+                   # drawn on each report, not by rich's refresh thread: a process with one thread may
+                   # fork the diagnosis's workers (analysis.parallel)
+                   auto_refresh=False)
     with bar:
         task = bar.add_task(title, total=1.0)
 
         def report(stage: str, fraction: float) -> None:
             bar.update(task, completed=min(max(float(fraction), 0.0), 1.0), description=f"{title}: {stage}")
+            bar.refresh()
 
         yield report

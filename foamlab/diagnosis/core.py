@@ -35,6 +35,7 @@ from threadpoolctl import threadpool_limits
 
 from foamlab.analysis.heldout import heldout_rmse
 from foamlab.analysis.noise import WHITE_P, series_noise_sigma, whiteness
+from foamlab.analysis.parallel import fork_map
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import (
     POLISH_NFEV,
@@ -91,6 +92,9 @@ class Procedure:
         self.sigma = series_noise_sigma([s.y for s in self.series])
         self.k = decimation(self.series)
         self.coarse = [s.decimated(self.k) for s in self.series]
+        k = max(1, round(max(len(s) for s in self.series) / settings.multistart_samples))
+        #: the runs the several starts of an effect the base imitates are fitted on (_imitated)
+        self.fine = [s.decimated(k) for s in self.series] if k > 1 else self.series
         self.base = self.current = base
         self.skipped: dict[str, str] = {}
         self.remaining: list[type[Cause]] = []
@@ -114,6 +118,12 @@ class Procedure:
 
     def _coarse(self, fit: Fit) -> Fit:
         return at_full_resolution(fit, self.coarse) if self.k > 1 else fit
+
+    def _map(self, fn, items: list, *fits: Fit, done=None) -> list:
+        """[fn(item) for item in items] on the machine's cores (analysis.parallel): the runs and
+        these fits come back as themselves."""
+        shared = [self.ref, *self.series, *self.coarse, *self.fine, self.base, self.current, *fits]
+        return fork_map(fn, items, shared, self.settings.workers or None, done)
 
     def _progress(self, stage: str, within_round: float) -> None:
         """Rounds after the first are shorter (fewer causes left): the first gets most of the bar."""
@@ -218,11 +228,10 @@ class Procedure:
         if not deep and max((c.delta_bic for c in coarse_cands), default=0.0) > self.settings.delta_bic_min:
             deep = True      # only the causes identification absorbs are probed again
             coarse_cands = self._compared(self._probes(current_coarse, True, probes), current_coarse, joint)
-        cands = []
         self.shown = set()
         reach = self.settings.multistart_reach * max((c.delta_bic for c in coarse_cands), default=0.0)
+        work = []
         for i, c in enumerate(coarse_cands):
-            self._progress(f"candidate {c.name} ({i + 1} of {len(coarse_cands)})", 0.6 + 0.3 * i / len(coarse_cands))
             if (c.cause.always_multistart and not self.findings) or (deep and
                     c.cause.imitated_by_base and 0 < c.delta_bic and (c.delta_bic >= reach or i == 0)):
                 # one joint fit from the base stays in the base's basin: several starts (_imitated),
@@ -230,11 +239,25 @@ class Procedure:
                 # (a weaker one is retried on top of the finding; docs/analysis.md, "Cost"); one the
                 # base holds at any size always in the first round (on top of a finding: its cost)
                 self.shown.add(c.cause)
-                fit = self._imitated(c.cause, self.current, c.fit, c.cause.multistart_sizes or MULTISTART_SIZES)
-                cands.append(Candidate(c.cause, fit, self.current, coarse_fit=self._coarse(fit)))
+                work.append(c)
             elif ((i < self.settings.full_candidates and c.delta_bic > 0)
                   or c.delta_bic > self.settings.delta_bic_min):
-                cands.append(Candidate(c.cause, self._full(c.fit), self.current, coarse_fit=c.fit))
+                work.append(c)
+
+        def carried(c: Candidate) -> tuple[Fit, Fit]:
+            if c.cause in self.shown:
+                fit = self._imitated(c.cause, self.current, c.fit, c.cause.multistart_sizes or MULTISTART_SIZES)
+                return fit, self._coarse(fit)
+            return self._full(c.fit), c.fit
+
+        done = lambda i, _: self._progress(f"carried {work[i].name} to every sample ({i + 1} of {len(work)})",
+                                           0.6 + 0.3 * (i + 1) / max(len(work), 1))
+        fits = dict(zip(map(id, work), self._map(carried, work, *(c.fit for c in work), done=done)))
+        cands = []
+        for c in coarse_cands:
+            if id(c) in fits:
+                fit, coarse = fits[id(c)]
+                cands.append(Candidate(c.cause, fit, self.current, coarse_fit=coarse))
             else:    # keeps its decimated-scale evidence (weaker than it would be at full scale)
                 c.coarse_fit = c.fit
                 cands.append(c)
@@ -244,14 +267,12 @@ class Procedure:
         """Every remaining cause probed on the decimated runs (extend.probe); with ``before`` (the
         same probes without restarts), only those the restarts change are probed again."""
         accepted = [c.cause for c in self.findings]
-        out = []
-        for i, cause in enumerate(self.remaining):
-            if before is not None and not cause.absorbed_by_identification:
-                out.append(before[i])
-                continue
-            self._progress(f"testing {cause.name} ({i + 1} of {len(self.remaining)})", 0.6 * i / len(self.remaining))
-            out.append(probe(self.ref, self.coarse, current_coarse, accepted + [cause], restarts=restarts))
-        return out
+        todo = [c for c in self.remaining if before is None or c.absorbed_by_identification]
+        done = lambda i, _: self._progress(f"tested {todo[i].name} ({i + 1} of {len(todo)})", 0.6 * (i + 1) / len(todo))
+        fits = self._map(lambda cause: probe(self.ref, self.coarse, current_coarse, accepted + [cause],
+                                             restarts=restarts), todo, current_coarse, done=done)
+        fresh = dict(zip(todo, fits))
+        return [fresh[c] if c in fresh else before[i] for i, c in enumerate(self.remaining)]
 
     def _compared(self, probes: list[Fit], current_coarse: Fit, joint: dict[int, Fit]) -> list[Candidate]:
         """The strongest probes and every imitated cause's fitted jointly, compared with the
@@ -259,14 +280,12 @@ class Procedure:
         keeps the probes), so a probe kept from an earlier call is not fitted again."""
         self._progress("fitting the strongest candidates jointly", 0.6)
         ranked = sorted(probes, key=lambda f: f.rss)
-        fits = []
-        for i, f in enumerate(ranked):
-            if i < self.settings.joint_candidates or f.causes[-1].imitated_by_base:
-                if id(f) not in joint:
-                    joint[id(f)] = fit_joint(self.coarse, f, current_coarse)
-                fits.append(joint[id(f)])
-            else:
-                fits.append(f)
+        chosen = [f for i, f in enumerate(ranked) if i < self.settings.joint_candidates or f.causes[-1].imitated_by_base]
+        todo = [f for f in chosen if id(f) not in joint]
+        joint.update(zip(map(id, todo), self._map(lambda f: fit_joint(self.coarse, f, current_coarse), todo,
+                                                  current_coarse, *todo)))
+        picked = set(map(id, chosen))
+        fits = [joint[id(f)] if id(f) in picked else f for f in ranked]
         coarse_cands = [Candidate(f.causes[-1], f, current_coarse) for f in fits]
         compare(coarse_cands, current_coarse)
         return sorted(coarse_cands, key=lambda c: -c.delta_bic)
@@ -276,9 +295,8 @@ class Procedure:
         """An effect the base imitates, fitted from several starts (extend.multistart) on the runs
         decimated to about settings.multistart_samples (the search's decimation loses part of its handle,
         the samples at high force), then polished on every sample."""
-        k = max(1, round(max(len(s) for s in self.series) / self.settings.multistart_samples))
-        fine = [s.decimated(k) for s in self.series] if k > 1 else self.series
-        on = current if k == 1 else at_full_resolution(current, fine)
+        fine = self.fine
+        on = at_full_resolution(current, fine)
         found = multistart(fine, on, [c.cause for c in self.findings] + [cause], start, sizes)
         if found.rss < on.rss and on.n * np.log(on.rss / found.rss) > np.log(on.n):
             return self._full(found)
@@ -317,6 +335,7 @@ class Procedure:
         screening (alpha/beta held)."""
         accepted = [c.cause for c in self.findings]
         cur = self.current
+        work = []
         for i, c in enumerate(sorted(polished, key=lambda c: -c.delta_bic)):
             below = c.fit.rss < cur.rss
             if below and cur.n * np.log(cur.rss / c.fit.rss) > self.settings.decisive_chi2:
@@ -324,24 +343,30 @@ class Procedure:
             # a strong candidate still below the new base is refitted too: its gain over the old
             # base may be mostly the base's (alpha/beta it found by luck), and its effect's own
             # gain is only seen from the better base (docs/analysis.md, "Effects the base model imitates")
-            elif c.cause in self.shown:
+            elif c.cause in self.shown or not below or i < self.settings.full_candidates:
+                work.append((c, i < self.settings.full_candidates))
+
+        def again(job: tuple[Candidate, bool]) -> tuple[Fit | None, Fit]:
+            c, full_budget = job
+            if c.cause in self.shown:
                 # from the new base: the screening's start and the effect value found before
-                again = self._imitated(c.cause, self.current, c.fit, sizes=())
-                if c.fit.rss >= self.current.rss or again.rss < c.fit.rss:
-                    c.fit = again
+                return None, self._imitated(c.cause, self.current, c.fit, sizes=())
+            coarse = fit_joint(self.coarse, screen(self.coarse, current_coarse, accepted + [c.cause]),
+                               current_coarse, None if full_budget else PROBE_NFEV)
+            return coarse, self._full(coarse)
+
+        for (c, _), (coarse, fit) in zip(work, self._map(again, work, current_coarse, *(c.fit for c, _ in work))):
+            if c.fit.rss >= self.current.rss or fit.rss < c.fit.rss:
+                c.coarse_fit, c.fit = coarse, fit
+            if coarse is None:      # several starts: found on other samples than the search's
                 c.coarse_fit = self._coarse(c.fit)
-            elif not below or i < self.settings.full_candidates:
-                again = fit_joint(self.coarse, screen(self.coarse, current_coarse, accepted + [c.cause]),
-                                  current_coarse, None if i < self.settings.full_candidates else PROBE_NFEV)
-                full = self._full(again)
-                if c.fit.rss >= self.current.rss or full.rss < c.fit.rss:
-                    c.coarse_fit, c.fit = again, full
+        for c in polished:
             c.before = self.current
         compare(polished, self.current)
         rest = [c for c in cands if c not in polished]
-        for c in rest:
-            c.fit = screen(self.coarse, current_coarse, accepted + [c.cause])
-            c.before = current_coarse
+        for c, fit in zip(rest, self._map(lambda c: screen(self.coarse, current_coarse, accepted + [c.cause]), rest,
+                                          current_coarse)):
+            c.fit, c.before = fit, current_coarse
         compare(rest, current_coarse)
 
     def decide(self, cands: list[Candidate], current_coarse: Fit) -> Candidate | None:

@@ -48,6 +48,9 @@ class DiagnosisSettings:
                                                   "a candidate clears delta_bic_min without them")
     multistart_reach: float = _setting(0.3, "several starts when its joint fit is within this fraction of "
                                             "the round's best Delta BIC")
+    # -- the machine
+    workers: int = _setting(0, "processes the search's independent fits run on (0: every core this process may "
+                               "use; the same results at any number)")
 
     def lines(self) -> list[str]:
         """`name = value  (meaning)`, one line each, in declaration order."""

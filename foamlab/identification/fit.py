@@ -17,6 +17,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from foamlab.analysis.noise import AT_NOISE_RATIO, at_the_noise
+from foamlab.analysis.parallel import can_fork, fork_map
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
 from foamlab.analysis.solve import Fit, converged, polish, solved_at
 from foamlab.identification.apart import HeldApart, coalesced, hold_apart
@@ -171,17 +172,26 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
         # speed, seed 641: they fit the other placement worse, yet its own fit is 0.154 N against
         # 0.193 N at 16 Hz, 0.152 N against 1.71 N at 2 Hz)
         placements.append((fd.other_turns(), False))
-    kept = result
-    for i, (placed, gated) in enumerate(placements):
-        # one turn placed the other way: worth a whole fit only if the best fit so far, its turns
-        # placed this way, already fits better
-        if gated and not select and not _fits_better_placed(kept, kept.prepared or fd, placed):
-            continue
-        def within(stage: str, fraction: float, i=i) -> None:
+    # one turn placed the other way: worth a whole fit only if the first fit, its turns placed this
+    # way, already fits better (only the first placement is gated: the gate sees the first fit)
+    placements = [placed for placed, gated in placements
+                  if not (gated and not select and not _fits_better_placed(result, result.prepared or fd, placed))]
+
+    def fitted(i: int, quiet: bool) -> FitReport:
+        def within(stage: str, fraction: float) -> None:
             progress(f"turns placed the other way: {stage}",
                      FIRST_SHARE + (1.0 - FIRST_SHARE) * (i + fraction) / len(placements))
-        other = _fit_prepared(placed, orders if select else result.orders, select, within, hold=hold,
-                              settings=settings)
+        return _fit_prepared(placements[i], orders if select else result.orders, select,
+                             (lambda stage, f: None) if quiet else within, hold=hold, settings=settings)
+
+    # independent whole fits: on the machine's cores (the same results; analysis.parallel)
+    done = lambda i, _: progress("turns placed the other way: done", FIRST_SHARE + (1.0 - FIRST_SHARE) * (i + 1)
+                                 / len(placements))
+    others = (fork_map(lambda i: fitted(i, True), range(len(placements)),
+                       [*(p for q in (fd, *placements) for p in (q, q.series))], done=done)
+              if len(placements) > 1 and can_fork() else [fitted(i, False) for i in range(len(placements))])
+    kept = result
+    for other in others:
         if other.rmse < kept.rmse:
             kept = replace(other, structure=other.structure if select else result.structure,
                            notes=other.notes + (f"{_placement(other)}: the whole run fits {result.rmse:.4g} N "
