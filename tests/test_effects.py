@@ -265,3 +265,34 @@ def _first_order(t, u, tau):
     for i in range(1, len(fine)):
         y[i] = y[i - 1] + dt * (uf[i - 1] - y[i - 1]) / tau
     return np.interp(t, fine, y)
+
+
+@pytest.mark.parametrize("tau", [1e-5, 1.5e-3, 2.1e-3, 0.05])
+def test_first_order_response_is_the_step_by_step_recursion(tau):
+    """The exact response of y' = (u - y)/tau to u linear between samples, on a jittered 16 Hz clock
+    with a repeated instant: y_i = a_i y_(i-1) + (1 - b_i) u_i + (b_i - a_i) u_(i-1), a = exp(-dt/tau),
+    b = tau/dt (1 - a), written as the plain loop. Where every step is longer than the stretches
+    first_order_response sums at once (tau < 2 ms), its result is this loop's to the bit."""
+    from foamlab.model.effects import first_order_response
+
+    rng = np.random.default_rng(11)
+    dt = (1 + rng.uniform(-0.3, 0.3, 299)) / 16.0
+    dt[40] = 0.0
+    t = np.concatenate([[0.0], np.cumsum(dt)])
+    u = rng.normal(size=(300, 3)) * 50.0
+    y = np.empty_like(u)
+    y[0] = u[0]
+    for i in range(1, len(t)):
+        h = t[i] - t[i - 1]
+        if h <= 0:
+            y[i] = y[i - 1]                  # no time: the state kept
+            continue
+        a = np.exp(-h / tau)
+        b = -np.expm1(-h / tau) * tau / h
+        y[i] = a * y[i - 1] + ((1 - b) * u[i] + (b - a) * u[i - 1])
+    got = first_order_response(t, u, tau)
+    if tau < 2e-3:
+        assert np.array_equal(got, y)
+    else:
+        np.testing.assert_allclose(got, y, rtol=1e-9, atol=1e-9 * np.abs(u).max())
+    np.testing.assert_array_equal(first_order_response(t, u[:, 1], tau), got[:, 1])

@@ -1,10 +1,17 @@
 """analysis.parallel: the search's fits on forked workers give what they give serially, and the
-objects the search compares by identity come back as themselves."""
+objects the search compares by identity come back as themselves.
+
+The checks that need a fork run in a fresh interpreter: a test before them in the same pytest
+worker may leave a thread behind (the live predictor's executor ends its manager thread after
+close() returns), and beside any other thread fork_map is serial by design."""
 
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,8 +19,7 @@ import pytest
 from foamlab import FoamlabError
 from foamlab.analysis import parallel
 
-# the thread pytest-timeout's default method starts would make every fork_map here serial
-pytestmark = pytest.mark.timeout(120, method="signal")
+HERE = Path(__file__).parent
 
 
 class Box:
@@ -21,7 +27,16 @@ class Box:
         self.value = value
 
 
-def test_results_come_back_in_order_with_shared_objects_as_themselves():
+def _fresh(check: str, timeout: float = 120.0) -> None:
+    """Run test_parallel.<check>() in a new interpreter (no thread but its main one)."""
+    code = (f"import sys; sys.path[:0] = [{str(HERE)!r}, {str(HERE.parent)!r}]; "
+            f"import test_parallel; test_parallel.{check}()")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout)
+    assert done.returncode == 0, done.stderr[-3000:]
+
+
+def _check_shared_objects() -> None:
+    assert parallel.can_fork()
     shared = Box(np.arange(5.0))
     out = parallel.fork_map(lambda k: (shared, Box(shared.value * k), os.getpid()), [1, 2, 3, 4], [shared],
                             workers=2)
@@ -29,16 +44,13 @@ def test_results_come_back_in_order_with_shared_objects_as_themselves():
     assert all(o[0] is shared for o in out)              # the parent's own object, not a copy
     assert all(o[1] is not shared for o in out)
     assert {o[2] for o in out} - {os.getpid()}           # they ran in other processes
-    assert None in [parallel.fork_map(lambda _: None, [0, 1], [shared], workers=2)[0]]   # None is no shared object
-
-
-def test_progress_is_called_here_once_per_item():
+    assert parallel.fork_map(lambda _: None, [0, 1], [shared], workers=2) == [None, None]  # None: no shared object
     seen = []
     parallel.fork_map(lambda k: k * k, range(5), workers=2, done=lambda i, r: seen.append((i, r, os.getpid())))
-    assert sorted(seen) == [(i, i * i, os.getpid()) for i in range(5)]
+    assert sorted(seen) == [(i, i * i, os.getpid()) for i in range(5)]     # progress: here, once per item
 
 
-def test_an_error_in_a_worker_is_raised_here():
+def _check_errors() -> None:
     def boom(k):
         if k == 2:
             raise FoamlabError("fit 2 failed")
@@ -46,14 +58,29 @@ def test_an_error_in_a_worker_is_raised_here():
 
     with pytest.raises(FoamlabError, match="fit 2 failed"):
         parallel.fork_map(boom, range(4), workers=2)
-
-
-def test_a_worker_that_dies_is_a_clear_error_not_a_hang():
-    with pytest.raises(FoamlabError, match="worker process died"):
+    with pytest.raises(FoamlabError, match="worker process died"):         # not a hang
         parallel.fork_map(lambda k: os._exit(3) if k == 1 else k, range(3), workers=2)
 
 
-def test_serial_beside_other_threads_and_inside_a_worker():
+def _check_nested() -> None:
+    outer = parallel.fork_map(lambda k: (os.getpid(), parallel.fork_map(lambda j: os.getpid(), range(2), workers=2)),
+                              range(2), workers=2)
+    assert all(pid != os.getpid() and pids == [pid, pid] for pid, pids in outer)   # a worker's own fits run there
+
+
+def test_results_come_back_in_order_with_shared_objects_as_themselves():
+    _fresh("_check_shared_objects")
+
+
+def test_an_error_in_a_worker_is_raised_here_and_a_dead_worker_is_said():
+    _fresh("_check_errors")
+
+
+def test_a_workers_own_fits_run_where_it_is():
+    _fresh("_check_nested")
+
+
+def test_serial_beside_another_thread():
     stop = threading.Event()
     other = threading.Thread(target=stop.wait)
     other.start()
@@ -63,44 +90,42 @@ def test_serial_beside_other_threads_and_inside_a_worker():
     finally:
         stop.set()
         other.join()
-    # a worker's own fits run where it is
-    inner = parallel.fork_map(lambda k: (os.getpid(), parallel.fork_map(lambda j: os.getpid(), range(2), workers=2)),
-                              range(2), workers=2)
-    assert all(pids == [pid, pid] for pid, pids in inner)
 
 
-def test_a_diagnosis_on_two_workers_is_the_same_as_on_one(monkeypatch):
+def _check_diagnosis() -> None:
     """Every figure of the diagnosis, not only its verdict: the search's fits on forked workers
     are the same computations (independent regime A, 1 N friction, seed 1000: a case whose search
     runs every parallel stage, the refits from a new base included)."""
     import independent_effects as ie
 
+    import foamlab.diagnosis.core as core
     from foamlab.diagnosis import diagnose
     from foamlab.diagnosis.settings import DiagnosisSettings
 
     assert parallel.can_fork()
     run = ie.independent_run("A", 1000, {"direction_friction": 1.0}, form="causal", hz=16.0)
-    fit_calls = []
-    original = parallel.fork_map
+    widths = []
+    original = core.fork_map
 
     def counted(fn, items, *args, **kw):
-        fit_calls.append(len(items))
+        widths.append(len(items))
         return original(fn, items, *args, **kw)
 
-    monkeypatch.setattr("foamlab.diagnosis.core.fork_map", counted)
+    core.fork_map = counted
     one, two = (diagnose([run], settings=DiagnosisSettings(workers=w)).to_dict() for w in (1, 2))
     assert one["verdict"] == "direction_friction"
-    assert max(fit_calls) >= 2                           # there was something to share out
-    for d in (one, two):
-        d.pop("seconds", None)
+    assert max(widths) >= 2                              # there was something to share out
     assert one == two
 
 
-def test_the_terminal_progress_bar_leaves_the_diagnosis_free_to_fork(monkeypatch):
+def test_a_diagnosis_on_two_workers_is_the_same_as_on_one():
+    _fresh("_check_diagnosis", timeout=240.0)
+
+
+def test_the_terminal_progress_bar_starts_no_thread(monkeypatch):
     """rich redraws from a thread of its own unless told not to; with that thread running every
-    `foamlab diagnose` on a terminal would fit on one core."""
+    `foamlab diagnose` on a terminal would fit on one core (fork_map is serial beside a thread)."""
     import io
-    import sys
 
     from foamlab.commands.progress import terminal_progress
 
@@ -109,7 +134,8 @@ def test_the_terminal_progress_bar_leaves_the_diagnosis_free_to_fork(monkeypatch
             return True
 
     monkeypatch.setattr(sys, "stderr", Tty())
+    before = threading.active_count()
     with terminal_progress("diagnose") as report:
         report("testing", 0.5)
-        assert parallel.can_fork()
+        assert threading.active_count() == before
     assert "diagnose: testing" in sys.stderr.getvalue()

@@ -35,7 +35,7 @@ from threadpoolctl import threadpool_limits
 
 from foamlab.analysis.heldout import heldout_rmse
 from foamlab.analysis.noise import WHITE_P, series_noise_sigma, whiteness
-from foamlab.analysis.parallel import fork_map
+from foamlab.analysis.parallel import can_fork, default_workers, fork_map
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import (
     POLISH_NFEV,
@@ -306,13 +306,21 @@ class Procedure:
         """Stage 4: an extension that leaves structure may be stuck where the base bent itself:
         restarted from identification on the corrected data, best first, until one leaves
         white residuals."""
-        for c in sorted(polished, key=lambda c: -c.delta_bic):
-            if c.delta_bic <= 0 or whiteness(c.fit.solution.residual).min_p >= WHITE_P:
-                break
-            c.fit = reidentify(self.ref, self.series, c.fit)
-            compare([c], self.current)
-            if whiteness(c.fit.solution.residual).min_p >= WHITE_P:
-                break
+        ranked = sorted(polished, key=lambda c: -c.delta_bic)
+        stop = next((i for i, c in enumerate(ranked)
+                     if c.delta_bic <= 0 or whiteness(c.fit.solution.residual).min_p >= WHITE_P), len(ranked))
+        todo = ranked[:stop]
+        # each restart depends only on its own candidate: a batch as wide as the workers is restarted
+        # at once, and taken in order up to the first that leaves white residuals (the rest unused)
+        width = (self.settings.workers or default_workers()) if can_fork() else 1
+        for first in range(0, len(todo), width):
+            batch = todo[first:first + width]
+            fits = self._map(lambda c: reidentify(self.ref, self.series, c.fit), batch, *(c.fit for c in batch))
+            for c, fit in zip(batch, fits):
+                c.fit = fit
+                compare([c], self.current)
+                if whiteness(c.fit.solution.residual).min_p >= WHITE_P:
+                    return
 
     def fair_comparison(self, polished: list[Candidate]) -> bool:
         """Stage 5: an extension's fit may have found a better base model too (its alpha/beta

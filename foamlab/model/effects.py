@@ -455,7 +455,9 @@ def first_order_response(t, u, tau: float) -> np.ndarray:
     u: (n,) or (n, k), time along axis 0. The recursion y_i = a_i y_{i-1} + g_i is summed as
     y_i = sum_j exp(-(t_i - t_j)/tau) g_j, in stretches of at most _CHUNK_TAUS tau (so the
     exponentials neither overflow nor lose precision), vectorised because a fit calls it
-    hundreds of times (a plain loop's cost: docs/model.md#measured-costs-behind-implementation-choices)."""
+    hundreds of times (a plain loop's cost: docs/model.md#measured-costs-behind-implementation-choices).
+    Every stretch is summed at once (_Stretches); only the value carried from one stretch into the
+    next is a loop, one step per stretch."""
     u = np.asarray(u, float)
     t = np.asarray(t, float)
     if tau <= 0 or len(t) < 2:
@@ -465,25 +467,92 @@ def first_order_response(t, u, tau: float) -> np.ndarray:
     safe = np.where(step, dt, 1.0)
     a, b = _first_order_weights(safe, tau)
     a, b = np.where(step, a, 1.0), np.where(step, b, 1.0)       # no time: state kept
-    col = u.ndim > 1
-    ex = (lambda v: v[:, None]) if col else (lambda v: v)
+    ex = (lambda v: v[:, None]) if u.ndim > 1 else (lambda v: v)
     g = ex(1 - b) * u[1:] + ex(b - a) * u[:-1]
     y = np.empty_like(u)
     y[0] = u[0]
     n = len(t)
-    i = 1
+    ends = np.searchsorted(t, t[:-1] + _CHUNK_TAUS * tau, side="right").tolist()   # of a stretch from each sample
+    longer = np.flatnonzero(np.array(ends) > np.arange(2, n + 1)) + 1    # stretches from here span several steps
+    segments, i = [], 1
     while i < n:
-        j = int(np.searchsorted(t, t[i - 1] + _CHUNK_TAUS * tau, side="right"))
-        if j <= i + 1:                                # one step longer than the stretch
-            y[i] = ex(a[i - 1:i])[0] * y[i - 1] + g[i - 1]
-            i += 1
-            continue
-        j = min(j, n)
-        rel = (t[i:j] - t[i - 1]) / tau              # in (0, _CHUNK_TAUS]
-        w = np.exp(rel)
-        acc = np.cumsum(g[i - 1:j - 1] * ex(w), axis=0)
-        y[i:j] = (acc + ex(np.ones_like(rel)) * y[i - 1]) * ex(np.exp(-rel))
+        j = ends[i - 1]
+        if j <= i + 1:                                # steps each longer than a stretch, up to k
+            at = int(np.searchsorted(longer, i))
+            j = int(longer[at]) if at < len(longer) else n
+            segments.append((False, i, j))
+        else:
+            j = min(j, n)
+            segments.append((True, i, j))
         i = j
+    stretches = _Stretches(t, g, tau, [(i, j) for summed, i, j in segments if summed], ex)
+    # the carried value in Python floats (the same IEEE arithmetic, without numpy's per-call cost)
+    acc_last, decay_last = np.asarray(stretches.acc_last).tolist(), np.asarray(stretches.decay_last).tolist()
+    carry = ((lambda acc, prev, d: [(x + p) * d for x, p in zip(acc, prev)]) if u.ndim > 1
+             else (lambda acc, prev, d: (acc + prev) * d))
+    start, c = [], 0
+    prev = y[0].tolist()
+    for summed, i, j in segments:
+        if summed:
+            start.append(prev)
+            prev = carry(acc_last[c], prev, decay_last[c])
+            c += 1
+        else:
+            y[i:j] = _single_steps(ex(a[i - 1:j - 1]), g[i - 1:j - 1], np.asarray(prev))
+            prev = y[j - 1].tolist()
+    stretches.fill(y, start)
+    return y
+
+
+class _Stretches:
+    """The stretches of first_order_response summed at once: padded to the longest, each row
+    y = (cumsum(g exp(rel)) + y_start) exp(-rel), rel = (t - t_start) / tau in (0, _CHUNK_TAUS];
+    a row's cumsum adds its terms in order, as one stretch's own cumsum does."""
+
+    def __init__(self, t, g, tau: float, spans: list[tuple[int, int]], ex):
+        self.ex = ex
+        if not spans:
+            self.acc_last = self.decay_last = []
+            return
+        first, stop = np.array(spans).T
+        width = int((stop - first).max())
+        idx = first[:, None] + np.arange(width)[None, :]
+        self.valid = idx < stop[:, None]
+        self.idx = np.where(self.valid, idx, first[:, None])
+        rel = (t[self.idx] - t[first - 1][:, None]) / tau
+        terms = g[self.idx - 1] * self._ex2(np.exp(rel))
+        terms[~self.valid] = 0.0
+        self.acc = np.cumsum(terms, axis=1)
+        self.decay = np.exp(-rel)
+        last = stop - first - 1
+        rows = np.arange(len(first))
+        self.acc_last, self.decay_last = self.acc[rows, last], self.decay[rows, last]
+
+    def _ex2(self, v):
+        return v[:, :, None] if self.ex(np.zeros(1)).ndim > 1 else v
+
+    def fill(self, y: np.ndarray, start: list) -> None:
+        if not start:
+            return
+        first = np.asarray(start)[:, None]
+        values = (self.acc + first) * self._ex2(self.decay)
+        y[self.idx[self.valid]] = values[self.valid]
+
+
+def _single_steps(a: np.ndarray, g: np.ndarray, y0: np.ndarray) -> np.ndarray:
+    """y_i = a_i y_{i-1} + g_i from y0, for steps each longer than _CHUNK_TAUS tau (a_i < e^-30).
+
+    Solved as the fixed point of the whole stretch updated at once: once an update changes no
+    bit, every y_i is a_i y_{i-1} + g_i rounded as the step-by-step loop rounds it (by induction
+    from y0, the solution is unique), in two or three updates where that loop took one Python
+    step per sample (12 ms a fit's column block at 16 Hz, tau < 2 ms)."""
+    y = g.copy()
+    for _ in range(len(g) + 1):                   # exact after len(g) updates in any case
+        prev = np.concatenate([np.asarray(y0)[None], y[:-1]])
+        new = a * prev + g
+        if np.array_equal(new, y, equal_nan=True):
+            break
+        y = new
     return y
 
 
