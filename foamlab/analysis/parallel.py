@@ -54,6 +54,11 @@ def can_fork() -> bool:
             and not multiprocessing.current_process().daemon and threading.active_count() == 1)
 
 
+def processes(workers: int | None = None) -> int:
+    """The processes fork_map would use here for as many items (1: it would run serially)."""
+    return (workers or default_workers()) if can_fork() else 1
+
+
 def fork_map(fn: Callable[[T], R], items: Sequence[T], shared: Iterable[object] = (), workers: int | None = None,
              done: Callable[[int, R], None] | None = None) -> list[R]:
     """[fn(item) for item in items], on up to ``workers`` forked processes where that is safe.
@@ -62,8 +67,8 @@ def fork_map(fn: Callable[[T], R], items: Sequence[T], shared: Iterable[object] 
     done(i, result): called in this process as each result arrives (progress), in completion order.
     """
     items = list(items)
-    n = min(workers or default_workers(), len(items))
-    if n <= 1 or not can_fork():
+    n = min(processes(workers), len(items))
+    if n <= 1:
         out = []
         for i, item in enumerate(items):
             out.append(fn(item))

@@ -35,7 +35,7 @@ from threadpoolctl import threadpool_limits
 
 from foamlab.analysis.heldout import heldout_rmse
 from foamlab.analysis.noise import WHITE_P, series_noise_sigma, whiteness
-from foamlab.analysis.parallel import can_fork, default_workers, fork_map
+from foamlab.analysis.parallel import fork_map, processes
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import (
     POLISH_NFEV,
@@ -312,9 +312,9 @@ class Procedure:
         todo = ranked[:stop]
         # each restart depends only on its own candidate: a batch as wide as the workers is restarted
         # at once, and taken in order up to the first that leaves white residuals (the rest unused)
-        width = (self.settings.workers or default_workers()) if can_fork() else 1
-        for first in range(0, len(todo), width):
-            batch = todo[first:first + width]
+        size = processes(self.settings.workers or None)
+        for first in range(0, len(todo), size):
+            batch = todo[first:first + size]
             fits = self._map(lambda c: reidentify(self.ref, self.series, c.fit), batch, *(c.fit for c in batch))
             for c, fit in zip(batch, fits):
                 c.fit = fit

@@ -17,7 +17,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from foamlab.analysis.noise import AT_NOISE_RATIO, at_the_noise
-from foamlab.analysis.parallel import can_fork, fork_map
+from foamlab.analysis.parallel import fork_map, processes
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
 from foamlab.analysis.solve import Fit, converged, polish, solved_at
 from foamlab.identification.apart import HeldApart, coalesced, hold_apart
@@ -189,7 +189,7 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
                                  / len(placements))
     others = (fork_map(lambda i: fitted(i, True), range(len(placements)),
                        [*(p for q in (fd, *placements) for p in (q, q.series))], done=done)
-              if len(placements) > 1 and can_fork() else [fitted(i, False) for i in range(len(placements))])
+              if len(placements) > 1 and processes() > 1 else [fitted(i, False) for i in range(len(placements))])
     kept = result
     for other in others:
         if other.rmse < kept.rmse:

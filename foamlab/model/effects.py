@@ -477,7 +477,7 @@ def first_order_response(t, u, tau: float) -> np.ndarray:
     segments, i = [], 1
     while i < n:
         j = ends[i - 1]
-        if j <= i + 1:                                # steps each longer than a stretch, up to k
+        if j <= i + 1:                                # steps each longer than a stretch, up to the next stretch
             at = int(np.searchsorted(longer, i))
             j = int(longer[at]) if at < len(longer) else n
             segments.append((False, i, j))
@@ -485,7 +485,7 @@ def first_order_response(t, u, tau: float) -> np.ndarray:
             j = min(j, n)
             segments.append((True, i, j))
         i = j
-    stretches = _Stretches(t, g, tau, [(i, j) for summed, i, j in segments if summed], ex)
+    stretches = _Stretches(t, g, tau, [(i, j) for summed, i, j in segments if summed])
     # the carried value in Python floats (the same IEEE arithmetic, without numpy's per-call cost)
     acc_last, decay_last = np.asarray(stretches.acc_last).tolist(), np.asarray(stretches.decay_last).tolist()
     carry = ((lambda acc, prev, d: [(x + p) * d for x, p in zip(acc, prev)]) if u.ndim > 1
@@ -509,8 +509,8 @@ class _Stretches:
     y = (cumsum(g exp(rel)) + y_start) exp(-rel), rel = (t - t_start) / tau in (0, _CHUNK_TAUS];
     a row's cumsum adds its terms in order, as one stretch's own cumsum does."""
 
-    def __init__(self, t, g, tau: float, spans: list[tuple[int, int]], ex):
-        self.ex = ex
+    def __init__(self, t, g, tau: float, spans: list[tuple[int, int]]):
+        self.columns = g.ndim > 1          # g (n, k): a weight per row applies to every column
         if not spans:
             self.acc_last = self.decay_last = []
             return
@@ -520,7 +520,7 @@ class _Stretches:
         self.valid = idx < stop[:, None]
         self.idx = np.where(self.valid, idx, first[:, None])
         rel = (t[self.idx] - t[first - 1][:, None]) / tau
-        terms = g[self.idx - 1] * self._ex2(np.exp(rel))
+        terms = g[self.idx - 1] * self._per_row(np.exp(rel))
         terms[~self.valid] = 0.0
         self.acc = np.cumsum(terms, axis=1)
         self.decay = np.exp(-rel)
@@ -528,14 +528,14 @@ class _Stretches:
         rows = np.arange(len(first))
         self.acc_last, self.decay_last = self.acc[rows, last], self.decay[rows, last]
 
-    def _ex2(self, v):
-        return v[:, :, None] if self.ex(np.zeros(1)).ndim > 1 else v
+    def _per_row(self, v):
+        return v[:, :, None] if self.columns else v
 
     def fill(self, y: np.ndarray, start: list) -> None:
         if not start:
             return
         first = np.asarray(start)[:, None]
-        values = (self.acc + first) * self._ex2(self.decay)
+        values = (self.acc + first) * self._per_row(self.decay)
         y[self.idx[self.valid]] = values[self.valid]
 
 
