@@ -249,11 +249,12 @@ def _sequences(steps: tuple[Step, ...]) -> list[tuple[str, int, list[Step]]]:
 
 
 def _step_toml(s: Step) -> str:
+    # every digit the step holds: the file loads back the very steps (4 digits read 243.091 as 243.1)
     if s.action == "compress":
-        return f'{{ action = "compress", strain = {s.strain:.4g}, speed_mm_min = {s.speed_mm_min:.4g} }}'
+        return f'{{ action = "compress", strain = {s.strain:.10g}, speed_mm_min = {s.speed_mm_min:.10g} }}'
     if s.action == "return":
-        return f'{{ action = "return", speed_mm_min = {s.speed_mm_min:.4g} }}'
-    return f'{{ action = "dwell", duration_s = {s.duration_s:.4g} }}'
+        return f'{{ action = "return", speed_mm_min = {s.speed_mm_min:.10g} }}'
+    return f'{{ action = "dwell", duration_s = {s.duration_s:.10g} }}'
 
 
 def _toml_str(text: str) -> str:

@@ -28,37 +28,42 @@ from foamlab.methods import Method, load_method, method_toml, parse_method
 #: so that each loop (two diagnoses, one of two runs) takes seconds.
 REGIME = im.REGIME_A
 HZ = 2.0
-#: A suggested stroke within this strain of the regime's is the regime's: the suggestion takes the
-#: stroke from the largest sample (0.7985 for 0.8 at 2 Hz), the generator's specimen is defined
-#: on its own stroke.
+#: A suggested stroke within this strain of the first run's is the first run's: the suggestion takes
+#: the stroke from the largest sample (0.7985 for 0.8 at 2 Hz; with a frame hidden, the crosshead's
+#: stroke is the specimen's plus the frame's deflection at the peak force), and the generator runs
+#: its specimen over its own stroke again.
 STRAIN_TOLERANCE = 0.005
 
 
-def _run_of(method: Method, seed: int, causes: dict[str, float]):
-    """The independent generator's run of a suggested method on the same specimen."""
+def _run_of(method: Method, seed: int, causes: dict[str, float], first, regime: im.Regime = REGIME,
+            form: str | None = None):
+    """The independent generator's run of a suggested method on the same specimen as ``first``."""
     compress = [s for s in method.steps if s.action == "compress"]
+    stroke = float(max(first.displacement_mm)) / regime.height_mm
     unsupported = [s for s in method.steps if s.action == "dwell"] or \
-        [s for s in compress if abs(s.strain - REGIME.strain) > STRAIN_TOLERANCE]
+        [s for s in compress if abs(s.strain - stroke) > STRAIN_TOLERANCE]
     assert not unsupported, f"the independent generator cannot run {method.title!r} (triangles to its stroke only)"
     assert len({s.speed_mm_min for s in method.steps if s.speed_mm_min}) == 1, method.steps
-    return ie.independent_run(REGIME, seed, causes, hz=method.sampling_hz, speed_mm_min=compress[0].speed_mm_min,
-                              cycles=len(compress), v_ref_mm_min=REGIME.speed_mm_min)
+    return ie.independent_run(regime, seed, causes, form=form, hz=method.sampling_hz,
+                              speed_mm_min=compress[0].speed_mm_min, cycles=len(compress),
+                              v_ref_mm_min=regime.speed_mm_min)
 
 
-def _loop(causes: dict[str, float], seed: int, tmp_path):
+def _loop(causes: dict[str, float], seed: int, tmp_path, regime: im.Regime = REGIME, form: str | None = None,
+          hz: float = HZ):
     """The first run diagnosed, the suggestion made and written, the suggested method run on the
     same specimen (seed + 1: its own noise), both runs diagnosed together."""
-    first = ie.independent_run(REGIME, seed, causes, hz=HZ)
+    first = ie.independent_run(regime, seed, causes, form=form, hz=hz)
     d = diagnose([first])
-    s = suggest(d, REGIME.height_mm)
+    s = suggest(d, regime.height_mm)
     assert s.made, (s.why, _tested(d))
     ranking = [(p.decides, p.duration_s) for p in s.ranking]
     deciding = [r for r in ranking if r[0]]
     assert ranking[:len(deciding)] == sorted(deciding, key=lambda r: r[1]), s.lines()   # shortest first
-    method = load_method(s.write(tmp_path / "next.toml"))       # what `foamlab run --method FILE` loads
+    method = load_method(s.write(tmp_path / "next.toml"))       # what `foamlab run --method` loads
     assert method.steps == s.best.protocol.method.steps
     assert s.best.decides, s.lines()
-    both = diagnose([first, _run_of(method, seed + 1, causes)])
+    both = diagnose([first, _run_of(method, seed + 1, causes, first, regime, form)])
     return d, s, both
 
 
@@ -106,6 +111,30 @@ def test_a_damping_change_one_run_blames_on_the_frame_is_named_with_the_suggeste
     assert both.verdict == "damping_cycle_change", _tested(both)
     gains = sorted((c.delta_bic for c in both.tested[0]), reverse=True)
     assert gains[0] - gains[1] > 100, _tested(both)
+
+
+#: Three-cycle 16 Hz runs of the detection benchmark (bench_detection_independent.py: seeds fixed
+#: there before looking) whose one-run verdict names another cause (docs/benchmarks.md; session 23):
+#: the suggested run at about 4 x the speed, diagnosed with the first, names the hidden one.
+#: - a frame of 250 N/mm, A causal seed 1016: one run names damping_cycle_change (Delta BIC 183,
+#:   the frame 39); two runs name machine_compliance (3 865, the next 1 152).
+#: - a damping change of 30 %/cycle, B causal seed 1004: one run names direction_friction (112, the
+#:   frame 91, the damping change below the first three); two runs name it (5 794, the next 435).
+#: The other two such first runs (the 250 N/mm frame in A paper, seeds 1006 and 1014: one run names
+#: cycle_softening) stay `unexplained` with the second run (docs/analysis.md, "Two runs").
+MISNAMED_AT_16_HZ = [({"machine_compliance": 250.0}, 1016, "A", "causal"),
+                     ({"damping_cycle_change": 30.0}, 1004, "B", "causal")]
+
+
+@pytest.mark.parametrize("causes, seed, regime, form", MISNAMED_AT_16_HZ,
+                         ids=[next(iter(c)) for c, *_ in MISNAMED_AT_16_HZ])
+def test_a_cause_one_16_hz_run_misnames_is_named_with_the_suggested_run(causes, seed, regime, form, tmp_path):
+    (cause,) = causes
+    d, s, both = _loop(causes, seed, tmp_path, im.REGIMES[regime], form, hz=16.0)
+    assert d.verdict != cause, _tested(d)                     # what the second run is for
+    assert both.verdict == cause, _tested(both)
+    gains = sorted((c.delta_bic for c in both.tested[0]), reverse=True)
+    assert gains[0] - gains[1] > 1000, _tested(both)
 
 
 def test_method_file_round_trip_and_cli(tmp_path, capsys):
