@@ -3,7 +3,8 @@
 screen: the effect's parameter scanned and refined with the base's alpha/beta held (cheap);
 fit_joint: everything free (the base may have bent its alpha/beta to mimic the effect);
 reidentify: a restart from identification's search on the data with the effect taken out;
-probe: the three, short, for one cause; without: the model without one of its effects, refitted.
+probe: the three, short, for one cause; without: the model without one of its effects, refitted;
+on_base: a fit's effects on another base.
 All fits are the analysis core's (foamlab.analysis.solve.varpro).
 """
 
@@ -130,6 +131,16 @@ def without(series: list[Series], fit: Fit, index: int = -1) -> Fit:
     eta = np.delete(fit.eta, np.arange(first, first + sizes[index]))
     causes = list(fit.causes[:index]) + list(fit.causes[index + 1:])
     return Fit.of(causes, model, varpro(model, model.start(eta), max_nfev=POLISH_NFEV))
+
+
+def on_base(series: list[Series], fit: Fit, base: Fit, max_nfev: int = JOINT_NFEV) -> Fit:
+    """The fit's effects on another base (the other residual form's): the base's alpha/beta and
+    the effects from the fit's values, everything refitted jointly."""
+    causes = list(fit.causes)
+    model = ExtendedModel(series, base.params, [c.effect for c in causes], _settings(causes, series),
+                          effect_bounds={c.effect.name: c.bounds() for c in causes}, free_base=True,
+                          base_bounds=bounds_like(base.model, series, base.params), masks=contact_of(base, series))
+    return Fit.of(causes, model, varpro(model, model.start(np.asarray(fit.eta, float)), max_nfev=max_nfev))
 
 
 def reidentify(ref: PreparedRun, series: list[Series], fit: Fit, eta: np.ndarray | None = None,
