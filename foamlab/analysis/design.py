@@ -477,8 +477,7 @@ class ExtendedModel:
                            list(masks), [s.used for s in self.series], designs, normal)
             if best is None or sol.rss(keep_all) < best.rss(keep_all):
                 best = sol
-            new_masks = [compressed & (cols @ theta[:self.n_model] + offset > 0)
-                         for _, cols, offset, compressed in columns]
+            new_masks = [self._pushes(cols, offset, compressed, theta) for _, cols, offset, compressed in columns]
             # only the fitted rows' contact set shapes the fit: iterate on them alone
             fitted = [m[r] for m, r in zip(new_masks, rows)]
             old = [m[r] for m, r in zip(masks, rows)]
@@ -490,6 +489,12 @@ class ExtendedModel:
             masks = new_masks
         return best
 
+    def _pushes(self, cols, offset, compressed, theta) -> np.ndarray:
+        """Where the plate pushes (EffectChain._contact_force): the specimen's own force positive
+        (the effects' added force, friction, acts only there) and the total with it too."""
+        own = cols @ theta[:self.n_model]
+        return compressed & (own > 0) & (own + offset > 0)
+
     def _predict_unfitted(self, sol: Solution, prepared, rows, chain: EffectChain) -> Solution:
         """The samples the fit did not use (held out, or not evidence) predicted by the solution:
         their contact set follows from it (the plate pushes where the model's force is
@@ -498,7 +503,7 @@ class ExtendedModel:
         for i, ((s, cols, offset, compressed), r) in enumerate(zip(prepared, rows)):
             if r.all():
                 continue
-            mask = np.where(r, sol.masks[i], compressed & (cols @ theta[:self.n_model] + offset > 0))
+            mask = np.where(r, sol.masks[i], self._pushes(cols, offset, compressed, theta))
             if np.array_equal(mask, sol.masks[i]):
                 continue
             m, c = self._measured_design(i, s, chain, cols, offset, mask)
@@ -566,7 +571,7 @@ class ExtendedModel:
         out = []
         for k, s in enumerate(self.series):
             cols, offset, x_s, _ = self._columns(s, chain, phi)
-            mask = (x_s > 0) & (cols @ theta[:self.n_model] + offset > 0)
+            mask = self._pushes(cols, offset, x_s > 0, theta)
             m, const = self._measured_design(k, s, chain, cols, offset, mask)
             out.append(m @ theta + const)
         return out

@@ -740,7 +740,9 @@ class EffectChain:
         c = Components(elastic, damping, residual, 0.0 * elastic, cycle, velocity, rate)
         for e in self._specimen:
             c = e.modify(c)
-        return np.where(x_s > 0, np.maximum(c.total, 0.0), 0.0)
+        # the plate pushes where the specimen's own force is positive: a force the effects add
+        # (friction) acts only there, and the total cannot pull
+        return np.where((x_s > 0) & (c.total - c.extra > 0), np.maximum(c.total, 0.0), 0.0)
 
     # ---- batch
     def measured_force(self, model, t, x, *, velocity=None, labels: HistoryLabels | None = None,
