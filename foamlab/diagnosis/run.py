@@ -50,18 +50,23 @@ def diagnose(runs: list[RunData], fit: FitReport | None = None,
     # the other runs' turns are placed as each form's base fits them (_shared_base)
     rest = [prepare(r, name=n) for r, n in zip(runs[1:], names[1:])]
     start = FIT_SHARE if progress else 0.0
-    d = _diagnose_on(fit, rest, causes, lambda stage, f: report(stage, start + (1.0 - start) * f), settings)
+    d = diagnose_prepared(*_base_of(fit, rest), causes, settings=settings,
+                          progress=lambda stage, f: report(stage, start + (1.0 - start) * f))
     d.base_form_reason = base_form_reason(fit)
     other = fit.alternatives[0] if fit.alternatives and form_finding is None else None
-    if other is not None and d.verdict != "none" and not _at_the_noise(d) and _other_may_win(d, other, rest):
+    begun = None
+    if other is not None and d.verdict != "none" and not _at_the_noise(d):
+        other.prepared.series.name = names[0]
+        begun = _base_of(other, rest)      # the other form's runs and base: for the check and its diagnosis
+    if begun is not None and _other_may_win(d, begun, rest):
         # the form was chosen on the base alone; an effect the base cannot hold may have tipped
         # it (a paper-form run with a damping change: causal base 0.64 N held out, paper 3.1 N):
         # unless the extended model leaves only noise, the other form's base is diagnosed too
         # and the better extended model kept
-        other.prepared.series.name = names[0]
         so_far = report.fraction
-        d2 = _diagnose_on(other, rest, causes, lambda stage, f: report(f"{other.params.residual_form} form: {stage}",
-                                                                        so_far + (1.0 - so_far) * f), settings)
+        d2 = diagnose_prepared(*begun, causes, settings=settings,
+                               progress=lambda stage, f: report(f"{other.params.residual_form} form: {stage}",
+                                                                so_far + (1.0 - so_far) * f))
         if bic(d2.final) < bic(d.final):
             d2.base_form_reason = (f"{other.params.residual_form} residual form: with the extension found it "
                                    f"explains the run better (BIC {bic(d2.final):.1f} vs {bic(d.final):.1f} in the "
@@ -88,21 +93,15 @@ class _forward:
             self.progress(stage, self.fraction)
 
 
-def _diagnose_on(fit: FitReport, rest: list, causes: list[str] | None, progress: Progress,
-                 settings: DiagnosisSettings) -> Diagnosis:
-    """The diagnosis from one identification's fit: its core fit as the base of its own run,
-    polished on all the runs from its parameters when there are several. The base is the largest
-    structure's fit where identification chose a smaller one: a smaller structure drops what its
-    data do not determine, and where an effect the model lacks bends the larger one's terms into
-    cancelling pairs it is the coarser fit (measured: memory_lag 0.3 s hidden, 2.6 N left against
-    0.53 N), on which the causes are not found; diagnosis judges them against all the model's terms.
-    For the same reason it is the fit with every order free where identification held some apart."""
-    prepared, base = _base_of(fit, rest)
-    return diagnose_prepared(prepared, base, causes, progress=progress, settings=settings)
-
-
 def _base_of(fit: FitReport, rest: list) -> tuple[list[PreparedRun], Fit]:
-    """The runs and the base a diagnosis starts from (_diagnose_on says which)."""
+    """The runs and the base a diagnosis from one identification's fit starts from: its core fit
+    as the base of its own run, polished on all the runs from its parameters when there are
+    several. The base is the largest structure's fit where identification chose a smaller one: a
+    smaller structure drops what its data do not determine, and where an effect the model lacks
+    bends the larger one's terms into cancelling pairs it is the coarser fit (measured: memory_lag
+    0.3 s hidden, 2.6 N left against 0.53 N), on which the causes are not found; diagnosis judges
+    them against all the model's terms. For the same reason it is the fit with every order free
+    where identification held some apart."""
     fit = fit.largest or fit
     prepared = [fit.prepared] + rest
     if not rest and fit.core_fit is not None:
@@ -132,16 +131,16 @@ def _shared_base(prepared: list[PreparedRun], params) -> tuple[list[PreparedRun]
     return prepared, base
 
 
-def _other_may_win(d: Diagnosis, other: FitReport, rest: list) -> bool:
+def _other_may_win(d: Diagnosis, begun: tuple[list[PreparedRun], Fit], rest: list) -> bool:
     """Whether the other residual form's diagnosis can explain the run better: with findings, the
-    other form's base with them (one joint fit from their values) must come within
+    other form's base (begun: _base_of) with them (one joint fit from their values) must come within
     settings.delta_bic_min of this diagnosis's BIC. Measured on the 160 one-run cases of the
     detection benchmark (docs/analysis.md, "Two residual forms in a diagnosis"): where the other
     form's diagnosis won, this fit was already thousands below; where it lost, thousands above.
     Without findings (`unexplained`), or with several runs, the other form is diagnosed."""
     if not d.final.causes or rest:
         return True
-    prepared, base = _base_of(other, [])
+    prepared, base = begun
     series = [prepared[0].series]
     k = decimation(series)
     coarse = [s.decimated(k) for s in series]
