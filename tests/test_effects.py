@@ -128,6 +128,26 @@ def test_compliance_loop_is_stable_and_closed_by_the_data(params):
         assert np.abs(r.force - f).max() < 1e-7 * f.max()
 
 
+def test_a_frame_at_once_is_solved_in_batch_and_refused_by_the_simulator(params, base_trace):
+    """tau_frame_s = 0 (what diagnosis fits): G is the force at the same instant, so the batch
+    form settles at x_s = x - C F with F the force at x_s itself (a loop the plain iteration
+    cannot close at the upper bound C: C times the residual's one-step stiffness exceeds 1); the
+    simulator, which could only close it on the previous sample's force, says so."""
+    c = EFFECTS["machine_compliance"].parameters[0].upper
+    frame = EFFECTS["machine_compliance"](c, tau_frame_s=0.0)
+    t, x, v = base_trace["t"], base_trace["x_crosshead_mm"], base_trace["velocity_mm_s"]
+    r = EffectChain([frame]).response(online_model(params), t, x, velocity=v)
+    loading = v > 0
+    assert np.abs((x - r.x_specimen - c * r.contact_force)[loading]).max() < 1e-8
+    plain = EffectChain().measured_force(online_model(params), t, x, velocity=v)
+    assert r.force.max() < plain.max() - 0.3              # the specimen is compressed less: 0.7 mm of 20
+    # fed its own force, the one-pass form (diagnosis's) gives the same specimen displacement
+    again = EffectChain([frame]).response(online_model(params), t, x, velocity=v, measured_force=r.contact_force)
+    assert np.abs(again.x_specimen - r.x_specimen).max() < 1e-8
+    with pytest.raises(ValueError, match="tau_frame_s = 0"):
+        SimulatedMachine(clock=ManualClock(), specimen=params, effects=EffectChain([frame]))
+
+
 def test_effects_do_what_their_docstrings_say(params, base_trace):
     t, x, v = base_trace["t"], base_trace["x_crosshead_mm"], base_trace["velocity_mm_s"]
     model = online_model(params)

@@ -120,6 +120,7 @@ class Series:
     obs: np.ndarray | None = None    # its samples in the full series
     nodes: PathNodes | None = None   # identification's displacement path with its corner nodes
     x_measured: np.ndarray | None = None   # the displacement as recorded (x: the path; default x)
+    y_path: np.ndarray | None = None       # the force smoothed as the path (path.force_path; default y)
     evidence: np.ndarray | None = None     # samples the model is judged on (None: all; see data.py)
     no_contact: np.ndarray | None = None   # measured off the specimen (the unloaded reading)
     _bases: dict = field(default_factory=dict, repr=False)
@@ -158,11 +159,13 @@ class Series:
         return float(np.median(np.diff(self.t))) if len(self.t) > 1 else 1.0
 
     def frame_force(self, frame_tau_s: float) -> np.ndarray:
-        """The force the frame deflects under (machine_compliance), on the full series."""
+        """The force the frame deflects under (machine_compliance), on the full series: at once
+        (frame_tau_s = 0), the measured force smoothed as the displacement's path is."""
         key = ("frame", frame_tau_s)
         if key not in self._bases:
             f = self.source
-            self._bases[key] = frame_force(f.t, f.y, frame_tau_s)
+            y = f.y if f.y_path is None or frame_tau_s > 0 else f.y_path
+            self._bases[key] = frame_force(f.t, y, frame_tau_s)
         return self._bases[key]
 
     def basis(self, layout: Layout, x_scale_mm: float, frame_tau_s: float | None = None) -> ModelBasis:

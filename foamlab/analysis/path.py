@@ -66,12 +66,41 @@ def displacement_path(t: np.ndarray, x: np.ndarray, corners) -> np.ndarray:
     its neighbours, which no smooth curve through them would respect. An exact history (no
     noise: synthetic data) is returned unchanged.
     """
-    t = np.asarray(t, float)
     x = np.asarray(x, float)
-    path = x.copy()
-    n = len(x)
-    if exact_history(x):
-        return path
+    return x.copy() if exact_history(x) else _smooth_between(np.asarray(t, float), x, corners)
+
+
+def force_path(t: np.ndarray, x: np.ndarray, force: np.ndarray, corners) -> np.ndarray:
+    """The measured force smoothed as the displacement's path is (the same corners and window;
+    unchanged where the displacement is exact): the force a frame deflects under at once
+    (machine_compliance at tau_frame_s = 0). The smoothing is linear, so the path less C times
+    this is the path of the displacement less the frame's deflection, C F: it fits a machine
+    that records the specimen's travel plus the frame's as well as one whose crosshead follows
+    its command (docs/analysis.md, "The frame at once")."""
+    force = np.asarray(force, float)
+    return force.copy() if exact_history(x) else _smooth_between(np.asarray(t, float), force, corners)
+
+
+def _smooth_between(t: np.ndarray, v: np.ndarray, corners) -> np.ndarray:
+    """v by a Savitzky-Golay cubic over PATH_WINDOW_S within each stretch between corners (the
+    corner samples as measured), on a uniform grid."""
+    path = v.copy()
+    n = len(v)
+    step = float(np.median(np.diff(t)))
+    window = int(round(PATH_WINDOW_S / step)) | 1
+    bounds = np.unique(np.concatenate([[-1, n], np.asarray(corners, dtype=int)]))
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        ts, xs = t[a + 1:b], v[a + 1:b]               # between two corners, both left out
+        if len(ts) < 2 or not ts[-1] > ts[0]:
+            continue
+        n_grid = int(round((ts[-1] - ts[0]) / step)) + 1
+        w = min(window, n_grid if n_grid % 2 else n_grid - 1)
+        if w <= PATH_ORDER + 1:
+            continue                                      # too short to estimate: as measured
+        grid = np.linspace(ts[0], ts[-1], n_grid)
+        path[a + 1:b] = np.interp(ts, grid, savgol_filter(np.interp(grid, ts, xs), w, PATH_ORDER,
+                                                          mode="interp"))
+    return path
     step = float(np.median(np.diff(t)))
     window = int(round(PATH_WINDOW_S / step)) | 1
     bounds = np.unique(np.concatenate([[-1, n], np.asarray(corners, dtype=int)]))

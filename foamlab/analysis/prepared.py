@@ -22,6 +22,7 @@ from foamlab.analysis.path import (
     PathNodes,
     displacement_path,
     exact_history,
+    force_path,
     path_determined,
     path_nodes,
 )
@@ -115,7 +116,7 @@ class PreparedRun:
         nodes = path_nodes(self.t, self.path_mm, self.extremes, self.corner_tol,
                            between_samples=not between, before_extreme=True)
         return replace(self, nodes=nodes, series=_series(self.run, self.series.name, self.labels, nodes,
-                                                         self.seg.contact_lost))
+                                                         self.seg.contact_lost, self.series.y_path))
 
     def with_flipped(self, flipped: tuple[int, ...]) -> "PreparedRun":
         """The same run with these turning points (indices of extremes) placed the other way from
@@ -124,7 +125,7 @@ class PreparedRun:
                            between_samples=self.nodes.between_samples,
                            before_extreme=self.nodes.before_extreme, flipped=tuple(flipped))
         return replace(self, nodes=nodes, series=_series(self.run, self.series.name, self.labels, nodes,
-                                                         self.seg.contact_lost))
+                                                         self.seg.contact_lost, self.series.y_path))
 
     def placed_for(self, params: ModelParameters) -> "PreparedRun":
         """The run with its turns placed the way a fitted specimen's model fits it best: a second
@@ -154,7 +155,8 @@ class PreparedRun:
                                             ~self.seg.contact_lost, self.block_q)
         # the model's columns depend on the path only; the frame's force (compliance) on the force
         kept = {k: v for k, v in self.series._bases.items() if k[0] != "frame" and k[-1] is None}
-        series = replace(self.series, y=force, _bases=kept)
+        series = replace(self.series, y=force, _bases=kept,
+                         y_path=force_path(self.t, self.run.displacement_mm, force, self.corners))
         return replace(self, run=run, fit_force=fit_force, fit_count=fit_count,
                        block_curvature=BlockCurvature.of(self.fit_rows, fit_count, self.block_q, self.half_id),
                        noise_N=noise_sigma(force), series=series)
@@ -352,7 +354,8 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
         x_scale_mm=x_scale, n_residual_cycles=n_res,
         loading_time_s=float(np.median(loading_times)), noise_N=noise, warnings=warnings,
         path_mm=path, nodes=nodes, block_q=q, half_id=half_id, extremes=sorted(extremes), corner_tol=corner_tol,
-        series=_series(run, name, labels, nodes, seg.contact_lost), off_schedule=off_schedule,
+        series=_series(run, name, labels, nodes, seg.contact_lost,
+                       force_path(run.time_s, run.displacement_mm, run.force_N, corners)), off_schedule=off_schedule,
     )
 
 
@@ -394,7 +397,7 @@ def on_schedule(run: RunData) -> tuple[RunData, int]:
 
 
 def _series(run: RunData, name: str, labels: HistoryLabels, nodes: PathNodes,
-            contact_lost: np.ndarray) -> Series:
+            contact_lost: np.ndarray, y_path: np.ndarray) -> Series:
     """The run as every full fit sees it: the model driven by the path at the samples, the
     samples that path determines as evidence, the crosshead's velocity and speed."""
     t = np.asarray(run.time_s, float)
@@ -404,7 +407,7 @@ def _series(run: RunData, name: str, labels: HistoryLabels, nodes: PathNodes,
     moving = np.abs(velocity) > 0.5 * np.percentile(np.abs(velocity), 95)
     speed = float(np.median(np.abs(velocity[moving]))) * 60.0 if np.any(moving) else 0.0
     return Series(name=name or run.source or "run", t=t, x=x, y=y, labels=labels, nodes=nodes,
-                  x_measured=np.asarray(run.displacement_mm, float),
+                  x_measured=np.asarray(run.displacement_mm, float), y_path=y_path,
                   evidence=path_determined(t, run.displacement_mm, y, nodes, noise_sigma(y)),
                   no_contact=np.asarray(contact_lost, bool),
                   velocity=velocity, rate=loading_rate(t, x, labels.starts), speed_mm_min=speed)

@@ -268,21 +268,25 @@ class DirectionFriction(Effect):
 class MachineCompliance(Effect):
     """The frame and load cell deflect under load: the specimen sees less than the crosshead.
 
-    x_specimen = x_crosshead - C G, G = the force seen by the frame: the measured force
-    through a first-order response of time constant tau_frame_s (servo + structure),
-    updated from the previous sample's force. Stiff foam regions (densification) then
-    look softer than the model and the loading peak is rounded. Within each crosshead
-    half-cycle the specimen displacement is kept monotone: the frame springing back when
-    the model's damping vanishes at a turning point does not re-load the foam.
+    x_specimen = x_crosshead - C G, G = the force seen by the frame. Stiff foam regions
+    (densification) then look softer than the model and the loading peak is rounded. Within
+    each crosshead half-cycle the specimen displacement is kept monotone: the frame springing
+    back when the model's damping vanishes at a turning point does not re-load the foam.
 
-    Why the frame response: the model's fractional residual reacts to a one-step change
-    of x like a dashpot (~100 N/mm at 50 ms steps, more at shorter ones); a loop closed
-    on the instantaneous force oscillates at the simulator's small steps, while through
-    tau_frame_s = 0.2 s it settles within a few steps for C up to the upper bound
-    (0.01 mm/N, a 100 N/mm frame: softer than any real one) at any step size.
-    Batch forms: given the measured force, ``specimen_displacement`` (one pass, linear
-    in F: what diagnosis fits); from the model alone, the same loop iterated to its
-    fixed point. Both are the simulator's arithmetic, sample for sample.
+    tau_frame_s = 0: a frame that answers at once, G the force at the same instant - a real
+    frame, and what diagnosis fits (causes.MachineCompliance; docs/analysis.md, "The frame at
+    once"). Its loop is implicit (the force depends on x_specimen, which depends on the force):
+    the batch form from the model alone solves it (_loop_fixed_point); the simulator cannot step
+    it, and refuses it. tau_frame_s > 0 (the simulator's 0.2 s by default): G is the previous
+    sample's force through a first-order response of that time constant. The model's
+    fractional residual reacts to a one-step change of x like a dashpot (~100 N/mm at 50 ms
+    steps, more at shorter ones); a loop closed on the previous force oscillates at the
+    simulator's small steps, while through 0.2 s it settles within a few steps for C up to the
+    upper bound (0.01 mm/N, a 100 N/mm frame: softer than any real one) at any step size.
+    Batch forms: given the measured force, ``specimen_displacement`` (one pass, linear in F:
+    what diagnosis fits; at once, with the measured force smoothed as the displacement's path
+    is); from the model alone, the loop's fixed point. With tau_frame_s > 0 both are the
+    simulator's arithmetic, sample for sample.
     """
 
     name = "machine_compliance"
@@ -291,8 +295,8 @@ class MachineCompliance(Effect):
     stage = "input"
     parameters = (
         EffectParameter("c_mm_per_N", "mm/N", 0.005, 0.0, 0.01, doc="frame + load-cell compliance"),
-        EffectParameter("tau_frame_s", "s", 0.2, 1e-3, 10.0, fitted=False,
-                        doc="response time of the frame deflection to the force"),
+        EffectParameter("tau_frame_s", "s", 0.2, 0.0, 10.0, fitted=False,
+                        doc="response time of the frame deflection to the force (0: at once)"),
     )
 
 
@@ -648,8 +652,11 @@ def _monotone_in_runs(x_s: np.ndarray, direction: np.ndarray, x0: float = 0.0) -
 
 
 def frame_force(t, force, tau_s: float) -> np.ndarray:
-    """Force the frame deflects under: the previous sample's force through a first-order
-    response of time constant tau_s (exact for a force held over each step); 0 at t[0]."""
+    """Force the frame deflects under: at once (tau_s = 0) the force itself; else the previous
+    sample's force through a first-order response of time constant tau_s (exact for a force
+    held over each step), 0 at t[0]."""
+    if tau_s <= 0:
+        return np.array(force, dtype=float)
     tl, fl = np.asarray(t, float).tolist(), np.asarray(force, float).tolist()
     out = [0.0] * len(tl)
     g = 0.0
@@ -689,6 +696,39 @@ def _as_model_fn(model) -> ModelFn:
 
 
 # ----------------------------------------------------------------------------- the chain
+
+#: The compliance loop's damped iteration: the step toward the loop's own answer, and the share of
+#: samples that may stay unsettled (where the force jumps across the loop: no fixed point there).
+LOOP_DAMPING, LOOP_UNSETTLED_MAX = 0.5, 0.01
+
+
+def _loop_fixed_point(x: np.ndarray, step, max_iter: int, tol_mm: float) -> np.ndarray:
+    """The specimen displacement the compliance loop settles at: x_s = step(x_s), step the
+    specimen displacement for the force at x_s.
+
+    A damped iteration first (half a step toward the loop's answer). A frame at once can have
+    no fixed point at a few samples - where the force jumps (first touch, a turn) the loop jumps
+    across the solution - and the iteration settles everywhere else; those samples keep its last
+    value (at most LOOP_UNSETTLED_MAX of them). Where it does not settle (C times the specimen's
+    one-step stiffness, ~100 N/mm and more from the fractional residual, above ~3), Newton-Krylov
+    (scipy): 44-111 loop evaluations on tests/test_effects.py's two-cycle trace at the upper C."""
+    from scipy.optimize import root
+
+    x_s = x.copy()
+    for _ in range(max_iter):
+        r = step(x_s) - x_s
+        if np.max(np.abs(r), initial=0.0) <= tol_mm:
+            return x_s
+        x_s = x_s + LOOP_DAMPING * r
+    if np.mean(np.abs(step(x_s) - x_s) > tol_mm) <= LOOP_UNSETTLED_MAX:
+        return x_s
+    sol = root(lambda xs: xs - step(xs), step(x), method="krylov",
+               options={"fatol": tol_mm, "maxiter": max_iter})
+    if not sol.success:
+        raise RuntimeError("machine_compliance: the force loop did not converge "
+                           f"({sol.message}; compliance too large?)")
+    return sol.x
+
 
 @dataclass
 class EffectResponse:
@@ -783,18 +823,7 @@ class EffectChain:
                 x_s = specimen_x(np.asarray(measured_force, float))
                 base, contact = forward(x_s)
             else:
-                x_s = x.copy()
-                base, contact = forward(x_s)
-                for _ in range(max_iter):
-                    x_new = specimen_x(contact)
-                    if np.max(np.abs(x_new - x_s), initial=0.0) <= tol_mm:
-                        x_s = x_new
-                        break
-                    x_s = x_new
-                    base, contact = forward(x_s)
-                else:
-                    raise RuntimeError("machine_compliance: the force loop did not converge "
-                                       f"in {max_iter} iterations (compliance too large?)")
+                x_s = _loop_fixed_point(x, lambda xs: specimen_x(forward(xs)[1]), max_iter, tol_mm)
                 base, contact = forward(x_s)
         force = contact
         for e in self._sensor:
@@ -818,6 +847,9 @@ class OnlineEffects:
     """
 
     def __init__(self, chain: EffectChain):
+        if chain.compliance and chain.frame_tau_s <= 0:
+            raise ValueError("machine_compliance with tau_frame_s = 0 (a frame at once) cannot be simulated "
+                             "step by step: its loop is implicit; give the frame a response time > 0")
         self.chain = chain
         self._frame = 0.0                 # frame_force, online
         self._sensors = [s for s in (e.sensor_online() for e in chain._sensor) if s is not None]
