@@ -276,8 +276,11 @@ class MachineCompliance(Effect):
     tau_frame_s = 0: a frame that answers at once, G the force at the same instant - a real
     frame, and what diagnosis fits (causes.MachineCompliance; docs/analysis.md, "The frame at
     once"). Its loop is implicit (the force depends on x_specimen, which depends on the force):
-    the batch form from the model alone solves it (_loop_fixed_point); the simulator cannot step
-    it, and refuses it. tau_frame_s > 0 (the simulator's 0.2 s by default): G is the previous
+    the batch form from the model alone solves it (_loop_fixed_point), the simulator per step on
+    copies of its state (SimSpecimen; ~20 x the cost of a step). Just after a turn it has no
+    solution (the force drops as the specimen turns, which un-turns it): there the two keep
+    different values for a few samples (<= 2 % of the force at the upper C; tests/test_effects.py).
+    tau_frame_s > 0 (the simulator's 0.2 s by default, from --effect): G is the previous
     sample's force through a first-order response of that time constant. The model's
     fractional residual reacts to a one-step change of x like a dashpot (~100 N/mm at 50 ms
     steps, more at shorter ones); a loop closed on the previous force oscillates at the
@@ -847,9 +850,6 @@ class OnlineEffects:
     """
 
     def __init__(self, chain: EffectChain):
-        if chain.compliance and chain.frame_tau_s <= 0:
-            raise ValueError("machine_compliance with tau_frame_s = 0 (a frame at once) cannot be simulated "
-                             "step by step: its loop is implicit; give the frame a response time > 0")
         self.chain = chain
         self._frame = 0.0                 # frame_force, online
         self._sensors = [s for s in (e.sensor_online() for e in chain._sensor) if s is not None]
@@ -863,7 +863,15 @@ class OnlineEffects:
         self._start: tuple[float, float] = (0.0, 0.0)
         self._last: tuple[float, float] | None = None
 
-    def specimen_x(self, t: float, x: float) -> float:
+    @property
+    def frame_at_once(self) -> bool:
+        """machine_compliance with tau_frame_s = 0: the caller solves the step's loop and passes
+        the force at its solution to specimen_x (simulator.specimen.SimSpecimen)."""
+        return bool(self.chain.compliance) and self.chain.frame_tau_s <= 0
+
+    def specimen_x(self, t: float, x: float, force_now: float | None = None) -> float:
+        """x_s for crosshead x: x - C G, G the frame's force (at once: force_now, the force at
+        this step's x_s; else the previous force through the frame's response)."""
         first = self._prev_x is None
         if not first and x != self._prev_x:
             self._direction = 1 if x > self._prev_x else -1
@@ -873,7 +881,11 @@ class OnlineEffects:
             x_s = x
         else:
             prev = self._prev_x_s if not first else min(x, 0.0)
-            if not first:
+            if self.frame_at_once:
+                if force_now is None:
+                    raise ValueError("a frame at once needs the force at this step (force_now)")
+                self._frame = force_now
+            elif not first:
                 self._frame += -math.expm1(-(t - self._prev_t) / self.chain.frame_tau_s) * (
                     self._prev_force - self._frame)
             x_s = x - c * self._frame
