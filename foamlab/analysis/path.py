@@ -101,21 +101,6 @@ def _smooth_between(t: np.ndarray, v: np.ndarray, corners) -> np.ndarray:
         path[a + 1:b] = np.interp(ts, grid, savgol_filter(np.interp(grid, ts, xs), w, PATH_ORDER,
                                                           mode="interp"))
     return path
-    step = float(np.median(np.diff(t)))
-    window = int(round(PATH_WINDOW_S / step)) | 1
-    bounds = np.unique(np.concatenate([[-1, n], np.asarray(corners, dtype=int)]))
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        ts, xs = t[a + 1:b], x[a + 1:b]               # between two corners, both left out
-        if len(ts) < 2 or not ts[-1] > ts[0]:
-            continue
-        n_grid = int(round((ts[-1] - ts[0]) / step)) + 1
-        w = min(window, n_grid if n_grid % 2 else n_grid - 1)
-        if w <= PATH_ORDER + 1:
-            continue                                      # too short to estimate: as measured
-        grid = np.linspace(ts[0], ts[-1], n_grid)
-        path[a + 1:b] = np.interp(ts, grid, savgol_filter(np.interp(grid, ts, xs), w, PATH_ORDER,
-                                                          mode="interp"))
-    return path
 
 
 @dataclass
