@@ -341,8 +341,7 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
     corner_tol = max(3.0 * noise_sigma(run.displacement_mm), 1e-9 * max(seg.stroke_mm, 1.0))
     loading_times = [run.time_s[c.loading.stop - 1] - run.time_s[c.loading.start] for c in cycles]
     if off_schedule:
-        warnings.append(f"{off_schedule} samples taken off the sampling schedule left out "
-                        "(their instants are unsure)")
+        warnings.append(f"{off_schedule} samples taken off the sampling schedule left out (their instants are unsure)")
     # a measured displacement turns between its samples; an exact one (a polyline of its
     # samples: foamlab's own synthetic runs) at them - the fit checks the other (other_turns)
     nodes = path_nodes(run.time_s, path, sorted(extremes), corner_tol,
