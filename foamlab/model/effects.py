@@ -700,36 +700,40 @@ def _as_model_fn(model) -> ModelFn:
 
 # ----------------------------------------------------------------------------- the chain
 
-#: The compliance loop's damped iteration: the step toward the loop's own answer, and the share of
-#: samples that may stay unsettled (where the force jumps across the loop: no fixed point there).
+#: A frame at once: the compliance loop's damped iteration (the step toward the loop's own answer)
+#: and the share of samples that may stay unsettled (where the force jumps across the loop).
 LOOP_DAMPING, LOOP_UNSETTLED_MAX = 0.5, 0.01
 
 
-def _loop_fixed_point(x: np.ndarray, step, max_iter: int, tol_mm: float) -> np.ndarray:
+def _loop_fixed_point(x: np.ndarray, step, max_iter: int, tol_mm: float, at_once: bool) -> np.ndarray:
     """The specimen displacement the compliance loop settles at: x_s = step(x_s), step the
     specimen displacement for the force at x_s.
 
-    A damped iteration first (half a step toward the loop's answer). A frame at once can have
-    no fixed point at a few samples - where the force jumps (first touch, a turn) the loop jumps
-    across the solution - and the iteration settles everywhere else; those samples keep its last
-    value (at most LOOP_UNSETTLED_MAX of them). Where it does not settle (C times the specimen's
-    one-step stiffness, ~100 N/mm and more from the fractional residual, above ~3), Newton-Krylov
-    (scipy): 44-111 loop evaluations on tests/test_effects.py's two-cycle trace at the upper C."""
+    A frame through a response (not at once) deflects under earlier forces only: the plain
+    iteration settles, and not settling is an error. A frame at once: a damped iteration first
+    (half a step toward the loop's answer). It can have no fixed point at a few samples - where
+    the force jumps (first touch, a turn) the loop jumps across the solution - and the iteration
+    settles everywhere else; those samples keep its last value (at most LOOP_UNSETTLED_MAX of
+    them). Where it does not settle (C times the specimen's one-step stiffness, ~100 N/mm and more
+    from the fractional residual, above ~3), Newton-Krylov (scipy): 44-111 loop evaluations on
+    tests/test_effects.py's two-cycle trace at the upper C."""
     from scipy.optimize import root
 
+    damping = LOOP_DAMPING if at_once else 1.0
     x_s = x.copy()
     for _ in range(max_iter):
         r = step(x_s) - x_s
         if np.max(np.abs(r), initial=0.0) <= tol_mm:
             return x_s
-        x_s = x_s + LOOP_DAMPING * r
-    if np.mean(np.abs(step(x_s) - x_s) > tol_mm) <= LOOP_UNSETTLED_MAX:
+        x_s = x_s + damping * r
+    if at_once and np.mean(np.abs(step(x_s) - x_s) > tol_mm) <= LOOP_UNSETTLED_MAX:
         return x_s
     sol = root(lambda xs: xs - step(xs), step(x), method="krylov",
-               options={"fatol": tol_mm, "maxiter": max_iter})
-    if not sol.success:
-        raise RuntimeError("machine_compliance: the force loop did not converge "
-                           f"({sol.message}; compliance too large?)")
+               options={"fatol": tol_mm, "maxiter": max_iter}) if at_once else None
+    if sol is None or not sol.success:
+        why = f"; {sol.message}" if sol is not None else ""
+        raise RuntimeError(f"machine_compliance: the force loop did not converge in {max_iter} "
+                           f"iterations{why} (compliance too large?)")
     return sol.x
 
 
@@ -826,7 +830,8 @@ class EffectChain:
                 x_s = specimen_x(np.asarray(measured_force, float))
                 base, contact = forward(x_s)
             else:
-                x_s = _loop_fixed_point(x, lambda xs: specimen_x(forward(xs)[1]), max_iter, tol_mm)
+                x_s = _loop_fixed_point(x, lambda xs: specimen_x(forward(xs)[1]), max_iter, tol_mm,
+                                        at_once=self.frame_tau_s <= 0)
                 base, contact = forward(x_s)
         force = contact
         for e in self._sensor:
