@@ -41,6 +41,7 @@ class Fit:
     solution: Solution
     heldout_rmse: float | None = None
     heldout_blocks: np.ndarray | None = None    # each held-out block's squared error sum (heldout.py)
+    heldout_refit: str = ""            # how the held-out refits treated the base's alpha/beta (heldout.py)
     status: int = 0                    # the optimizer's (scipy least_squares) at the end of this fit
     message: str = ""
 
