@@ -24,8 +24,8 @@ HELDOUT_BLOCKS_PER_FOLD = 8
 CONTACT_EDGE_SAMPLES = 2
 #: Iterations of the refit without the held-out blocks, the base's alpha/beta held...
 HELDOUT_NFEV = 3
-#: ...and re-estimated from the base's start (diagnosis): the held-in optimum lies near the
-#: start, and 10 evaluations reach it (docs/analysis.md, "Held-out blocks").
+#: ...and re-estimated with the effects, from the model's own fit (diagnosis): the held-in
+#: optimum lies near it (docs/analysis.md, "Held-out blocks").
 HELDOUT_FREE_NFEV = 10
 
 
@@ -46,19 +46,19 @@ def folds(series: list[Series], n_folds: int = HELDOUT_FOLDS) -> list[list[np.nd
 
 
 def heldout_rmse(fit: Fit, on: Fit | None = None, n_folds: int = HELDOUT_FOLDS,
-                 base_start: np.ndarray | None = None, workers: int | None = None) -> float:
+                 reestimate: bool = False, workers: int | None = None) -> float:
     """RMSE of every block predicted by the model refitted without it.
 
     on: the same model on other (decimated) samples to do it on; the result, and each block's
     sum of squared prediction errors (``fit.heldout_blocks``, for heldout_gain), are stored
     in ``fit``.
-    base_start: the base's alpha/beta (those of the model a candidate extends). Given, each
-    refit re-estimates them with the effects, from there, on the held-in blocks alone (nothing
-    is held at a value the held-out blocks helped fit: diagnosis); None, they stay at the
-    fit's own (two bases alike: identification's choice of form).
+    reestimate: each refit re-estimates the base's alpha/beta with the effects on the held-in
+    blocks alone, from the model's own fit (nothing is held at a value the held-out blocks
+    helped fit: diagnosis); False, alpha/beta stay at the fit's (two bases alike:
+    identification's choice of form).
     workers: processes for the re-estimating refits (None: every core; analysis.parallel).
     """
-    mode = "base held" if base_start is None else "base re-estimated"
+    mode = "base re-estimated" if reestimate else "base held"
     if fit.heldout_rmse is not None and fit.heldout_refit == mode:
         return fit.heldout_rmse
     work = on or fit
@@ -66,10 +66,10 @@ def heldout_rmse(fit: Fit, on: Fit | None = None, n_folds: int = HELDOUT_FOLDS,
     blocks = np.zeros(int(ids.max()) + 1 if len(ids) else 0)
     count = 0
     keeps = folds(work.model.series, n_folds)
-    refit = (lambda keep: _predicted(_refit_without(work, keep))) if base_start is None else \
-        (lambda keep: _predicted(_refit_free(work, keep, base_start)))
+    refit = (lambda keep: _predicted(_refit_free(work, keep))) if reestimate else \
+        (lambda keep: _predicted(_refit_without(work, keep)))
     # the folds are independent fits: on the machine's cores where each costs a free refit
-    done = fork_map(refit, keeps, workers=workers if base_start is not None else 1)
+    done = fork_map(refit, keeps, workers=workers if reestimate else 1)
     for keep, (residual, used) in zip(keeps, done):
         out = ~np.concatenate(keep) & used
         r = residual[out]
@@ -107,11 +107,10 @@ class HeldoutGain:
 def heldout_gain(before: Fit, after: Fit, z: float, before_on: Fit | None = None,
                  after_on: Fit | None = None, workers: int | None = None) -> HeldoutGain:
     """The held-out gain of `after` over `before` (each held out on its `*_on` samples, the same
-    blocks), with its standard error from the block-to-block spread. Both refits re-estimate
-    the base's alpha/beta from `before`'s (the base's start)."""
-    start = base_phi(before_on or before)
-    rb = heldout_rmse(before, before_on, base_start=start, workers=workers)
-    ra = heldout_rmse(after, after_on, base_start=start, workers=workers)
+    blocks), with its standard error from the block-to-block spread. Both models' refits
+    re-estimate every nonlinear parameter, each from its own fit."""
+    rb = heldout_rmse(before, before_on, reestimate=True, workers=workers)
+    ra = heldout_rmse(after, after_on, reestimate=True, workers=workers)
     b, a = before.heldout_blocks, after.heldout_blocks
     if b is None or a is None or len(b) != len(a) or len(b) < 3 or rb + ra <= 0:
         return HeldoutGain(rb, ra, float("nan"), z)
@@ -145,28 +144,13 @@ def _block_ids(series: list[Series], n_folds: int) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros(0, int)
 
 
-def base_phi(fit: Fit) -> np.ndarray:
-    """A fit's base alpha/beta (its own where it fitted them, else those it was given)."""
-    m = fit.model
-    return m.split(fit.nu)[0] if m.free_base else m.phi0
-
-
-def _refit_free(fit: Fit, keep: list[np.ndarray], base_start: np.ndarray) -> Solution:
-    """The fit redone without the held-out samples, every nonlinear parameter re-estimated, the
-    effects from the fit's values and the base's alpha/beta from base_start and, where the fit
-    bent them elsewhere, from there too: the better on the held-in samples is kept (an effect the
-    base imitates sits where the base bent itself, 10 evaluations from the base's start away:
-    a 100 %/cycle damping change predicted 0.21 N from there against 0.17 N for the base)."""
-    model = model_like(fit, fit.model.series, free_base=True)
-    own = base_phi(fit)
-    starts = [base_start] if np.array_equal(own, base_start) else [base_start, own]
-    held_in = np.concatenate(keep)
-    best = None
-    for phi in starts:
-        sol = varpro(model, np.concatenate([phi, fit.eta]), keep, max_nfev=HELDOUT_FREE_NFEV).solution
-        if best is None or sol.rss(held_in & np.concatenate(sol.used)) < best.rss(held_in & np.concatenate(best.used)):
-            best = sol
-    return best
+def _refit_free(fit: Fit, keep: list[np.ndarray]) -> Solution:
+    """The fit redone without the held-out samples, every nonlinear parameter re-estimated from
+    the fit's own values. Each model from its own fit: an effect the base imitates sits where
+    the base bent itself, out of reach from the base's alpha/beta (a 100 %/cycle damping change
+    refitted from them predicted 0.21 N against the base's 0.17 N; docs/analysis.md)."""
+    model = model_like(fit, fit.model.series, free_base=True)      # alpha/beta start at the fit's
+    return varpro(model, model.start(fit.eta), keep, max_nfev=HELDOUT_FREE_NFEV).solution
 
 
 def _refit_without(fit: Fit, keep: list[np.ndarray]) -> Solution:

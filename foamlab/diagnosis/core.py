@@ -33,7 +33,7 @@ from typing import Callable
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from foamlab.analysis.heldout import base_phi, heldout_rmse
+from foamlab.analysis.heldout import heldout_rmse
 from foamlab.analysis.noise import WHITE_P, series_noise_sigma, whiteness
 from foamlab.analysis.parallel import fork_map, processes
 from foamlab.analysis.prepared import PreparedRun
@@ -440,7 +440,7 @@ class Procedure:
             verdict = "unexplained" if base_analysis.whiteness.min_p < WHITE_P else "none"
             if verdict == "unexplained":      # reported: held out as the candidates were
                 coarse = self._coarse(base)
-                heldout_rmse(base, coarse, base_start=base_phi(coarse), workers=self.settings.workers or None)
+                heldout_rmse(base, coarse, reestimate=True, workers=self.settings.workers or None)
         self._progress("what this run could have seen", 0.98)
         limits = detection_limits(self.coarse, self._coarse(base), self.applicable, self.settings, n_full=base.n)
         return Diagnosis(
