@@ -156,9 +156,8 @@ def _refit_free(fit: Fit, keep: list[np.ndarray]) -> Solution:
 def _refit_without(fit: Fit, keep: list[np.ndarray]) -> Solution:
     """The fit redone without the held-out samples: the linear parameters exactly and the
     effect parameters by a few trust-region steps from the full-data optimum. The base
-    model's alpha/beta stay at their full-data values, for both models alike (refitting
-    them per block would cost most of the diagnosis and moves them by a fraction of
-    their standard error)."""
+    model's alpha/beta stay at their full-data values, for both models alike: identification's
+    choice between two bases (diagnosis re-estimates them: _refit_free)."""
     model = fit.model
     if model.free_base:
         model = ExtendedModel(model.series, fit.params, model.effect_types, model.settings,
