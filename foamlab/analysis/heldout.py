@@ -66,10 +66,9 @@ def heldout_rmse(fit: Fit, on: Fit | None = None, n_folds: int = HELDOUT_FOLDS,
     blocks = np.zeros(int(ids.max()) + 1 if len(ids) else 0)
     count = 0
     keeps = folds(work.model.series, n_folds)
-    refit = (lambda keep: _predicted(_refit_free(work, keep))) if reestimate else \
-        (lambda keep: _predicted(_refit_without(work, keep)))
+    refit = _refit_free if reestimate else _refit_without
     # the folds are independent fits: on the machine's cores where each costs a free refit
-    done = fork_map(refit, keeps, workers=workers if reestimate else 1)
+    done = fork_map(lambda keep: _predicted(refit(work, keep)), keeps, workers=workers if reestimate else 1)
     for keep, (residual, used) in zip(keeps, done):
         out = ~np.concatenate(keep) & used
         r = residual[out]
