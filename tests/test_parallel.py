@@ -68,6 +68,44 @@ def _check_nested() -> None:
     assert all(pid != os.getpid() and pids == [pid, pid] for pid, pids in outer)   # a worker's own fits run there
 
 
+def _check_ahead() -> None:
+    shared = Box(np.arange(3.0))
+    got, new, pid = parallel.fork_ahead(lambda: (shared, Box(shared.value * 2), os.getpid()), [shared]).result()
+    assert got is shared and new.value[2] == 4.0 and pid != os.getpid()      # computed there, shared as itself
+
+    def boom():
+        raise FoamlabError("the fit ahead failed")
+
+    with pytest.raises(FoamlabError, match="the fit ahead failed"):
+        parallel.fork_ahead(boom).result()
+    with pytest.raises(FoamlabError, match="worker process died"):           # not a hang
+        parallel.fork_ahead(lambda: os._exit(3)).result()
+    blocked = parallel.fork_ahead(lambda: threading.Event().wait())           # never returns by itself
+    blocked.cancel()
+    assert not blocked._process.is_alive() and blocked._process.exitcode is not None
+    blocked.cancel()                                                           # again: nothing
+
+
+def _check_fit_ahead() -> None:
+    """Identification's whole fit with the turns placed the other way, fitted ahead on another
+    core, is the fit it makes here (independent A, clean seed 2000: a run whose first fit misfits
+    at its turns, so the other placement is needed)."""
+    import independent_effects as ie
+
+    import foamlab.identification.fit as fit
+
+    run = ie.independent_run("A", 2000, None, form="causal", hz=16.0)
+    used = []
+    original = parallel.Ahead.result
+    parallel.Ahead.result = lambda self: used.append(1) or original(self)
+    ahead = fit.fit_run(run).to_dict()
+    fit.fork_ahead = lambda fn, shared=(): None
+    here = fit.fit_run(run).to_dict()
+    assert used                                       # the fit ahead was the one kept or compared
+    strip = lambda d: {k: v for k, v in d.items() if k != "elapsed_s"}
+    assert strip(ahead) == strip(here)
+
+
 def test_results_come_back_in_order_with_shared_objects_as_themselves():
     _fresh("_check_shared_objects")
 
@@ -80,6 +118,14 @@ def test_a_workers_own_fits_run_where_it_is():
     _fresh("_check_nested")
 
 
+def test_work_ahead_comes_back_as_computed_errors_are_said_and_cancel_ends_it():
+    _fresh("_check_ahead")
+
+
+def test_the_fit_with_its_turns_the_other_way_fitted_ahead_is_the_fit_made_here():
+    _fresh("_check_fit_ahead", timeout=240.0)
+
+
 def test_serial_beside_another_thread():
     stop = threading.Event()
     other = threading.Thread(target=stop.wait)
@@ -87,6 +133,7 @@ def test_serial_beside_another_thread():
     try:
         assert not parallel.can_fork()                   # a fork would copy the other thread's locks
         assert parallel.fork_map(lambda k: os.getpid(), range(3), workers=2) == [os.getpid()] * 3
+        assert parallel.fork_ahead(lambda: 1) is None     # the caller computes it when needed
     finally:
         stop.set()
         other.join()

@@ -96,6 +96,63 @@ def fork_map(fn: Callable[[T], R], items: Sequence[T], shared: Iterable[object] 
     return results
 
 
+class Ahead:
+    """One call computed ahead in a forked process (fork_ahead), while this one goes on: its
+    result when asked for, or cancelled (the process ended) when it is not needed."""
+
+    def __init__(self, fn: Callable[[], R], shared: Iterable[object] = ()):
+        self.by_id = {id(o): o for o in shared}
+        ctx = multiprocessing.get_context("fork")
+        self._pipe, send = ctx.Pipe(duplex=False)
+        self._process = ctx.Process(target=_ahead, args=(fn, self.by_id, send), daemon=True)
+        self._process.start()
+        send.close()
+
+    def result(self) -> R:
+        """The call's result (waits for it); its error raised here, as the call would have."""
+        try:
+            data = self._pipe.recv_bytes()
+        except EOFError:
+            raise FoamlabError("a worker process died; run with one worker (--workers 1) or free memory") from None
+        finally:
+            self.cancel()
+        failed, value = _Unpickler(io.BytesIO(data), self.by_id).load()
+        if failed:
+            raise value
+        return value
+
+    def cancel(self) -> None:
+        """End the process (its work unused) and wait for it; again: nothing."""
+        if self._process.is_alive():
+            self._process.terminate()
+        self._process.join()
+        self._pipe.close()
+
+
+def fork_ahead(fn: Callable[[], R], shared: Iterable[object] = ()) -> Ahead | None:
+    """fn() started in a forked process beside this one (Ahead), or None where fork_map would run
+    serially (one core, another thread, inside a worker): the caller then calls fn when it needs
+    it. shared: as fork_map's. For work that may be needed: a core otherwise idle computes it
+    while this process finds out whether it is."""
+    return Ahead(fn, shared) if processes() > 1 else None
+
+
+def _ahead(fn, by_id: dict[int, object], send) -> None:
+    _mark_worker()
+    try:
+        out = (False, fn())
+    except BaseException as exc:       # said where the result is asked for
+        out = (True, exc if isinstance(exc, Exception) else FoamlabError(repr(exc)))
+    buf = io.BytesIO()
+    try:
+        _Pickler(buf, by_id).dump(out)
+    except Exception as exc:           # an unpicklable result or error: its words
+        buf = io.BytesIO()
+        _Pickler(buf, by_id).dump((True, FoamlabError(f"{type(exc).__name__}: {exc}")))
+    send.send_bytes(buf.getvalue())
+    send.close()
+
+
 def _mark_worker() -> None:
     global _in_worker
     _in_worker = True

@@ -17,7 +17,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from foamlab.analysis.noise import AT_NOISE_RATIO, at_the_noise
-from foamlab.analysis.parallel import fork_map, processes
+from foamlab.analysis.parallel import fork_ahead, fork_map, processes
 from foamlab.analysis.prepared import PreparedRun, model_response, prepare
 from foamlab.analysis.solve import Fit, converged, polish, solved_at
 from foamlab.identification.apart import HeldApart, coalesced, hold_apart
@@ -153,6 +153,23 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
     fraction of a millisecond before the extreme sample: only that sample's force says it
     was already unloading); where they misfit more than their neighbours, every turn is; the
     placement whose whole run fits best is kept."""
+    # the whole fit with every turn the other way needs nothing from the first fit: where the run
+    # has turns without a stop it is fitted ahead on another core while the first fit shows
+    # whether it is needed (the same computation; cancelled when not)
+    other = fd.other_turns() if len(fd.nodes.turns_between) else None
+    ahead = fork_ahead(lambda: _fit_prepared(other, orders, select, None, hold=hold, settings=settings),
+                       [fd, fd.series, other, other.series]) if other is not None else None
+    try:
+        return _placed_best(fd, orders, select, progress, paper, rival, hold, settings, other, ahead)
+    finally:
+        if ahead is not None:
+            ahead.cancel()
+
+
+def _placed_best(fd: PreparedRun, orders: Orders, select: bool, progress: Progress, paper, rival: float,
+                 hold: bool, settings: FitSettings, other: PreparedRun | None, ahead) -> FitReport:
+    """_fit_placed's work: other is fd.other_turns() (None without turns without a stop), ahead its
+    whole fit started on another core (None: fitted here when needed)."""
     # progress: the first fit to FIRST_SHARE, each other placement's an equal part of the rest
     result = _fit_prepared(fd, orders, select, lambda stage, f: progress(stage, FIRST_SHARE * f), paper,
                            rival, hold, settings)
@@ -171,31 +188,39 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
         # fit's parameters bend to the placement they were fitted with (independent A at twice its
         # speed, seed 641: they fit the other placement worse, yet its own fit is 0.154 N against
         # 0.193 N at 16 Hz, 0.152 N against 1.71 N at 2 Hz)
-        placements.append((fd.other_turns(), False))
+        placements.append((other, False))
     # one turn placed the other way: worth a whole fit only if the first fit, its turns placed this
     # way, already fits better (only the first placement is gated: the gate sees the first fit)
     placements = [placed for placed, gated in placements
                   if not (gated and not select and not _fits_better_placed(result, result.prepared or fd, placed))]
 
     def fitted(i: int, quiet: bool) -> FitReport:
+        if placements[i] is other and ahead is not None:
+            return ahead.result()
         def within(stage: str, fraction: float) -> None:
             progress(f"turns placed the other way: {stage}",
                      FIRST_SHARE + (1.0 - FIRST_SHARE) * (i + fraction) / len(placements))
+        # result.orders is orders where the structure is not selected: the fit ahead's too
         return _fit_prepared(placements[i], orders if select else result.orders, select,
                              (lambda stage, f: None) if quiet else within, hold=hold, settings=settings)
 
     # independent whole fits: on the machine's cores (the same results; analysis.parallel)
     done = lambda i, _: progress("turns placed the other way: done", FIRST_SHARE + (1.0 - FIRST_SHARE) * (i + 1)
                                  / len(placements))
-    others = (fork_map(lambda i: fitted(i, True), range(len(placements)),
-                       [*(p for q in (fd, *placements) for p in (q, q.series))], done=done)
-              if len(placements) > 1 and processes() > 1 else [fitted(i, False) for i in range(len(placements))])
+    if ahead is not None or len(placements) <= 1 or processes() <= 1:
+        others = []
+        for i in range(len(placements)):
+            others.append(fitted(i, False))
+            done(i, others[-1])
+    else:
+        others = fork_map(lambda i: fitted(i, True), range(len(placements)),
+                          [*(p for q in (fd, *placements) for p in (q, q.series))], done=done)
     kept = result
-    for other in others:
-        if other.rmse < kept.rmse:
-            kept = replace(other, structure=other.structure if select else result.structure,
-                           notes=other.notes + (f"{_placement(other)}: the whole run fits {result.rmse:.4g} N "
-                                                f"with every one placed {_rule(result)}",))
+    for alt in others:
+        if alt.rmse < kept.rmse:
+            kept = replace(alt, structure=alt.structure if select else result.structure,
+                           notes=alt.notes + (f"{_placement(alt)}: the whole run fits {result.rmse:.4g} N "
+                                              f"with every one placed {_rule(result)}",))
     progress("done", 1.0)
     return kept
 
