@@ -70,20 +70,24 @@ def _check_nested() -> None:
 
 def _check_ahead() -> None:
     shared = Box(np.arange(3.0))
-    got, new, pid = parallel.fork_ahead(lambda: (shared, Box(shared.value * 2), os.getpid()), [shared]).result()
+    got, new, pid = parallel.Ahead(lambda: (shared, Box(shared.value * 2), os.getpid()), [shared]).result()
     assert got is shared and new.value[2] == 4.0 and pid != os.getpid()      # computed there, shared as itself
 
     def boom():
         raise FoamlabError("the fit ahead failed")
 
     with pytest.raises(FoamlabError, match="the fit ahead failed"):
-        parallel.fork_ahead(boom).result()
+        parallel.Ahead(boom).result()
     with pytest.raises(FoamlabError, match="worker process died"):           # not a hang
-        parallel.fork_ahead(lambda: os._exit(3)).result()
-    blocked = parallel.fork_ahead(lambda: threading.Event().wait())           # never returns by itself
+        parallel.Ahead(lambda: os._exit(3)).result()
+    blocked = parallel.Ahead(lambda: threading.Event().wait())                # never returns by itself
     blocked.cancel()
     assert not blocked._process.is_alive() and blocked._process.exitcode is not None
     blocked.cancel()                                                           # again: nothing
+    parallel.idle_cores = lambda: 0                   # every core busy: work that may be thrown away waits
+    assert parallel.fork_ahead(lambda: 1) is None
+    parallel.idle_cores = lambda: 1
+    assert parallel.fork_ahead(lambda: 1).result() == 1
 
 
 def _check_fit_ahead() -> None:
@@ -95,6 +99,7 @@ def _check_fit_ahead() -> None:
     import foamlab.identification.fit as fit
 
     run = ie.independent_run("A", 2000, None, form="causal", hz=16.0)
+    parallel.idle_cores = lambda: 1                   # as on an idle machine, whatever else runs now
     used = []
     original = parallel.Ahead.result
     parallel.Ahead.result = lambda self: used.append(1) or original(self)

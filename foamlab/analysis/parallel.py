@@ -131,10 +131,22 @@ class Ahead:
 
 def fork_ahead(fn: Callable[[], R], shared: Iterable[object] = ()) -> Ahead | None:
     """fn() started in a forked process beside this one (Ahead), or None where fork_map would run
-    serially (one core, another thread, inside a worker): the caller then calls fn when it needs
-    it. shared: as fork_map's. For work that may be needed: a core otherwise idle computes it
-    while this process finds out whether it is."""
-    return Ahead(fn, shared) if processes() > 1 else None
+    serially (one core, another thread, inside a worker) or no core is idle: the caller then
+    calls fn when it needs it. shared: as fork_map's. For work that may be needed: a core
+    otherwise idle computes it while this process finds out whether it is; on a busy machine
+    (tests on every core) work that may be thrown away would only slow the rest."""
+    return Ahead(fn, shared) if processes() > 1 and idle_cores() > 0 else None
+
+
+def idle_cores() -> int:
+    """The cores this process may use less the processes running now (this one included; Linux's
+    /proc/loadavg); 1 where that cannot be read."""
+    try:
+        with open("/proc/loadavg", encoding="ascii") as fh:
+            running = int(fh.read().split()[3].split("/")[0])
+    except (OSError, ValueError, IndexError):
+        return 1
+    return default_workers() - running
 
 
 def _ahead(fn, by_id: dict[int, object], send) -> None:
