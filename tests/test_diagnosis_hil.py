@@ -63,18 +63,8 @@ def _tested(d) -> list:
 
 # recording ~15 s and diagnosis 25-40 s alone; a timeout ends the whole phase-2 process (thread
 # method), so it is a hang guard, not a speed check: ci42 (slower AVX2 machine) passed 60 s
-#: Known defect, not a pass: the held-out margin (1 standard error of the block-to-block spread)
-#: refused the serial case's 10 %/cycle softening in 2 of 5 `.ci/run`s on session 26's host
-#: (Delta BIC 388 and 278, 0.97 standard errors; the other the extension predicted held-out blocks
-#: worse), while 11 recordings outside CI passed at 1.8-3.7. The spread holds the effect's
-#: concentration in a few peak blocks: docs/analysis.md, "Held-out blocks" (issue 27). Not strict,
-#: so a recording that passes is not an error; remove when the gain's standard error is fixed.
-SPREAD_DEFECT = pytest.mark.xfail(strict=False, reason="held-out margin refuses a concentrated softening in some "
-                                  "recordings (docs/analysis.md, 'Held-out blocks')")
-
-
 @pytest.mark.timeout(240)
-@pytest.mark.parametrize("case", [pytest.param(c, marks=SPREAD_DEFECT) if c == "serial" else c for c in CASES])
+@pytest.mark.parametrize("case", list(CASES))
 def test_hidden_effect_through_the_real_drivers_is_named(tmp_path, case):
     transport, speedup, name, magnitude, rel = CASES[case]
     result = record(tmp_path, transport, speedup, {name: magnitude} if name else None, seed=7)

@@ -9,8 +9,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import lfilter
 
 from foamlab.analysis.design import ExtendedModel, Series, Solution
+from foamlab.analysis.noise import ArWhitener
 from foamlab.analysis.parallel import fork_map
 from foamlab.analysis.solve import Fit, contact_of, model_like, varpro
 
@@ -49,9 +51,9 @@ def heldout_rmse(fit: Fit, on: Fit | None = None, n_folds: int = HELDOUT_FOLDS,
                  reestimate: bool = False, workers: int | None = None) -> float:
     """RMSE of every block predicted by the model refitted without it.
 
-    on: the same model on other (decimated) samples to do it on; the result, and each block's
-    sum of squared prediction errors (``fit.heldout_blocks``, for heldout_gain), are stored
-    in ``fit``.
+    on: the same model on other (decimated) samples to do it on; the result, and each sample's
+    held-out prediction error (``fit.heldout_residual``, NaN where not held out, for
+    heldout_gain), are stored in ``fit``.
     reestimate: each refit re-estimates the base's alpha/beta with the effects on the held-in
     blocks alone, from the model's own fit (nothing is held at a value the held-out blocks
     helped fit: diagnosis); False, alpha/beta stay at the fit's (two bases alike:
@@ -62,20 +64,17 @@ def heldout_rmse(fit: Fit, on: Fit | None = None, n_folds: int = HELDOUT_FOLDS,
     if fit.heldout_rmse is not None and fit.heldout_refit == mode:
         return fit.heldout_rmse
     work = on or fit
-    ids = _block_ids(work.model.series, n_folds)
-    blocks = np.zeros(int(ids.max()) + 1 if len(ids) else 0)
-    count = 0
     keeps = folds(work.model.series, n_folds)
     refit = _refit_free if reestimate else _refit_without
     # the folds are independent fits: on the machine's cores where each costs a free refit
     done = fork_map(lambda keep: _predicted(refit(work, keep)), keeps, workers=workers if reestimate else 1)
+    held = np.full(sum(len(s) for s in work.model.series), np.nan)
     for keep, (residual, used) in zip(keeps, done):
         out = ~np.concatenate(keep) & used
-        r = residual[out]
-        blocks += np.bincount(ids[out], weights=r * r, minlength=len(blocks))
-        count += len(r)
-    fit.heldout_blocks, fit.heldout_refit = blocks, mode
-    fit.heldout_rmse = float(np.sqrt(blocks.sum() / max(count, 1)))
+        held[out] = residual[out]
+    fit.heldout_residual, fit.heldout_refit = held, mode
+    scored = held[np.isfinite(held)]
+    fit.heldout_rmse = float(np.sqrt(scored @ scored / max(len(scored), 1)))
     return fit.heldout_rmse
 
 
@@ -88,13 +87,18 @@ def _predicted(sol: Solution) -> tuple[np.ndarray, np.ndarray]:
 class HeldoutGain:
     """What a model gains over another on the same held-out blocks, and how surely.
 
-    The gain is the drop of the held-out RMSE; its standard error comes from the spread, block to
-    block, of the drop in squared prediction error (blocks are short and many, so their drops are
-    nearly independent), carried to the RMSE. The gain passes when it exceeds z standard errors."""
+    The gain is the drop of the held-out RMSE. Where the two models' held-out predictions differ
+    by d, a sample's squared error drops by d^2 + 2 d e (e: the extending model's error), and of
+    that only 2 d times the noise in e is random: both predictions come from refits without the
+    sample, so d is fixed before its noise is drawn. The gain's standard error is that term's,
+    with the noise's own correlation (AR, from the in-sample residuals). Neither the effect's
+    concentration in a few blocks nor the models' systematic errors there count as noise: the
+    spread of the gain block to block held both and refused large lags and softenings
+    (docs/analysis.md, "Held-out blocks"). The gain passes beyond z standard errors."""
 
     before_rmse: float
     after_rmse: float
-    gain_se: float              # N, standard error of before_rmse - after_rmse (nan: too few blocks)
+    gain_se: float              # N, standard error of before_rmse - after_rmse (nan: nothing to compare)
     z: float
 
     @property
@@ -106,16 +110,34 @@ class HeldoutGain:
 def heldout_gain(before: Fit, after: Fit, z: float, before_on: Fit | None = None,
                  after_on: Fit | None = None, workers: int | None = None) -> HeldoutGain:
     """The held-out gain of `after` over `before` (each held out on its `*_on` samples, the same
-    blocks), with its standard error from the block-to-block spread. Both models' refits
-    re-estimate every nonlinear parameter, each from its own fit."""
+    blocks) and the standard error of its noise (HeldoutGain). Both models' refits re-estimate
+    every nonlinear parameter, each from its own fit."""
     rb = heldout_rmse(before, before_on, reestimate=True, workers=workers)
     ra = heldout_rmse(after, after_on, reestimate=True, workers=workers)
-    b, a = before.heldout_blocks, after.heldout_blocks
-    if b is None or a is None or len(b) != len(a) or len(b) < 3 or rb + ra <= 0:
+    eb, ea = before.heldout_residual, after.heldout_residual
+    if eb is None or ea is None or len(eb) != len(ea) or rb + ra <= 0:
         return HeldoutGain(rb, ra, float("nan"), z)
-    count = b.sum() / rb ** 2                  # held-out samples: before's sum over its RMSE squared
-    se_squares = float(np.sqrt(len(b)) * np.std(b - a, ddof=1)) / count
-    return HeldoutGain(rb, ra, se_squares / (rb + ra), z)     # rb - ra = (rb^2 - ra^2) / (rb + ra)
+    both = np.isfinite(eb) & np.isfinite(ea)
+    d = np.where(both, eb - ea, 0.0)
+    se_squares = 2.0 * np.sqrt(_noise_variance(d, after_on or after)) / max(int(np.isfinite(eb).sum()), 1)
+    return HeldoutGain(rb, ra, float(se_squares) / (rb + ra), z)     # rb - ra = (rb^2 - ra^2) / (rb + ra)
+
+
+def _noise_variance(d: np.ndarray, fit: Fit) -> float:
+    """Variance of sum(d * noise), the noise AR as the fit's in-sample residuals are
+    (noise.ArWhitener): noise = w filtered by 1/A, so sum(d * noise) = sum(w * u) with u = d
+    filtered by 1/A backwards in time, and its variance is var(w) |u|^2, run by run."""
+    residuals = fit.solution.used_residuals
+    whitener = ArWhitener.fit(residuals)
+    w = whitener.apply(residuals)
+    var_w = float(w @ w) / max(len(w), 1)
+    a = np.concatenate([[1.0], -whitener.phi])
+    total, first = 0.0, 0
+    for s in fit.model.series:
+        u = lfilter([1.0], a, d[first:first + len(s)][::-1])
+        total += float(u @ u)
+        first += len(s)
+    return var_w * total
 
 
 def _contact_edges(no_contact: np.ndarray, width: int = CONTACT_EDGE_SAMPLES) -> np.ndarray:

@@ -40,7 +40,7 @@ class Fit:
     stderr: np.ndarray                 # of the effect parameters
     solution: Solution
     heldout_rmse: float | None = None
-    heldout_blocks: np.ndarray | None = None    # each held-out block's squared error sum (heldout.py)
+    heldout_residual: np.ndarray | None = None  # each sample's held-out prediction error, NaN if not held out (heldout.py)
     heldout_refit: str = ""            # how the held-out refits treated the base's alpha/beta (heldout.py)
     status: int = 0                    # the optimizer's (scipy least_squares) at the end of this fit
     message: str = ""

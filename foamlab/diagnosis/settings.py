@@ -24,8 +24,8 @@ class DiagnosisSettings:
     effect_z_min: float = _setting(3.0, "its effect lies this many standard errors from zero")
     explained_share_min: float = _setting(0.5, "share of the structure above the noise a named cause explains")
     partial_share_min: float = _setting(0.1, "share a first-round cause explains to be reported as partial")
-    heldout_margin_z: float = _setting(1.0, "its held-out gain exceeds this many standard errors of the gain's "
-                                            "block-to-block spread (0: any gain)")
+    heldout_margin_z: float = _setting(1.0, "its held-out gain exceeds this many standard errors of the noise "
+                                            "in the gain (0: any gain)")
     pinned_fraction: float = _setting(0.01, "pinned: an effect within this share of its range of a non-zero limit")
     # -- where the residuals have structure
     score_threshold: float = _setting(4.0, "structure: a residual region this many standard errors off zero")
