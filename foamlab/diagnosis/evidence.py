@@ -94,7 +94,7 @@ def rule_explains(c: Candidate, s: DiagnosisSettings, first_round: bool) -> str:
 def rule_heldout(c: Candidate, current: Fit, current_coarse: Fit, s: DiagnosisSettings) -> str:
     """Held out on the search's samples (every k-th): the same prediction error, cheaper. The
     candidate must predict the held-out blocks better, by s.heldout_margin_z standard errors of
-    the gain's block-to-block spread (docs/settings.md says why that many). Each fold's refit
+    the noise in the gain (analysis.heldout.HeldoutGain; docs/settings.md says why that many). Each fold's refit
     re-estimates the base's alpha/beta and the effect on the held-in blocks, each model from its
     own fit (analysis.heldout)."""
     g = heldout_gain(current, c.fit, s.heldout_margin_z, current_coarse, c.coarse_fit, s.workers or None)
