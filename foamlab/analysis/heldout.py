@@ -41,7 +41,7 @@ def folds(series: list[Series], n_folds: int = HELDOUT_FOLDS) -> list[list[np.nd
     are held out and scored like any other: the model predicts the unloaded reading there, and
     an effect seen there (a drifting zero) is seen held out too (docs/analysis.md, "Held-out
     blocks")."""
-    blocks = [_blocks(len(s), n_folds)[0] for s in series]
+    blocks = [_blocks(len(s), n_folds) for s in series]
     always = [_contact_edges(s.no_contact) if s.no_contact is not None else np.zeros(len(s), bool)
               for s in series]
     return [[(b % n_folds != k) | a for b, a in zip(blocks, always)] for k in range(n_folds)]
@@ -147,22 +147,12 @@ def _contact_edges(no_contact: np.ndarray, width: int = CONTACT_EDGE_SAMPLES) ->
     return no_contact & near
 
 
-def _blocks(n: int, n_folds: int) -> tuple[np.ndarray, int]:
-    """Each of a run's n samples' block, and the number of blocks: n_folds x per-fold contiguous
-    blocks of about HELDOUT_BLOCK_SAMPLES samples (at least HELDOUT_BLOCKS_PER_FOLD per fold)."""
+def _blocks(n: int, n_folds: int) -> np.ndarray:
+    """Each of a run's n samples' block: n_folds x per-fold contiguous blocks of about
+    HELDOUT_BLOCK_SAMPLES samples (at least HELDOUT_BLOCKS_PER_FOLD per fold)."""
     count = n_folds * max(HELDOUT_BLOCKS_PER_FOLD, int(round(n / (n_folds * HELDOUT_BLOCK_SAMPLES))))
     edges = np.linspace(0, n, count + 1).astype(int)
-    return np.searchsorted(edges, np.arange(n), side="right") - 1, count
-
-
-def _block_ids(series: list[Series], n_folds: int) -> np.ndarray:
-    """Each sample's block, numbered across the runs (the blocks `folds` holds out)."""
-    out, first = [], 0
-    for s in series:
-        blocks, count = _blocks(len(s), n_folds)
-        out.append(first + blocks)
-        first += count
-    return np.concatenate(out) if out else np.zeros(0, int)
+    return np.searchsorted(edges, np.arange(n), side="right") - 1
 
 
 def _refit_free(fit: Fit, keep: list[np.ndarray]) -> Solution:
