@@ -153,14 +153,14 @@ def test_the_other_residual_form_is_diagnosed_only_where_it_can_win(causes, seed
 
 
 #: Two causes hidden together (issue 16), one seed each, set before looking: both must be
-#: findings (the other pairs of issue 16 are bench_diagnosis.py --two's table, docs/benchmarks.md).
+#: findings (more pairs on independent runs: bench_detection_independent.py --two, docs/benchmarks.md;
+#: an xfail from 25a097b until session 28, when both pairs were named).
 TWO_CAUSES = [
     ("A", {"cycle_softening": 3.0, "force_zero_drift": 0.18}, 520),
     ("B", {"machine_compliance": 200.0, "cycle_softening": 3.0}, 521),
 ]
 
 
-@pytest.mark.xfail(run=False, reason="issue 27: on independent runs the first cause is named, the second missed in both pairs; not run: 64 s to confirm a known miss")
 def test_two_causes_hidden_together_are_both_findings_each_with_its_own_gain():
     both = []
     for regime, causes, seed in TWO_CAUSES:
