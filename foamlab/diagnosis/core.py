@@ -18,6 +18,9 @@ round of the search (``Procedure.round``) runs these stages:
    evidence, not pinned at a limit, effect determined, explains the structure, held-out
    prediction better; the best candidate passing all is a finding.
 
+After the rounds, where the findings do not explain the structure the base leaves, pairs of
+causes that mask each other are fitted jointly (stage 7, pairs.py).
+
 Every other cause is tried again on top of a finding (up to settings.max_findings), until the model
 leaves white residuals at the noise level; findings are listed best first (what each removed). Verdict: `none` when
 nothing passes and the base residuals are white; the first finding when the extension
@@ -65,6 +68,7 @@ from foamlab.diagnosis.extend import (
     without,
 )
 from foamlab.diagnosis.limits import detection_limits
+from foamlab.diagnosis.pairs import fit_pair, members, named, screened
 from foamlab.diagnosis.residuals import analyse
 from foamlab.diagnosis.result import Candidate, Diagnosis
 from foamlab.diagnosis.settings import DEFAULT, DiagnosisSettings
@@ -139,9 +143,9 @@ class Procedure:
         "Two causes")."""
         return bool(self.findings) and self._quiet()
 
-    def _quiet(self) -> bool:
-        """The current model leaves white noise at the noise level (or any residuals at it)."""
-        c = self.current
+    def _quiet(self, fit: Fit | None = None) -> bool:
+        """The current model (or fit) leaves white noise at the noise level (or any residuals at it)."""
+        c = fit or self.current
         excess = c.rss / (c.n * self.sigma ** 2) - 1
         return bool(excess < self.settings.at_noise or (
             excess < self.settings.near_noise and whiteness(c.solution.residual).min_p >= WHITE_P))
@@ -169,7 +173,35 @@ class Procedure:
             # had no evidence of its own in this round
             self.remaining = [c.cause for c in cands if c is not chosen]
         self.drop_redundant_provisional()
+        self.pairs()
         return self.verdict()
+
+    def _explained(self) -> bool:
+        """The findings explain the structure the base leaves, as verdict() judges them."""
+        if not self.findings:
+            return False
+        excess = self.base.rss - self.base.n * self.sigma ** 2
+        removed = self.base.rss - self.current.rss
+        return (removed >= self.settings.explained_share_min * excess
+                or whiteness(self.current.solution.residual).min_p >= WHITE_P)
+
+    def pairs(self) -> None:
+        """Stage 7 (pairs.py): where the findings do not explain the structure the base leaves,
+        the screened pairs of causes fitted jointly, best first; the first whose members each pass
+        the rules on top of the other replaces the findings."""
+        if not self.settings.pair_candidates or self._explained() or self._quiet(self.base):
+            return
+        self._progress("pairs of causes that mask each other", 0.96)
+        base_coarse = self._coarse(self.base)
+        ranked = screened(self.coarse, base_coarse, self.applicable)[:self.settings.pair_candidates]
+        fits = self._map(lambda p: fit_pair(self.coarse, base_coarse, p[1], p[2]), ranked, base_coarse)
+        for coarse in sorted(fits, key=lambda f: f.rss):
+            full = self._full(coarse)
+            cands = members(self.series, full)
+            self.tested.append(cands)
+            if named(cands, full, self.base, self.sigma, self.settings, self._coarse):
+                self.findings, self.current, self.first_partial, self.partial = cands, full, [], []
+                return
 
     def drop_redundant_provisional(self) -> None:
         """A provisional first finding (partial) that the finding on top of it made redundant - the

@@ -71,20 +71,8 @@ def detection_limits(series: list[Series], base: Fit, causes: list[type[Cause]],
 
 def _stderr_at_zero(series: list[Series], base: Fit, cause: type[Cause], whitener: ArWhitener) -> float:
     """Standard error of the cause's first parameter with the effect at zero and the base free."""
-    params = base.params
-    settings = {cause.effect.name: cause.settings(series)}
-    model = ExtendedModel(series, params, [cause.effect], settings,
-                          effect_bounds={cause.effect.name: cause.bounds()}, free_base=True,
-                          base_bounds=bounds_like(base.model, series, params), masks=contact_of(base, series))
-    nu = model.start(np.zeros(model.n_eta))
-    fun, jac = model.residual_fn()
-    r, J = fun(nu), jac(nu)
-    lengths = [int(m.sum()) for m in model.rows()]
-    cuts = np.cumsum(lengths)[:-1]
-    white = lambda v: whitener.apply(np.split(v, cuts))
-    rw = white(r)
-    Jw = np.column_stack([white(J[:, j]) for j in range(J.shape[1])])
-    sigma2 = float(rw @ rw) / max(len(rw) - J.shape[1], 1)
+    model, rw, Jw = whitened_at_zero(series, base, [cause], whitener)
+    sigma2 = float(rw @ rw) / max(len(rw) - Jw.shape[1], 1)
     try:
         cov = np.linalg.pinv(Jw.T @ Jw) * sigma2
     except np.linalg.LinAlgError:
@@ -92,3 +80,20 @@ def _stderr_at_zero(series: list[Series], base: Fit, cause: type[Cause], whitene
     first = model.n_phi       # the effect's first parameter follows alpha/beta
     v = cov[first, first]
     return float(np.sqrt(v)) if np.isfinite(v) and v > 0 else float("nan")
+
+
+def whitened_at_zero(series: list[Series], base: Fit, causes: list[type[Cause]], whitener: ArWhitener
+                     ) -> tuple[ExtendedModel, np.ndarray, np.ndarray]:
+    """The base extended by the causes with every effect at zero: (the model, its residual and its
+    variable-projection Jacobian - alpha/beta, then each effect's parameters - prewhitened)."""
+    params = base.params
+    model = ExtendedModel(series, params, [c.effect for c in causes], {c.effect.name: c.settings(series) for c in causes},
+                          effect_bounds={c.effect.name: c.bounds() for c in causes}, free_base=True,
+                          base_bounds=bounds_like(base.model, series, params), masks=contact_of(base, series))
+    nu = model.start(np.zeros(model.n_eta))
+    fun, jac = model.residual_fn()
+    r, J = fun(nu), jac(nu)
+    lengths = [int(m.sum()) for m in model.rows()]
+    cuts = np.cumsum(lengths)[:-1]
+    white = lambda v: whitener.apply(np.split(v, cuts))
+    return model, white(r), np.column_stack([white(J[:, j]) for j in range(J.shape[1])])

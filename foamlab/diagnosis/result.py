@@ -33,6 +33,7 @@ class Candidate:
     passed: bool = False
     reason: str = ""
     heldout_gain_se: float | None = None  # N: standard error of its held-out RMSE gain (rule_heldout)
+    effect: int = -1                   # its effect's place in fit's model (a pair's first member: 0)
 
     @property
     def name(self) -> str:
@@ -40,7 +41,7 @@ class Candidate:
 
     @property
     def values(self) -> dict:
-        return self.fit.effect_values()[-1]
+        return self.fit.effect_values()[self.effect]
 
     @property
     def z_score(self) -> float:

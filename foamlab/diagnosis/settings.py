@@ -39,6 +39,8 @@ class DiagnosisSettings:
     heldout_candidates: int = _setting(3, "candidates (by Delta BIC) given the held-out check per round")
     joint_candidates: int = _setting(2, "candidates refitted with the base's alpha/beta free")
     full_candidates: int = _setting(2, "of those, carried to full resolution")
+    pair_candidates: int = _setting(2, "pairs of causes fitted jointly where the findings do not explain the "
+                                       "structure (the screen's best; 0: none)")
     decisive_chi2: float = _setting(100.0, "likelihood-ratio gain above which a candidate is not refitted "
                                            "from the fair comparison's base")
     multistart_samples: int = _setting(int(1.6 * SEARCH_SAMPLES), "samples per run a cause the base imitates "
