@@ -66,38 +66,27 @@ NAMED_SHARE = 0.9
 
 
 def one_case(cause: str | None, size: float, seed: int, regime: str, form: str, hz: float) -> dict:
-    """Diagnose one seeded run (two for rate_dependence); a JSON-able record."""
+    """Diagnose one seeded run (two for rate_dependence; a pair "a+b" of --two hidden together,
+    each at its large size, size 0); a JSON-able record."""
     import independent_effects as ie
     from foamlab.diagnosis import diagnose
 
+    pair = cause is not None and "+" in cause
     if cause == "rate_dependence":
         runs = ie.rate_pair(regime, seed, size, form=form, hz=hz)
     else:
-        runs = [ie.independent_run(regime, seed, {cause: size} if cause else None, form=form, hz=hz)]
+        hidden = {c: SIZES[c][1] for c in cause.split("+")} if pair else {cause: size} if cause else None
+        runs = [ie.independent_run(regime, seed, hidden, form=form, hz=hz)]
     t0, c0 = time.perf_counter(), _cpu()
     d = diagnose(runs)
     seconds, cpu = time.perf_counter() - t0, _cpu() - c0     # cpu: what load does not inflate
-    return {"cause": cause or "clean", "size": size, "seed": seed, "regime": regime, "form": form, "hz": hz,
-            "verdict": d.verdict, "findings": [f.name for f in d.findings], "seconds": round(seconds, 2),
-            "cpu_seconds": round(cpu, 2), "load": round(os.getloadavg()[0], 1),
-            "runs": len(runs), "samples": int(sum(len(r.time_s) for r in runs))}
-
-
-def one_pair(pair: str, seed: int, regime: str, form: str, hz: float) -> dict:
-    """Diagnose one seeded run with the pair ("a+b") hidden together, each at its large size."""
-    import independent_effects as ie
-    from foamlab.diagnosis import diagnose
-
-    hidden = {c: SIZES[c][1] for c in pair.split("+")}
-    run = ie.independent_run(regime, seed, hidden, form=form, hz=hz)
-    t0, c0 = time.perf_counter(), _cpu()
-    d = diagnose([run])
-    seconds, cpu = time.perf_counter() - t0, _cpu() - c0
-    found = [f.name for f in d.findings]
-    return {"cause": pair, "size": 0.0, "seed": seed, "regime": regime, "form": form, "hz": hz,
-            "verdict": d.verdict, "findings": found, "both": set(hidden) <= set(found),
-            "seconds": round(seconds, 2), "cpu_seconds": round(cpu, 2), "load": round(os.getloadavg()[0], 1),
-            "runs": 1, "samples": len(run.time_s)}
+    rec = {"cause": cause or "clean", "size": size, "seed": seed, "regime": regime, "form": form, "hz": hz,
+           "verdict": d.verdict, "findings": [f.name for f in d.findings], "seconds": round(seconds, 2),
+           "cpu_seconds": round(cpu, 2), "load": round(os.getloadavg()[0], 1),
+           "runs": len(runs), "samples": int(sum(len(r.time_s) for r in runs))}
+    if pair:
+        rec["both"] = set(hidden) <= set(rec["findings"])
+    return rec
 
 
 def plan_pairs(seeds: int, hz: float) -> list[tuple]:
@@ -153,19 +142,12 @@ def run_all(cases: list[tuple], out: Path, workers: int) -> None:
             from dask.distributed import Client, LocalCluster, as_completed
             with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True) as cluster, \
                     Client(cluster) as client:
-                futures = [client.submit(_one, *c, pure=False) for c in todo]
+                futures = [client.submit(one_case, *c, pure=False) for c in todo]
                 for fut in as_completed(futures):
                     keep(fut.result())
         else:
             for c in todo:
-                keep(_one(*c))
-
-
-def _one(cause: str | None, size: float, seed: int, regime: str, form: str, hz: float) -> dict:
-    """A planned case: a pair ("a+b", --two) or one cause (None: clean)."""
-    if cause and "+" in cause:
-        return one_pair(cause, seed, regime, form, hz)
-    return one_case(cause, size, seed, regime, form, hz)
+                keep(one_case(*c))
 
 
 def table(records: list[dict], subset: str) -> list[str]:

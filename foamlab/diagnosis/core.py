@@ -176,14 +176,16 @@ class Procedure:
         self.pairs()
         return self.verdict()
 
+    def _removed_share(self, final: Fit) -> float:
+        """The share of the base's residual sum of squares above the noise that `final` removes."""
+        excess = self.base.rss - self.base.n * self.sigma ** 2
+        removed = self.base.rss - final.rss
+        return 1.0 if removed >= excess else max(removed, 0.0) / excess
+
     def _explained(self) -> bool:
         """The findings explain the structure the base leaves, as verdict() judges them."""
-        if not self.findings:
-            return False
-        excess = self.base.rss - self.base.n * self.sigma ** 2
-        removed = self.base.rss - self.current.rss
-        return (removed >= self.settings.explained_share_min * excess
-                or whiteness(self.current.solution.residual).min_p >= WHITE_P)
+        return bool(self.findings) and (self._removed_share(self.current) >= self.settings.explained_share_min
+                                         or whiteness(self.current.solution.residual).min_p >= WHITE_P)
 
     def pairs(self) -> None:
         """Stage 7 (pairs.py): where the findings do not explain the structure the base leaves,
@@ -457,9 +459,7 @@ class Procedure:
         base_analysis = analyse(self.series, base.solution.residuals, self.sigma, self.settings)
         final_analysis = (analyse(self.series, final.solution.residuals, self.sigma, self.settings)
                           if findings else base_analysis)
-        excess = base.rss - base.n * self.sigma ** 2
-        removed = base.rss - final.rss
-        share = 1.0 if removed >= excess else max(removed, 0.0) / excess
+        share = self._removed_share(final)
         if findings and final_analysis.whiteness.min_p < WHITE_P and share < self.settings.explained_share_min:
             # provisional findings that together still leave most of the structure: partial only
             partial, findings, final = self.first_partial or findings, [], base

@@ -102,9 +102,10 @@ def named(cands: list[Candidate], pair: Fit, base: Fit, sigma: float, s: Diagnos
     if not any(c.reason for c in cands) and not explains(whole, s):
         for c in cands:
             c.reason = f"the pair explains {share:.0%} of the structure (< {s.explained_share_min:.0%})"
+    on_search = coarse(pair) if not all(c.reason for c in cands) else None     # once: one fit for both
     for c in cands:
         if not c.reason:
-            c.coarse_fit = coarse(c.fit)
+            c.coarse_fit = on_search
             c.reason = rule_heldout(c, c.before, coarse(c.before), s)
     if any(c.reason for c in cands):
         for c in cands:
