@@ -67,8 +67,8 @@ from foamlab.diagnosis.extend import (
     screen,
     without,
 )
-from foamlab.diagnosis.limits import detection_limits
-from foamlab.diagnosis.pairs import fit_pair, members, named, screened
+from foamlab.diagnosis.limits import clearing_on_top, detection_limits
+from foamlab.diagnosis.pairs import fit_pair, members, named, redundant_first, screened
 from foamlab.diagnosis.residuals import analyse
 from foamlab.diagnosis.result import Candidate, Diagnosis
 from foamlab.diagnosis.settings import DEFAULT, DiagnosisSettings
@@ -140,8 +140,17 @@ class Procedure:
         """Nothing left to explain: the extended model leaves white noise at the noise level.
         Whiteness alone is not enough: a second cause can leave residuals the whiteness tests
         pass at 1.5 x the noise variance, or 1.01 x and far from white (docs/analysis.md,
-        "Two causes")."""
-        return bool(self.findings) and self._quiet()
+        "Two causes"). Nor is the noise level alone: a second cause can leave the first's model at
+        1.00 x the noise's variance (the estimate's own scatter) and clear the evidence rule by far
+        (a 250 N/mm frame under softening: Delta BIC 257 on top), so a quiet model is searched again
+        where a cause left would, linearised, clear the rule (_flagged)."""
+        return bool(self.findings) and self._quiet() and not self._flagged()
+
+    def _flagged(self) -> bool:
+        """A cause left would clear the evidence rule on top of the current model, linearised
+        (limits.clearing_on_top: a score test, about 0.2 s for every cause)."""
+        return bool(clearing_on_top(self.coarse, self._coarse(self.current), self.remaining, self.settings,
+                                    self.current.n))
 
     def _quiet(self, fit: Fit | None = None) -> bool:
         """The current model (or fit) leaves white noise at the noise level (or any residuals at it)."""
@@ -206,33 +215,15 @@ class Procedure:
                 return
 
     def drop_redundant_provisional(self) -> None:
-        """A provisional first finding (partial) that the finding on top of it made redundant - the
-        final model without it is as good - is dropped, and that finding judged alone against the
-        base (a damping change fitted at a local optimum first lost to softening, then took its
-        place: softening 2e-7 per cycle in the final model)."""
+        """A provisional first finding that the finding on top of it made redundant is dropped,
+        and that finding judged alone against the base (pairs.redundant_first)."""
         if len(self.findings) != 2 or not self.first_partial:
             return
-        first, second = self.findings
-        alone = without(self.series, self.current, 0)
-        on_top = Candidate(first.cause, self.current, alone)
-        compare([on_top], alone)
-        if on_top.delta_bic > self.settings.delta_bic_min:
-            return
-        c = Candidate(second.cause, alone, self.base)
-        compare([c], self.base)
-        c.share = explained_share(c, self.base, self.sigma)
-        c.coarse_fit = self._coarse(alone)
-        c.reason = (rule_evidence(c, self.settings) or rule_not_pinned(c, self.settings)
-                    or rule_effect_determined(c, self.settings)
-                    or rule_heldout(c, self.base, self._coarse(self.base), self.settings))
-        if c.reason or not explains(c, self.settings):
-            return
-        c.passed = True
-        first.passed = False
-        first.reason = (f"partial, made redundant by {second.name}: without it the final model is as good "
-                        f"(delta BIC {on_top.delta_bic:.1f} <= {self.settings.delta_bic_min:g})")
-        self.findings, self.current, self.first_partial = [c], alone, []
-        self.tested.append([c])
+        kept = redundant_first(self.series, self.current, self.base, self.findings, self.sigma, self.settings,
+                               self._coarse)
+        if kept is not None:
+            self.findings, self.current, self.first_partial = [kept], kept.fit, []
+            self.tested.append([kept])
 
     def round(self) -> tuple[list[Candidate], Fit]:
         """Stages 1-5 for every remaining cause on top of the current model."""

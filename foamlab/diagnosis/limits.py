@@ -84,16 +84,44 @@ def _stderr_at_zero(series: list[Series], base: Fit, cause: type[Cause], whitene
 
 def whitened_at_zero(series: list[Series], base: Fit, causes: list[type[Cause]], whitener: ArWhitener
                      ) -> tuple[ExtendedModel, np.ndarray, np.ndarray]:
-    """The base extended by the causes with every effect at zero: (the model, its residual and its
-    variable-projection Jacobian - alpha/beta, then each effect's parameters - prewhitened)."""
-    params = base.params
-    model = ExtendedModel(series, params, [c.effect for c in causes], {c.effect.name: c.settings(series) for c in causes},
-                          effect_bounds={c.effect.name: c.bounds() for c in causes}, free_base=True,
-                          base_bounds=bounds_like(base.model, series, params), masks=contact_of(base, series))
-    nu = model.start(np.zeros(model.n_eta))
+    """The fit (the base, or a base with effects) extended by the causes, each new effect at zero:
+    (the model, its residual and its variable-projection Jacobian - alpha/beta, the fit's own
+    effects at their values, then each new effect's parameters - prewhitened)."""
+    params, own = base.params, base.model
+    model = ExtendedModel(series, params, list(own.effect_types) + [c.effect for c in causes],
+                          {**own.settings, **{c.effect.name: c.settings(series) for c in causes}},
+                          effect_bounds={**own.effect_bounds, **{c.effect.name: c.bounds() for c in causes}},
+                          free_base=True, base_bounds=bounds_like(own, series, params), masks=contact_of(base, series))
+    nu = model.start(np.concatenate([base.eta, np.zeros(model.n_eta - len(base.eta))]))
     fun, jac = model.residual_fn()
     r, J = fun(nu), jac(nu)
     lengths = [int(m.sum()) for m in model.rows()]
     cuts = np.cumsum(lengths)[:-1]
     white = lambda v: whitener.apply(np.split(v, cuts))
     return model, white(r), np.column_stack([white(J[:, j]) for j in range(J.shape[1])])
+
+
+def gain_on_top(series: list[Series], fit: Fit, cause: type[Cause], whitener: ArWhitener) -> float:
+    """What one more cause would gain on top of the fit, linearised (a score test): the likelihood
+    ratio, in noise variances, of its columns at zero with alpha/beta and the fit's own effects free
+    and the linear parameters projected out, on the acceptance rule's prewhitened scale."""
+    _, rw, Jw = whitened_at_zero(series, fit, [cause], whitener)
+    q = len(cause.effect.fitted_parameters())
+
+    def taken(columns: np.ndarray) -> float:
+        fitted = columns @ np.linalg.lstsq(columns, rw, rcond=None)[0]
+        return float(fitted @ fitted)
+
+    return (taken(Jw) - taken(Jw[:, :-q])) / (float(rw @ rw) / len(rw))
+
+
+def clearing_on_top(series: list[Series], fit: Fit, causes: list[type[Cause]], settings: DiagnosisSettings,
+                    n_full: int | None = None) -> list[type[Cause]]:
+    """The causes whose gain on top of the fit, linearised (gain_on_top), would clear the evidence
+    rule: Delta BIC = gain - q ln n above settings.delta_bic_min. series may be the search's
+    decimated ones, the fit on them: every sample's information is then the decimated samples'
+    times n_full / n (as detection_limits)."""
+    whitener = ArWhitener.fit(fit.solution.used_residuals)
+    n = n_full or fit.n
+    return [c for c in causes if gain_on_top(series, fit, c, whitener) * n / fit.n
+            - len(c.effect.fitted_parameters()) * np.log(n) > settings.delta_bic_min]

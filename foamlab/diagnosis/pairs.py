@@ -114,3 +114,31 @@ def named(cands: list[Candidate], pair: Fit, base: Fit, sigma: float, s: Diagnos
     for c in cands:
         c.passed, c.reason = True, "named with the other member of a pair (stage 7)"
     return True
+
+
+def redundant_first(series: list[Series], current: Fit, base: Fit, findings: list[Candidate], sigma: float,
+                    s: DiagnosisSettings, coarse: Callable[[Fit], Fit]) -> Candidate | None:
+    """The second of two findings judged alone against the base, when the first (provisional:
+    partial) is redundant on top of it - the final model without the first is as good (a damping
+    change fitted at a local optimum first lost to softening, then took its place: softening 2e-7
+    per cycle in the final model). None when the first is not redundant or the second alone fails
+    the rules; else the second, passed, and the first marked as dropped."""
+    first, second = findings
+    alone = without(series, current, 0)
+    on_top = Candidate(first.cause, current, alone)
+    compare([on_top], alone)
+    if on_top.delta_bic > s.delta_bic_min:
+        return None
+    c = Candidate(second.cause, alone, base)
+    compare([c], base)
+    c.share = explained_share(c, base, sigma)
+    c.coarse_fit = coarse(alone)
+    c.reason = (rule_evidence(c, s) or rule_not_pinned(c, s) or rule_effect_determined(c, s)
+                or rule_heldout(c, base, coarse(base), s))
+    if c.reason or not explains(c, s):
+        return None
+    c.passed = True
+    first.passed = False
+    first.reason = (f"partial, made redundant by {second.name}: without it the final model is as good "
+                    f"(delta BIC {on_top.delta_bic:.1f} <= {s.delta_bic_min:g})")
+    return c
