@@ -8,7 +8,8 @@ import dataclasses
 import pytest
 
 from foamlab import cli
-from foamlab.diagnosis import diagnose
+from foamlab.diagnosis import CAUSES, diagnose
+from foamlab.diagnosis.limits import clearing_on_top
 from foamlab.diagnosis.settings import DEFAULT, DiagnosisSettings
 from foamlab.diagnosis.synthetic import hidden_effect_run
 
@@ -29,8 +30,12 @@ def test_settings_are_frozen_records_with_a_meaning_each():
     assert dataclasses.replace(DEFAULT, max_findings=1) != DEFAULT
 
 
-def test_the_diagnosis_decides_by_the_settings_given(softened):
-    named = diagnose([softened])
+@pytest.fixture(scope="module")
+def named(softened):
+    return diagnose([softened])
+
+
+def test_the_diagnosis_decides_by_the_settings_given(softened, named):
     assert named.verdict == "cycle_softening" and named.settings is DEFAULT
     # evidence out of reach: the same run, nothing named
     strict = DiagnosisSettings(delta_bic_min=1e12)
@@ -38,6 +43,16 @@ def test_the_diagnosis_decides_by_the_settings_given(softened):
     assert held_back.settings is strict
     assert held_back.verdict != "cycle_softening" and not held_back.findings
     assert any("delta BIC" in c.reason and "1e+12" in c.reason for c in held_back.tested[0])
+
+
+def test_a_quiet_model_is_not_searched_again_for_an_effect_the_data_pull_below_its_bound(named):
+    """The score test of the causes left is one-sided for an effect bounded at zero: on this run's
+    final model (softening and a memory lag, below the noise estimate) the frame's linearised gain
+    is 110 noise variances, but for a negative compliance; fitted, a frame gains nothing (Delta BIC
+    -3.8), so no round is spent on it."""
+    assert [f.name for f in named.findings] == ["cycle_softening", "memory_lag"]
+    assert clearing_on_top(named.series, named.final, [CAUSES["machine_compliance"]], DEFAULT) == []
+    assert len(named.tested) == 2
 
 
 def test_diagnose_full_prints_the_settings(softened, tmp_path, capsys):
