@@ -107,17 +107,14 @@ def gain_on_top(series: list[Series], fit: Fit, cause: type[Cause], whitener: Ar
     and the linear parameters projected out, on the acceptance rule's prewhitened scale."""
     _, rw, Jw = whitened_at_zero(series, fit, [cause], whitener)
     q = len(cause.effect.fitted_parameters())
-    step = -np.linalg.lstsq(Jw, rw, rcond=None)[0][-q]      # Gauss-Newton: the residual's Jacobian is -df
-    if cause.bounds()[0][0] >= 0.0 >= step:
+    coef = np.linalg.lstsq(Jw, rw, rcond=None)[0]
+    if cause.bounds()[0][0] >= 0.0 >= -coef[-q]:       # Gauss-Newton's step: the residual's Jacobian is -df
         # one-sided: an effect that is zero at its bound gains nothing where the data pull it below
         # (a frame of negative compliance flagged 110 on a 1 Hz softened run; fitted, -3.8)
         return 0.0
-
-    def taken(columns: np.ndarray) -> float:
-        fitted = columns @ np.linalg.lstsq(columns, rw, rcond=None)[0]
-        return float(fitted @ fitted)
-
-    return (taken(Jw) - taken(Jw[:, :-q])) / (float(rw @ rw) / len(rw))
+    fitted = Jw @ coef
+    base = Jw[:, :-q] @ np.linalg.lstsq(Jw[:, :-q], rw, rcond=None)[0]
+    return (float(fitted @ fitted) - float(base @ base)) / (float(rw @ rw) / len(rw))
 
 
 def clearing_on_top(series: list[Series], fit: Fit, causes: list[type[Cause]], settings: DiagnosisSettings,
