@@ -261,13 +261,21 @@ def _protocol(key: str, description: str, shape: RunShape, height_mm: float, str
     cycle.append(Step("return", 0, "cycle", speed_mm_min=round(speed, 3)))
     steps = tuple(Step(s.action, k + 1, s.label, s.strain, s.speed_mm_min, s.duration_s)
                   for k in range(cycles) for s in cycle)
-    lab = load_method(DEFAULT_METHOD)           # the lab's contact search and park
+    lab = load_method(DEFAULT_METHOD)           # the lab's contact search, park and sampling
     method = Method(name=f"suggested-{key.replace('_', '-')}", title=f"Suggested next test: {description}",
-                    sampling_hz=min(round(shape.sampling_hz, 3), MAX_SAMPLING_HZ),
+                    sampling_hz=sampling_hz(shape, lab),
                     contact=lab.contact, park_speed_mm_min=lab.park_speed_mm_min, steps=steps,
                     per_cycle=("hysteresis_loss", "energy", "residual_strain"),
                     reference="foamlab diagnose --suggest (docs/analysis.md, 'The next test')")
     return Protocol(key, description, method, height_mm)
+
+
+def sampling_hz(shape: RunShape, lab: Method) -> float:
+    """A suggested run samples as finely as the lab's method does, or as the first run did where
+    that is finer: an effect acting within one sampling interval of the turns is seen only on a
+    finer grid (a 60 ms memory lag at 2 Hz is named friction, at 16 Hz memory_lag:
+    docs/analysis.md, "Two runs"), and more samples never weaken the decision."""
+    return min(max(round(shape.sampling_hz, 3), lab.sampling_hz), MAX_SAMPLING_HZ)
 
 
 def predict(pair: tuple[Contender, Contender], protocol: Protocol, noise_sigma: float) -> Prediction:
