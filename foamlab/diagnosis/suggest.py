@@ -140,8 +140,8 @@ class Suggestion:
         a, b = self.contenders
         out = [f"suggest: {a.name} or {b.name}? ({self.why})",
                f"  predicted difference of the two fitted models (noise {self.noise_sigma:.3g} N):",
-               f"  {'protocol':<52}{'RMS diff N':>11}{'x noise':>9}{'evidence':>10}{'min':>7}"]
-        out += [f"  {p.protocol.description:<52}{p.rms_difference_N:>11.3g}{p.over_noise:>9.3g}"
+               f"  {'protocol':<64}{'RMS diff N':>11}{'x noise':>9}{'evidence':>10}{'min':>7}"]
+        out += [f"  {p.protocol.description:<64}{p.rms_difference_N:>11.3g}{p.over_noise:>9.3g}"
                 f"{p.evidence:>10.3g}{p.duration_s / 60:>7.1f}" for p in self.ranking]
         out.append(f"  decides: predicted evidence >= {DECISIVE_EVIDENCE:g}; the shortest that decides is first")
         if self.path is not None:
@@ -262,8 +262,11 @@ def _protocol(key: str, description: str, shape: RunShape, height_mm: float, str
     steps = tuple(Step(s.action, k + 1, s.label, s.strain, s.speed_mm_min, s.duration_s)
                   for k in range(cycles) for s in cycle)
     lab = load_method(DEFAULT_METHOD)           # the lab's contact search, park and sampling
+    hz = sampling_hz(shape, lab)
+    if hz != round(shape.sampling_hz, 3):       # said: the lab sets it up, and it is why the run decides
+        description += f", sampled at {hz:g} Hz"
     method = Method(name=f"suggested-{key.replace('_', '-')}", title=f"Suggested next test: {description}",
-                    sampling_hz=sampling_hz(shape, lab),
+                    sampling_hz=hz,
                     contact=lab.contact, park_speed_mm_min=lab.park_speed_mm_min, steps=steps,
                     per_cycle=("hysteresis_loss", "energy", "residual_strain"),
                     reference="foamlab diagnose --suggest (docs/analysis.md, 'The next test')")
