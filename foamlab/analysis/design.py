@@ -461,7 +461,7 @@ class ExtendedModel:
         best = self._active_set(columns, chain, rows, keep_all, start)
         if keep is None:
             self._last_masks = [m.copy() for m in best.masks]
-        return self._predict_unfitted(best, columns, rows, chain, start)
+        return self._predict_unfitted(best, columns, rows, chain)
 
     def _active_set(self, columns, chain: EffectChain, rows, keep_all, start) -> Solution:
         """Least squares with the contact set iterated to consistency from ``start``."""
@@ -498,20 +498,15 @@ class ExtendedModel:
         own = cols @ theta[:self.n_model]
         return compressed & (own > 0) & (own + offset > 0)
 
-    def _predict_unfitted(self, sol: Solution, prepared, rows, chain: EffectChain, start) -> Solution:
-        """The samples the fit did not use predicted by the solution. Not evidence: their contact
-        set follows from it (the plate pushes where the model's force is positive), as in
-        ``predict``. Held out (used, not kept): the contact set the solve started from, the
-        model's own on every sample - like the turns' placement, a state of the run a held-in
-        refit does not decide: a sample at the edge of contact that a refit turns off is
-        predicted a whole effect's force away (B causal 1004, a 3 N friction: one such sample,
-        3.4 N off, turned the friction's held-out gain into a loss; docs/analysis.md)."""
+    def _predict_unfitted(self, sol: Solution, prepared, rows, chain: EffectChain) -> Solution:
+        """The samples the fit did not use (held out, or not evidence) predicted by the solution:
+        their contact set follows from it (the plate pushes where the model's force is
+        positive), as in ``predict``, not from an earlier iteration's."""
         theta = sol.theta
         for i, ((s, cols, offset, compressed), r) in enumerate(zip(prepared, rows)):
             if r.all():
                 continue
-            pushes = self._pushes(cols, offset, compressed, theta)
-            mask = np.where(r, sol.masks[i], np.where(s.used & ~r, start[i], pushes))
+            mask = np.where(r, sol.masks[i], self._pushes(cols, offset, compressed, theta))
             if np.array_equal(mask, sol.masks[i]):
                 continue
             m, c = self._measured_design(i, s, chain, cols, offset, mask)
