@@ -24,8 +24,9 @@ from foamlab.diagnosis import diagnose
 from foamlab.diagnosis.suggest import CLOSE_DELTA_BIC, DECISIVE_EVIDENCE, Prediction, _rank, suggest
 from foamlab.methods import DEFAULT_METHOD, Method, load_method, method_toml, parse_method
 
-#: Regime A of the independent generator (62 mm high, 80 % stroke at 60 mm/min), sampled at 2 Hz
-#: so that each loop (two diagnoses, one of two runs) takes seconds.
+#: Regime A of the independent generator (62 mm high, 80 % stroke at 60 mm/min), the first run
+#: sampled at 2 Hz so that each loop (two diagnoses, one of two runs) takes seconds; the suggested
+#: run samples at the lab's 16 Hz (suggest.sampling_hz).
 REGIME = im.REGIME_A
 HZ = 2.0
 #: A suggested stroke within this strain of the first run's is the first run's: the suggestion takes
