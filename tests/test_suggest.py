@@ -72,6 +72,13 @@ def _tested(d) -> list:
     return [(c.name, round(c.delta_bic, 1), c.reason) for c in d.tested[0]]
 
 
+def _margin(d, cause: str) -> float:
+    """The cause's first-round Delta BIC less the best other candidate's (0 where it was not tested):
+    how far the diagnosis d puts the cause ahead (negative: behind)."""
+    gains = {c.name: c.delta_bic for c in d.tested[0]}
+    return gains.get(cause, 0.0) - max((g for name, g in gains.items() if name != cause), default=0.0)
+
+
 def test_rate_dependence_with_one_run_gets_another_speed(tmp_path):
     """One run at one speed cannot show a rate dependence (the factor is 1 at the reference
     speed): the suggestion is a run at another speed, and the two runs name it."""
@@ -128,7 +135,9 @@ def test_a_damping_change_one_run_blames_on_the_frame_is_named_with_the_suggeste
 #:   change 40 %/cycle, seeds 790-796 fixed before looking, one per regime/form; the other seven
 #:   first runs named their own cause): one run names damping_cycle_change (485; the softening 41);
 #:   two runs name cycle_softening (27 704, s = 0.0997; the next 348).
-#: The bar is a margin of 100 (ten times what a finding needs), as in the other loops.
+#: The bar is a margin of 100 (ten times what a finding needs), as in the other loops, gained over the
+#: first run's: on the AVX2 Zen 3 host of session 31 the first run of seed 1016 names the frame (281.2,
+#: damping change 174.5), the same numbers a CPU's last bits moved the other way before.
 #: The other two such first runs (the 250 N/mm frame in A paper, seeds 1006 and 1014: one run names
 #: cycle_softening) stay `unexplained` with the second run (docs/analysis.md, "Two runs").
 #: A damping change of 30 %/cycle, B causal seed 1004, was the third case until session 29: its one
@@ -143,10 +152,10 @@ MISNAMED_AT_16_HZ = [({"machine_compliance": 250.0}, 1016, "A", "causal"),
 def test_a_cause_one_16_hz_run_misnames_is_named_with_the_suggested_run(causes, seed, regime, form, tmp_path):
     (cause,) = causes
     d, s, both = _loop(causes, seed, tmp_path, im.REGIMES[regime], form, hz=16.0)
-    assert d.verdict != cause, _tested(d)                     # what the second run is for
     assert both.verdict == cause, _tested(both)
-    gains = sorted((c.delta_bic for c in both.tested[0]), reverse=True)
-    assert gains[0] - gains[1] > 100, _tested(both)
+    # what the second run is for: it puts the cause ahead by far more than the first run did, whether
+    # the first misnamed it or (on another CPU: seed 1016) named it by a margin its last bits move
+    assert _margin(both, cause) > max(_margin(d, cause), 0.0) + 100, (_tested(d), _tested(both))
 
 
 #: A frame the elastic curve absorbs: a 1 000 N/mm frame that one 16 Hz run of the detection
@@ -175,6 +184,8 @@ def test_a_frame_one_run_cannot_tell_from_the_elastic_curve_is_named_with_the_su
 #: BIC 2 691, channel_lag 2 152 next, friction not in the first three; seed 758, unexplained with
 #: friction first: memory_lag 1 300, channel_lag 924): docs/analysis.md, "Two runs". The pair
 #: friction vs lags of issue 27's item 3.
+#: On session 31's host (AVX2 Zen 3) the first run is `unexplained` instead (friction 377, refused by
+#: the held-out margin): either way not the lag, which is what the second run is for.
 FRICTION_FOR_A_LAG = [({"memory_lag": 60.0}, 760)]
 
 
@@ -182,7 +193,7 @@ FRICTION_FOR_A_LAG = [({"memory_lag": 60.0}, 760)]
 def test_a_lag_one_2_hz_run_names_friction_is_named_with_the_suggested_finer_run(causes, seed, tmp_path):
     (cause,) = causes
     d, s, both = _loop(causes, seed, tmp_path)
-    assert d.verdict == "direction_friction", _tested(d)     # what the second run is for
+    assert d.verdict != cause, _tested(d)     # what the second run is for
     assert s.best.protocol.method.sampling_hz == load_method(DEFAULT_METHOD).sampling_hz > HZ
     assert both.verdict == cause, _tested(both)
     gains = sorted((c.delta_bic for c in both.tested[0]), reverse=True)
