@@ -34,6 +34,13 @@ HZ = 2.0
 #: stroke is the specimen's plus the frame's deflection at the peak force), and the generator runs
 #: its specimen over its own stroke again.
 STRAIN_TOLERANCE = 0.005
+#: What the suggested run is for: diagnosed with the first, it puts the hidden cause ahead of every
+#: other candidate by this much Delta BIC more than the first run alone did (ten times what a finding
+#: needs). Asked of the lead, not of the first run's verdict: near the rule that verdict turns on the
+#: CPU's last bits (seeds 1016 and 760 named otherwise on session 31's host; docs/analysis.md,
+#: "Verdicts that turn on the last bits"). Measured there, the ten loops gained 161 (the frame of A paper
+#: 1006) to 25 395 (the softening of 790); the next least 215 (the friction of 702).
+LEAD_GAINED = 100.0
 
 
 def _run_of(method: Method, seed: int, causes: dict[str, float], first, regime: im.Regime = REGIME,
@@ -65,6 +72,9 @@ def _loop(causes: dict[str, float], seed: int, tmp_path, regime: im.Regime = REG
     assert method.steps == s.best.protocol.method.steps
     assert s.best.decides, s.lines()
     both = diagnose([first, _run_of(method, seed + 1, causes, first, regime, form)])
+    (cause,) = causes
+    assert both.verdict == cause, _tested(both)
+    assert _margin(both, cause) > max(_margin(d, cause), 0.0) + LEAD_GAINED, (_tested(d), _tested(both))
     return d, s, both
 
 
@@ -85,7 +95,6 @@ def test_rate_dependence_with_one_run_gets_another_speed(tmp_path):
     d, s, both = _loop({"rate_dependence": 0.5}, 600, tmp_path)
     assert "rate_dependence" in d.skipped and "rate_dependence" not in [c.name for c in d.findings]
     assert s.best.protocol.key in ("faster", "slower"), s.lines()
-    assert both.verdict == "rate_dependence", _tested(both)
     assert both.findings[0].values["values"]["m"] == pytest.approx(0.5, abs=0.15)
 
 
@@ -103,26 +112,22 @@ BELOW_ONE_RUN = [({"direction_friction": 1.0}, 702), ({"damping_cycle_change": 1
 
 @pytest.mark.parametrize("causes, seed", BELOW_ONE_RUN, ids=[next(iter(c)) for c, _ in BELOW_ONE_RUN])
 def test_a_cause_one_run_cannot_show_is_named_with_the_suggested_run(causes, seed, tmp_path):
-    (cause,) = causes
     d, s, both = _loop(causes, seed, tmp_path)
     assert d.verdict == "none", _tested(d)
-    assert both.verdict == cause, _tested(both)
 
 
 #: A damping change of 20 %/cycle that one 2 Hz run blames on the frame (machine_compliance named,
 #: Delta BIC 16.2 and 15.3): with the suggested run at 4 x the speed the two runs name the damping
 #: change (Delta BIC 824 and 800, about 740 above the next). Seeds 720-734 fixed before looking for four
-#: causes, two seeds each (session 22; the others in docs/analysis.md, "Two runs").
+#: causes, two seeds each (session 22; the others in docs/analysis.md, "Two runs"). On session 31's
+#: host both first runs say `none` (the damping change at -9.1 and +4.0 of the best other), and the two
+#: runs name it 2 751 and 2 621 ahead.
 DAMPING_BLAMED_ON_THE_FRAME = [728, 730]
 
 
 @pytest.mark.parametrize("seed", DAMPING_BLAMED_ON_THE_FRAME)
 def test_a_damping_change_one_run_blames_on_the_frame_is_named_with_the_suggested_run(seed, tmp_path):
-    d, s, both = _loop({"damping_cycle_change": 20.0}, seed, tmp_path)
-    assert d.verdict != "damping_cycle_change", _tested(d)     # what the second run is for
-    assert both.verdict == "damping_cycle_change", _tested(both)
-    gains = sorted((c.delta_bic for c in both.tested[0]), reverse=True)
-    assert gains[0] - gains[1] > 100, _tested(both)
+    _loop({"damping_cycle_change": 20.0}, seed, tmp_path)
 
 
 #: Three-cycle 16 Hz runs of the detection benchmark (bench_detection_independent.py: seeds fixed
@@ -150,12 +155,7 @@ MISNAMED_AT_16_HZ = [({"machine_compliance": 250.0}, 1016, "A", "causal"),
 @pytest.mark.parametrize("causes, seed, regime, form", MISNAMED_AT_16_HZ,
                          ids=[next(iter(c)) for c, *_ in MISNAMED_AT_16_HZ])
 def test_a_cause_one_16_hz_run_misnames_is_named_with_the_suggested_run(causes, seed, regime, form, tmp_path):
-    (cause,) = causes
-    d, s, both = _loop(causes, seed, tmp_path, im.REGIMES[regime], form, hz=16.0)
-    assert both.verdict == cause, _tested(both)
-    # what the second run is for: it puts the cause ahead by far more than the first run did, whether
-    # the first misnamed it or (on another CPU: seed 1016) named it by a margin its last bits move
-    assert _margin(both, cause) > max(_margin(d, cause), 0.0) + 100, (_tested(d), _tested(both))
+    _loop(causes, seed, tmp_path, im.REGIMES[regime], form, hz=16.0)
 
 
 #: A frame the elastic curve absorbs: a 1 000 N/mm frame that one 16 Hz run of the detection
@@ -163,6 +163,8 @@ def test_a_cause_one_16_hz_run_misnames_is_named_with_the_suggested_run(causes, 
 #: and 1016, A paper 1006 and 1014, B paper 1018). The suggestion is a run at another speed (one
 #: speed cannot show a rate dependence); the two runs name the frame in all five (Delta BIC 157-781,
 #: 110-499 above the next: docs/analysis.md, "Two runs"). The first two in the benchmark's order here.
+#: The first run's `none` is not asserted: on session 31's host seed 1000's frame is 7.6 ahead of the
+#: next, near the rule's 10; the two runs put it 524 and 161 ahead.
 FRAME_THE_CURVE_ABSORBS = [(1000, "A", "causal"), (1006, "A", "paper")]
 
 
@@ -170,11 +172,7 @@ FRAME_THE_CURVE_ABSORBS = [(1000, "A", "causal"), (1006, "A", "paper")]
 def test_a_frame_one_run_cannot_tell_from_the_elastic_curve_is_named_with_the_suggested_run(
         seed, regime, form, tmp_path):
     d, s, both = _loop({"machine_compliance": 1000.0}, seed, tmp_path, im.REGIMES[regime], form, hz=16.0)
-    assert d.verdict == "none", _tested(d)                   # the curve holds the frame
     assert s.best.protocol.key in ("faster", "slower"), s.lines()
-    assert both.verdict == "machine_compliance", _tested(both)
-    gains = sorted((c.delta_bic for c in both.tested[0]), reverse=True)
-    assert gains[0] - gains[1] > 100, _tested(both)
 
 
 #: A memory lag shorter than a 2 Hz run's sampling interval, named friction by the run (session 24,
@@ -193,11 +191,8 @@ FRICTION_FOR_A_LAG = [({"memory_lag": 60.0}, 760)]
 def test_a_lag_one_2_hz_run_names_friction_is_named_with_the_suggested_finer_run(causes, seed, tmp_path):
     (cause,) = causes
     d, s, both = _loop(causes, seed, tmp_path)
-    assert d.verdict != cause, _tested(d)     # what the second run is for
+    assert d.verdict != cause, _tested(d)     # named friction, or unexplained (friction refused): not the lag
     assert s.best.protocol.method.sampling_hz == load_method(DEFAULT_METHOD).sampling_hz > HZ
-    assert both.verdict == cause, _tested(both)
-    gains = sorted((c.delta_bic for c in both.tested[0]), reverse=True)
-    assert gains[0] - gains[1] > 100, _tested(both)
 
 
 def test_method_file_round_trip_and_cli(tmp_path, capsys):
