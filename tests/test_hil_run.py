@@ -27,7 +27,7 @@ from foamlab import cli, pipeline
 from foamlab.methods import cycle_spans, load_method
 from foamlab.storage.runfile import read_run_file
 from tests.hil_support import (SPECIMEN, approach, assert_keeps_the_schedule, machine_for, make_engine,
-                               simulated, wait_at_rest)
+                               simulated, skip_if_overloaded, wait_at_rest)
 
 pytestmark = [pytest.mark.hil]
 
@@ -58,13 +58,17 @@ def _check_run(result, method, *, cycles):
     return on_disk
 
 
+#: The README job's run is sped up this much (16 Hz -> a 4.2 ms period).
+SPEEDUP = 15
+
+
 @pytest.mark.timeout(150)
 @pytest.mark.schedule
 def test_paper_protocol_through_foamlab_run(tmp_path, capsys):
     """The README's main job: `foamlab run --speedup S` on the built-in machine, to the fit."""
     out = tmp_path / "data"
     # (the diagnosis, ~20 s, is foamlab.diagnosis' own tests' business)
-    code = cli.main(["run", "--speedup", "15", "--out", str(out), "--quiet", "--specimen-label", "hil",
+    code = cli.main(["run", "--speedup", str(SPEEDUP), "--out", str(out), "--quiet", "--specimen-label", "hil",
                      "--no-diagnose"])
     printed = capsys.readouterr()
     assert code == 0, printed.err
@@ -85,13 +89,9 @@ def test_paper_protocol_through_foamlab_run(tmp_path, capsys):
     # (the zero-miss requirement is the per-transport test's, at a speedup with margin).
     expected = _expected(method)
     assert expected <= n_samples + missed <= 1.01 * expected + 20
-    # hil_support.assert_keeps_the_schedule's guard: replies over half the period at p99 mean the
-    # computer is overloaded (session 31's CI, host load ~4: 472 missed, request p99 8.0 of 4.2 ms)
-    period_ms = 1e3 / (method.sampling_hz * 15)
-    request_p99_ms = float(summary_line.split("request p99 ")[1].split(" ms")[0])
-    if missed > 0.03 * expected and request_p99_ms > period_ms / 2:
-        pytest.skip(f"computer overloaded: request p99 {request_p99_ms:.1f} ms > half the {period_ms:.1f} ms "
-                    f"period; {missed} deadlines missed")
+    if missed > 0.03 * expected:     # session 31's CI, host load ~4: 472 missed, request p99 8.0 of 4.2 ms
+        request_p99_ms = float(summary_line.split("request p99 ")[1].split(" ms")[0])
+        skip_if_overloaded(missed, request_p99_ms, 1e3 / (method.sampling_hz * SPEEDUP))
     assert missed <= 0.03 * expected, summary_line
     assert "hysteresis_loss (cycle 1)" in printed.out
     fit_file = run_file.with_name(f"{run_file.stem}.fit.json")
