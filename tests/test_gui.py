@@ -15,10 +15,10 @@ from PySide6 import QtCore, QtWidgets
 from foamlab.diagnosis import CAUSES
 from foamlab.diagnosis.form import NAME as FORM_VERDICT
 from foamlab.gui.window import MainWindow
-from tests.gui_support import shut_window
+from tests.gui_support import WAIT_MS, connect_window, shut_window
 from foamlab.importers import load_run
 
-pytestmark = [pytest.mark.gui, pytest.mark.hil, pytest.mark.timeout(120)]
+pytestmark = [pytest.mark.gui, pytest.mark.hil, pytest.mark.timeout(300)]   # hang guards (gui_support.WAIT_MS)
 
 # The simulated drive's watchdog runs on the machine clock: 2 s is 250 ms of wall time at x8.
 # Faster clocks trip it when the two cores are busy (the simulator answers late), which is the
@@ -26,7 +26,6 @@ pytestmark = [pytest.mark.gui, pytest.mark.hil, pytest.mark.timeout(120)]
 SPEEDUP = 8.0
 # An 8 mm block keeps the three cycles short (80 % = 6.4 mm strokes, ~100 s of machine time).
 SPECIMEN = ("gui-test", 8.0, 100.0, 100.0)
-CONNECT_TIMEOUT_MS = 20_000
 RUN_TIMEOUT_MS = 60_000
 REAL_BLUEHILL = os.path.join(os.path.dirname(__file__), "data", "real", "Specimen_RawData_6.csv")
 
@@ -42,12 +41,11 @@ def window(qtbot, tmp_path):
 
 def connect(qtbot, w: MainWindow):
     assert w.profile_combo.currentText() == "Built-in simulated machine"   # the default, no setup
-    qtbot.mouseClick(w.connect_button, QtCore.Qt.MouseButton.LeftButton)
-    qtbot.waitUntil(lambda: w.connected, timeout=CONNECT_TIMEOUT_MS)
+    connect_window(qtbot, w)
     assert w.connect_button.text() == "Disconnect"
     assert "Connected" in w.connection_label.text()
     # Idle readouts come from polling the machine.
-    qtbot.waitUntil(lambda: w.state_label.text() == "idle", timeout=5000)
+    qtbot.waitUntil(lambda: w.state_label.text() == "idle", timeout=WAIT_MS)
     return w.link.connection
 
 
@@ -147,7 +145,7 @@ def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
     def listed() -> bool:
         return any(r["file"] == str(result.path.resolve()) and r["verdict"] == verdict for r in w.browser.rows)
 
-    qtbot.waitUntil(listed, timeout=10_000)
+    qtbot.waitUntil(listed, timeout=WAIT_MS)
     table = w.browser.table
     row = next(i for i in range(table.rowCount())
                if table.item(i, 0).data(QtCore.Qt.ItemDataRole.UserRole) == str(result.path.resolve()))
@@ -157,14 +155,14 @@ def test_full_run_plots_progress_fit_and_exports(qtbot, window, tmp_path):
     cell = table.visualItemRect(table.item(row, 1)).center()
     qtbot.mouseClick(table.viewport(), QtCore.Qt.MouseButton.LeftButton, pos=cell)
     qtbot.mouseDClick(table.viewport(), QtCore.Qt.MouseButton.LeftButton, pos=cell)
-    qtbot.waitUntil(lambda: w.shown_run is not None, timeout=20_000)
+    qtbot.waitUntil(lambda: w.shown_run is not None, timeout=WAIT_MS)
     assert w.plots.sample_count == result.n_samples
     assert {(s.cycle, s.phase) for s in w.plots.segments} >= {(3, "unloading")}
     if fitted:   # the stored diagnosis is shown at once, not recomputed
         assert w.results.report.verdict == verdict and "stored with the run" in w.results.report.diagnosis_note
     if not fitted:
         pytest.skip(f"no fit to show: {analysis.fit_error}")
-    qtbot.waitUntil(lambda: w.results.parameters.rowCount() > 0, timeout=30_000)
+    qtbot.waitUntil(lambda: w.results.parameters.rowCount() > 0, timeout=WAIT_MS)
 
 
 def test_emergency_stop_mid_run_stops_crosshead_and_keeps_data(qtbot, tmp_path):
@@ -195,7 +193,7 @@ def test_emergency_stop_mid_run_stops_crosshead_and_keeps_data(qtbot, tmp_path):
         # The window is idle again; the e-stop can be reset from it.
         assert w.start_button.isEnabled() and w.reset_button.isEnabled()
         click(qtbot, w.reset_button)
-        qtbot.waitUntil(lambda: not conn.simulator.crosshead_status()["emergency_stop"], timeout=5000)
+        qtbot.waitUntil(lambda: not conn.simulator.crosshead_status()["emergency_stop"], timeout=WAIT_MS)
     finally:
         if w.engine is not None:
             w.engine.emergency_stop()
@@ -270,14 +268,14 @@ def test_jog_moves_the_crosshead_only_while_held(qtbot, window):
     start = position()
     w.jog_speed.setValue(200.0)
     qtbot.mousePress(w.jog_up, QtCore.Qt.MouseButton.LeftButton)
-    qtbot.waitUntil(lambda: sim.crosshead_status()["moving"], timeout=5000)
-    qtbot.waitUntil(lambda: position() < start - 1.0, timeout=10000)
+    qtbot.waitUntil(lambda: sim.crosshead_status()["moving"], timeout=WAIT_MS)
+    qtbot.waitUntil(lambda: position() < start - 1.0, timeout=WAIT_MS)
     qtbot.mouseRelease(w.jog_up, QtCore.Qt.MouseButton.LeftButton)
-    qtbot.waitUntil(lambda: not sim.crosshead_status()["moving"], timeout=5000)
+    qtbot.waitUntil(lambda: not sim.crosshead_status()["moving"], timeout=WAIT_MS)
     # The idle readout follows the machine.
-    qtbot.waitUntil(lambda: abs(float(w.position_label.text()) - position()) < 0.05, timeout=5000)
+    qtbot.waitUntil(lambda: abs(float(w.position_label.text()) - position()) < 0.05, timeout=WAIT_MS)
     click(qtbot, w.zero_position_button)
-    qtbot.waitUntil(lambda: abs(position()) < 1e-6, timeout=5000)
+    qtbot.waitUntil(lambda: abs(position()) < 1e-6, timeout=WAIT_MS)
 
 
 def test_closing_mid_run_stops_the_machine_and_keeps_the_data(qtbot, tmp_path, monkeypatch):
@@ -302,7 +300,7 @@ def test_closing_mid_run_stops_the_machine_and_keeps_the_data(qtbot, tmp_path, m
     question = w.dialog
     assert question.objectName() == "close_question" and question.isVisible() and w.running
     click(qtbot, question.button(QtWidgets.QMessageBox.StandardButton.Yes))
-    qtbot.waitUntil(lambda: not w.isVisible(), timeout=30_000)
+    qtbot.waitUntil(lambda: not w.isVisible(), timeout=WAIT_MS)
     result = w.last_result
     assert result is not None and result.status == "aborted"
     assert "window closed" in result.reason
@@ -319,7 +317,7 @@ def test_open_measured_file_shows_curves(qtbot, window):
     # Diagnosing the 18 000-sample real file takes ~25 s: left out here (the full-run test diagnoses).
     w.auto_diagnose_action.setChecked(False)
     w.open_file(REAL_BLUEHILL)
-    qtbot.waitUntil(lambda: w.shown_run is not None, timeout=20_000)
+    qtbot.waitUntil(lambda: w.shown_run is not None, timeout=WAIT_MS)
     run = w.shown_run
     assert w.plots.sample_count == len(run) > 1000
     loadings = {seg.cycle for seg in w.plots.segments if seg.phase == "loading"}
@@ -341,7 +339,7 @@ def test_open_bad_file_says_why(qtbot, window, tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("time_s,displacement_mm,force_N\n0,abc,1\n", encoding="utf-8")
     window.open_file(bad)
-    qtbot.waitUntil(lambda: "cannot open bad.csv" in window.statusBar().currentMessage(), timeout=10_000)
+    qtbot.waitUntil(lambda: "cannot open bad.csv" in window.statusBar().currentMessage(), timeout=WAIT_MS)
     assert window.shown_run is None
 
 
@@ -349,17 +347,17 @@ def test_connection_failure_is_shown_and_disconnect_closes_the_simulator(qtbot, 
     w = window
     w.profile_combo.setCurrentText("sim-serial")          # /dev/ttyUSB0: no such device here
     click(qtbot, w.connect_button)
-    qtbot.waitUntil(lambda: "Not connected" in w.connection_label.text(), timeout=CONNECT_TIMEOUT_MS)
+    qtbot.waitUntil(lambda: "Not connected" in w.connection_label.text(), timeout=WAIT_MS)
     assert not w.connected and w.connect_button.text() == "Connect" and not w.start_button.isEnabled()
     w.profile_combo.setCurrentText("Built-in simulated machine")
     conn = connect(qtbot, w)
     assert not w.profile_combo.isEnabled()                 # no profile change while connected
     # The machine goes away (cable pulled, power off): the window says so, it does not hang.
     conn.simulator.stop()
-    qtbot.waitUntil(lambda: "does not answer" in w.connection_label.text(), timeout=15_000)
+    qtbot.waitUntil(lambda: "does not answer" in w.connection_label.text(), timeout=WAIT_MS)
     assert w.state_label.text() == "no answer"
     click(qtbot, w.connect_button)                         # Disconnect
-    qtbot.waitUntil(lambda: w.connection_label.text() == "Disconnected", timeout=10_000)
+    qtbot.waitUntil(lambda: w.connection_label.text() == "Disconnected", timeout=WAIT_MS)
     assert not conn.simulator.running
     assert w.force_label.text() == "–" and w.profile_combo.isEnabled()
 

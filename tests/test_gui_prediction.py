@@ -25,7 +25,7 @@ from PySide6 import QtCore
 import independent_model as im
 from foamlab.gui.window import MainWindow
 from foamlab.methods import parse_method
-from tests.gui_support import shut_window
+from tests.gui_support import connect_window, shut_window
 from tests.hil_support import assert_keeps_the_schedule, short_method
 
 pytestmark = [pytest.mark.gui, pytest.mark.timeout(300)]
@@ -128,8 +128,7 @@ def test_a_clean_run_in_the_window_is_never_flagged_and_its_cycle_3_is_scored(qt
     w.method_combo.addItem(str(method))
     w.method_combo.setCurrentText(str(method))
     try:
-        qtbot.mouseClick(w.connect_button, QtCore.Qt.MouseButton.LeftButton)
-        qtbot.waitUntil(lambda: w.connected, timeout=20_000)
+        connect_window(qtbot, w)
         form = w.specimen_form
         for edit, value in zip((form.label_edit, form.edits["height_mm"], form.edits["width_mm"],
                                 form.edits["depth_mm"]), SPECIMEN):

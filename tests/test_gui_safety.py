@@ -22,9 +22,9 @@ from test_gui import (
 )
 
 from foamlab.gui.window import MainWindow
-from tests.gui_support import shut_window
+from tests.gui_support import WAIT_MS, shut_window
 
-pytestmark = [pytest.mark.gui, pytest.mark.hil, pytest.mark.timeout(120)]
+pytestmark = [pytest.mark.gui, pytest.mark.hil, pytest.mark.timeout(300)]   # hang guards (gui_support.WAIT_MS)
 
 
 @pytest.fixture
@@ -49,12 +49,12 @@ def estop_by(qtbot, w: MainWindow, how: str, dialog: QtWidgets.QWidget) -> None:
 def jog_down(qtbot, w: MainWindow, sim) -> None:
     w.jog_speed.setValue(20.0)
     w.link.call("jog", lambda m: m.crosshead.jog(+1, 20.0))
-    qtbot.waitUntil(lambda: sim.crosshead_status()["moving"], timeout=5000)
+    qtbot.waitUntil(lambda: sim.crosshead_status()["moving"], timeout=WAIT_MS)
 
 
 def assert_estopped(qtbot, sim) -> None:
     # Only an e-stop latches this bit (a watchdog or a stop does not): the stop came from us.
-    qtbot.waitUntil(lambda: sim.crosshead_status()["emergency_stop"], timeout=5000)
+    qtbot.waitUntil(lambda: sim.crosshead_status()["emergency_stop"], timeout=WAIT_MS)
     assert not sim.crosshead_status()["moving"]
 
 
@@ -102,11 +102,11 @@ def press_into_specimen(qtbot, w: MainWindow, sim, depth_mm: float = 12.0) -> fl
     top = 5.0                                       # the simulated block's top (machine mm)
     w.link.call("move", lambda m: m.crosshead.move_to(top + depth_mm, 300.0))
     qtbot.waitUntil(lambda: not sim.crosshead_status()["moving"]
-                    and sim.snapshot()["position_mm"] > top + depth_mm - 0.01, timeout=10_000)
+                    and sim.snapshot()["position_mm"] > top + depth_mm - 0.01, timeout=WAIT_MS)
     # The label shows the last poll, which may predate the stop on a loaded machine: wait
     # until it has caught up with what the cell reads at rest.
     qtbot.waitUntil(lambda: float(w.force_label.text()) > 10.0 and abs(
-        float(w.force_label.text()) - sim.snapshot()["sensor_force_N"]) < 0.5, timeout=5000)
+        float(w.force_label.text()) - sim.snapshot()["sensor_force_N"]) < 0.5, timeout=WAIT_MS)
     return float(w.force_label.text())
 
 
@@ -116,11 +116,11 @@ def test_tare_and_zero_are_refused_with_a_loaded_specimen(qtbot, win):
     loaded = press_into_specimen(qtbot, w, sim)
     for button, what in ((w.tare_button, "tare"), (w.zero_force_button, "zero force")):
         click(qtbot, button)
-        qtbot.waitUntil(lambda what=what: f"{what} refused" in w.statusBar().currentMessage(), timeout=5000)
+        qtbot.waitUntil(lambda what=what: f"{what} refused" in w.statusBar().currentMessage(), timeout=WAIT_MS)
         assert "unload the specimen" in w.statusBar().currentMessage()
     # The zero is unchanged: the cell still reads the specimen's load (a tare would read ~0).
     w.force_label.setText("0")
-    qtbot.waitUntil(lambda: float(w.force_label.text()) != 0.0, timeout=5000)
+    qtbot.waitUntil(lambda: float(w.force_label.text()) != 0.0, timeout=WAIT_MS)
     assert float(w.force_label.text()) == pytest.approx(loaded, rel=0.2)
     assert float(w.force_label.text()) == pytest.approx(sim.snapshot()["sensor_force_N"], abs=0.5)
 
@@ -136,7 +136,7 @@ def test_start_with_a_loaded_specimen_is_refused_before_the_tare(qtbot, win):
     assert result.status == "aborted" and "tare refused" in result.reason, result.reason
     assert result.path is None                    # nothing recorded: it never left the taring
     w.force_label.setText("0")
-    qtbot.waitUntil(lambda: float(w.force_label.text()) != 0.0, timeout=5000)
+    qtbot.waitUntil(lambda: float(w.force_label.text()) != 0.0, timeout=WAIT_MS)
     assert float(w.force_label.text()) == pytest.approx(loaded, rel=0.2)
 
 
@@ -152,8 +152,8 @@ def test_after_an_estop_in_the_specimen_start_is_refused_until_jogged_clear(qtbo
     contact = w.last_result.contact_position_mm
     assert contact is not None and sim.snapshot()["position_mm"] > contact
     click(qtbot, w.reset_button)
-    qtbot.waitUntil(lambda: not sim.crosshead_status()["emergency_stop"], timeout=5000)
-    qtbot.waitUntil(lambda: w.start_button.isEnabled(), timeout=5000)
+    qtbot.waitUntil(lambda: not sim.crosshead_status()["emergency_stop"], timeout=WAIT_MS)
+    qtbot.waitUntil(lambda: w.start_button.isEnabled(), timeout=WAIT_MS)
     w.last_result = None
     click(qtbot, w.start_button)
     qtbot.waitUntil(lambda: w.last_result is not None, timeout=RUN_TIMEOUT_MS)

@@ -21,10 +21,10 @@ from foamlab.importers import load_run
 from foamlab.reporting import series_from_runs, specimen_series
 from foamlab.rundata import RunData, Specimen
 from foamlab.storage.runfile import write_run_file
-from tests.gui_support import shut_window
+from tests.gui_support import WAIT_MS, shut_window
 from tests.synthetic import triangle_run
 
-pytestmark = [pytest.mark.gui, pytest.mark.timeout(120)]
+pytestmark = [pytest.mark.gui, pytest.mark.timeout(300)]   # hang guards (gui_support.WAIT_MS)
 
 METHOD = "paper-3cycle"          # three cycles to 80 %: 8 mm strokes on a 10 mm block
 SERIES_TIMEOUT_MS = 60_000
@@ -103,7 +103,7 @@ def test_series_tab_shows_the_series_of_the_opened_run_and_exports_it(qtbot, win
     out.parent.mkdir()
     dialog.selectFile(str(out))
     dialog.accept()
-    qtbot.waitUntil(out.exists, timeout=5000)
+    qtbot.waitUntil(out.exists, timeout=WAIT_MS)
     lines = out.read_text(encoding="utf-8").splitlines()
     assert lines[0].startswith(f"# foamlab specimen series: method {METHOD}")
     assert list(csv.reader(lines[1:])) == expected.rows()

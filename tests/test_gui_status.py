@@ -24,11 +24,11 @@ from foamlab.acquisition import RunResult
 from foamlab.gui.forms import ERROR_STYLE
 from foamlab.gui.status import WARNING_STYLE
 from foamlab.gui.window import MainWindow
-from tests.gui_support import shut_window
+from tests.gui_support import WAIT_MS, shut_window
 from foamlab.rundata import RunData, Specimen
 from foamlab.storage.runfile import write_run_file
 
-pytestmark = [pytest.mark.gui, pytest.mark.hil, pytest.mark.timeout(120)]
+pytestmark = [pytest.mark.gui, pytest.mark.hil, pytest.mark.timeout(300)]   # hang guards (gui_support.WAIT_MS)
 
 # 3 mm: the paper's three cycles are 2.4 mm strokes, ~5 s of wall time at x8.
 SHORT_SPECIMEN = ("status-test", 3.0, 100.0, 100.0)
@@ -61,14 +61,14 @@ def test_status_after_an_estop_and_a_later_run_is_current(qtbot, win):
     text, style = status(w)
     assert "aborted" in text and "emergency stop" in text and style == ERROR_STYLE
     click(qtbot, w.reset_button)
-    qtbot.waitUntil(lambda: not sim.crosshead_status()["emergency_stop"], timeout=5000)
-    qtbot.waitUntil(lambda: status(w) == ("e-stop reset: the crosshead may move again", ""), timeout=5000)
+    qtbot.waitUntil(lambda: not sim.crosshead_status()["emergency_stop"], timeout=WAIT_MS)
+    qtbot.waitUntil(lambda: status(w) == ("e-stop reset: the crosshead may move again", ""), timeout=WAIT_MS)
     # Back to where the run started (above the specimen), so the next run may tare.
     w.jog_speed.setValue(300.0)
     click(qtbot, w.return_button)
     qtbot.waitUntil(lambda: abs(sim.snapshot()["position_mm"] - w._run_start_mm) < 0.01
-                    and not sim.crosshead_status()["moving"], timeout=10_000)
-    qtbot.waitUntil(lambda: w.start_button.isEnabled() and w.last_readout.position_mm < 1.0, timeout=5000)
+                    and not sim.crosshead_status()["moving"], timeout=WAIT_MS)
+    qtbot.waitUntil(lambda: w.start_button.isEnabled() and w.last_readout.position_mm < 1.0, timeout=WAIT_MS)
     w.last_result = None
     click(qtbot, w.start_button)
     text, style = status(w)
@@ -112,7 +112,7 @@ def test_opening_a_past_run_updates_every_panel(qtbot, win, tmp_path):
     enter_specimen(qtbot, w, "current", 20.0, 100.0, 100.0)
     w.method_combo.setCurrentText("paper-3cycle")
     w.open_file(past)
-    qtbot.waitUntil(lambda: w.shown_run is not None, timeout=20_000)
+    qtbot.waitUntil(lambda: w.shown_run is not None, timeout=WAIT_MS)
     form = w.specimen_form
     assert form.label_edit.text() == "past-7"
     assert [form.values()[k] for k in ("height_mm", "width_mm", "depth_mm")] == [50.0, 80.0, 90.0]

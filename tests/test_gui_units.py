@@ -18,8 +18,9 @@ from foamlab.gui.plots import LOADING
 from foamlab.gui.window import MainWindow
 from foamlab.rundata import RunData, Specimen
 from foamlab.storage.runfile import write_run_file
+from tests.gui_support import WAIT_MS
 
-pytestmark = [pytest.mark.gui, pytest.mark.timeout(120)]
+pytestmark = [pytest.mark.gui, pytest.mark.timeout(300)]   # hang guards (gui_support.WAIT_MS)
 
 PAPER_BLOCK = Specimen("paper-block", 72.5, 100.0, 100.0)     # 10 000 mm², 72.5 mm high
 # 7.25 mm into the 72.5 mm block is 10 % strain; 50 N on 100 x 100 mm is 5 kPa.
@@ -124,7 +125,7 @@ def test_a_past_run_is_shown_in_stress_and_strain_of_its_own_specimen(qtbot, win
     past = tmp_path / "past.csv"
     synthetic_run(past, "paper-3cycle", PAPER_BLOCK)
     w.open_file(past)
-    qtbot.waitUntil(lambda: w.shown_run is not None, timeout=20_000)
+    qtbot.waitUntil(lambda: w.shown_run is not None, timeout=WAIT_MS)
     run = w.shown_run
     assert choice.isEnabled() and w.plots.units.y_unit == "kPa"
     x = np.concatenate([drawn(s.curve)[0] for s in w.plots.segments])
@@ -142,7 +143,7 @@ def test_a_past_run_is_shown_in_stress_and_strain_of_its_own_specimen(qtbot, win
     x_mm = np.concatenate([np.linspace(0, 10, 100), np.linspace(10, 0, 100)])
     write_run_file(bare, RunData(t, x_mm, 3 * x_mm, specimen=Specimen("bare", 50.0)))
     w.open_file(bare)
-    qtbot.waitUntil(lambda: w.shown_run is not None and w.shown_run.specimen.label == "bare", timeout=20_000)
+    qtbot.waitUntil(lambda: w.shown_run is not None and w.shown_run.specimen.label == "bare", timeout=WAIT_MS)
     assert not choice.isEnabled() and w.plots.units.y_unit == "N"
     assert "width and depth are not known" in choice.toolTip()
     x, y = drawn(w.plots.segments[0].curve)

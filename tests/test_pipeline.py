@@ -13,7 +13,7 @@ import pytest
 from foamlab import cli, pipeline
 from foamlab.identification import fit as identification_fit
 from foamlab.storage.catalog import Catalog
-from tests.gui_support import shut_window
+from tests.gui_support import connect_window, shut_window
 from tests.hil_support import short_method
 from tests.synthetic import triangle_run
 
@@ -83,8 +83,6 @@ def test_foamlab_run_fits_the_run_once_and_diagnoses_that_fit(tmp_path, capsys, 
 @pytest.mark.hil
 @pytest.mark.timeout(600)
 def test_the_window_fits_the_run_once_and_diagnoses_that_fit(qtbot, tmp_path, fits, diagnosed_with):
-    from PySide6 import QtCore
-
     from foamlab.gui.window import MainWindow
 
     w = MainWindow(speedup=SPEEDUP, out_dir=tmp_path / "runs", auto_diagnose=False)
@@ -93,8 +91,7 @@ def test_the_window_fits_the_run_once_and_diagnoses_that_fit(qtbot, tmp_path, fi
         method = short_method(tmp_path, **SHORT)
         w.method_combo.addItem(str(method))
         w.method_combo.setCurrentText(str(method))
-        qtbot.mouseClick(w.connect_button, QtCore.Qt.MouseButton.LeftButton)
-        qtbot.waitUntil(lambda: w.connected, timeout=20_000)
+        connect_window(qtbot, w)
         form = w.specimen_form
         for edit, value in ((form.label_edit, "gui-once"), (form.edits["height_mm"], "72.5")):
             edit.clear()

@@ -164,20 +164,18 @@ def test_foamlab_run_refuses_an_unwritable_folder_in_one_line(tmp_path, capsys):
 
 @pytest.mark.gui
 @pytest.mark.hil
-@pytest.mark.timeout(60)
+@pytest.mark.timeout(180)
 def test_the_window_refuses_a_run_it_could_not_record(qtbot, tmp_path):
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
-    from PySide6 import QtCore
-
     from foamlab.gui.window import MainWindow
+    from tests.gui_support import connect_window
 
     blocker = tmp_path / "a-file"
     blocker.write_text("not a folder")
     w = MainWindow(speedup=SPEEDUP, out_dir=blocker / "runs")
     qtbot.addWidget(w)
     try:
-        qtbot.mouseClick(w.connect_button, QtCore.Qt.MouseButton.LeftButton)
-        qtbot.waitUntil(lambda: w.connected, timeout=20_000)
+        connect_window(qtbot, w)
         form = w.specimen_form
         for edit, value in ((form.label_edit, "nowhere"), (form.edits["height_mm"], "72.5")):
             edit.clear()
