@@ -12,6 +12,7 @@ a frame, issue 27), are in docs/analysis.md, "What a run could have seen".
 from __future__ import annotations
 
 import independent_effects as ie
+import numpy as np
 import pytest
 
 from foamlab.diagnosis import diagnose
@@ -67,3 +68,52 @@ def test_the_window_says_what_a_clean_run_could_have_seen():
         {"cause": "channel_lag", "text": "no force channel lag above 27 ms"}]})
     assert "no friction against the motion above 0.99 N; no force channel lag above 27 ms" in report.verdict_text()
     assert ["detection_limit", "no force channel lag above 27 ms", "", "", ""] in report.csv_rows()
+
+
+def test_limits_the_base_can_hold_are_checked_by_identification_and_only_raised(limits):
+    """Cause.held_by_base: injected into the run's own fitted model and identification refitted
+    (limits.checked); the others keep the linearised limit, unchecked."""
+    from foamlab.diagnosis.causes import CAUSES
+    for name, limit in limits.items():
+        if CAUSES[name].held_by_base():
+            assert limit.injections and limit.limit >= limit.linearised > 0, (name, limit)
+            assert limit.to_dict()["injections"][0][0] == pytest.approx(limit.linearised)
+        else:
+            assert not limit.injections and limit.linearised != limit.linearised     # nan: not checked
+
+
+def _placed(response, injections=3, linear=1e-3):
+    """limits._Injector.place on a made-up noncentrality (size in linearised limits -> noise
+    variances), no refits; the size and the sizes tried come back in linearised limits too."""
+    from types import SimpleNamespace
+
+    from foamlab.diagnosis.causes import CAUSES
+    from foamlab.diagnosis.limits import _Injector
+    from foamlab.diagnosis.settings import DiagnosisSettings
+    injector = _Injector.__new__(_Injector)
+    injector.base, injector.settings = SimpleNamespace(n=14157), DiagnosisSettings(limit_injections=injections)
+    injector.noncentrality = lambda cause, size, white=None: response(size / linear)
+    size, tried = injector.place(CAUSES["cycle_softening"], linear)
+    return size / linear, [(s / linear, lam) for s, lam in tried]
+
+
+TARGET = (np.sqrt(10 + np.log(14157)) + 1.2816) ** 2        # the rule's 90 % noncentrality, q = 1
+
+
+def test_a_limit_the_injection_confirms_stays():
+    size, tried = _placed(lambda s: TARGET * s ** 2)
+    assert size == pytest.approx(1.0) and len(tried) == 1
+
+
+def test_a_limit_identification_absorbs_is_raised_to_where_it_is_seen():
+    # a power law of slope 2 from an absorbed third: the target is reached at sqrt(3) x the linear limit
+    size, tried = _placed(lambda s: TARGET * s ** 2 / 3)
+    assert size == pytest.approx(np.sqrt(3), rel=1e-4) and len(tried) == 2
+    # a step (a sample crossing the turn's drop, docs/analysis.md): halved between unseen and seen
+    size, tried = _placed(lambda s: 5 * TARGET if s > 1.7 else -3.0)
+    assert [round(s, 3) for s, _ in tried] == [1.0, 4.0, 2.0] and size == pytest.approx(2.0)
+
+
+def test_a_limit_is_never_lowered_and_unseen_is_extrapolated():
+    size, tried = _placed(lambda s: 0.01 * TARGET * s ** 2, injections=2)
+    assert size > tried[-1][0] > 1.0

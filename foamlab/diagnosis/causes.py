@@ -56,6 +56,12 @@ class Cause:
     #: search's fit showed.
     always_multistart: ClassVar[bool] = False
 
+    @classmethod
+    def held_by_base(cls) -> bool:
+        """The base can take this effect into the model's own terms (identification absorbs it, the
+        base imitates it, or holds it from its start): its detection limit is checked by injection."""
+        return cls.absorbed_by_identification or cls.imitated_by_base or cls.always_multistart
+
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
         cls.name, cls.meaning, cls.signature = cls.effect.name, cls.effect.meaning, cls.effect.signature

@@ -67,7 +67,7 @@ from foamlab.diagnosis.extend import (
     screen,
     without,
 )
-from foamlab.diagnosis.limits import clearing_on_top, detection_limits
+from foamlab.diagnosis.limits import checked, clearing_on_top, detection_limits
 from foamlab.diagnosis.pairs import fit_pair, members, named, redundant_first, screened
 from foamlab.diagnosis.residuals import analyse
 from foamlab.diagnosis.result import Candidate, Diagnosis
@@ -466,6 +466,11 @@ class Procedure:
                 heldout_rmse(base, coarse, reestimate=True, workers=self.settings.workers or None)
         self._progress("what this run could have seen", 0.98)
         limits = detection_limits(self.coarse, self._coarse(base), self.applicable, self.settings, n_full=base.n)
+        if len(self.series) == 1 and not findings:
+            # what `none` (or `unexplained`) means: checked where the base can hold a cause (limits.checked)
+            self._progress("what this run could have seen: limits checked by identification", 0.99)
+            limits = checked(limits, self.ref, self.base, self.applicable, self.settings,
+                             lambda fn, items: self._map(fn, items))
         return Diagnosis(
             verdict=verdict, limits=limits, findings=findings, partial=partial, tested=self.tested, skipped=self.skipped,
             base=base, final=final, base_analysis=base_analysis, final_analysis=final_analysis,

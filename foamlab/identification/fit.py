@@ -139,6 +139,14 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
     return replace(chosen, elapsed_s=time.perf_counter() - started)
 
 
+def refit_core(fd: PreparedRun, orders: Orders, settings: FitSettings = DEFAULT) -> Fit | None:
+    """Identification's core fit of one form and structure on a prepared run: its starts, search
+    and polish, the turns as placed, no orders held apart (diagnosis.limits refits a run with an
+    effect injected, to see what of it identification takes into the model's own terms)."""
+    with threadpool_limits(1, user_api="blas"):
+        return _fit_prepared(fd, orders, False, None, hold=False, settings=settings).core_fit
+
+
 def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progress, paper,
                 rival: float = np.inf, hold: bool = True, settings: FitSettings = DEFAULT) -> FitReport:
     """One form's fit (select: of the structure the data determine, from orders down), with the
