@@ -469,8 +469,7 @@ class Procedure:
         if len(self.series) == 1 and not findings:
             # what `none` (or `unexplained`) means: checked where the base can hold a cause (limits.checked)
             self._progress("what this run could have seen: limits checked by identification", 0.99)
-            limits = checked(limits, self.ref, self.base, self.applicable, self.settings,
-                             lambda fn, items: self._map(fn, items))
+            limits = checked(limits, self.ref, self.base, self.applicable, self.settings, self._map)
         return Diagnosis(
             verdict=verdict, limits=limits, findings=findings, partial=partial, tested=self.tested, skipped=self.skipped,
             base=base, final=final, base_analysis=base_analysis, final_analysis=final_analysis,

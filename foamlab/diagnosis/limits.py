@@ -77,12 +77,18 @@ def detection_limits(series: list[Series], base: Fit, causes: list[type[Cause]],
     for cause in causes:
         se = _stderr_at_zero(series, base, cause, whitener) * thin
         q = len(cause.effect.fitted_parameters())
-        multiple = np.sqrt(settings.delta_bic_min + q * np.log(n)) + norm.ppf(DETECTED_SHARE)
+        multiple = _multiple(settings, q, n)
         limit = se * multiple if np.isfinite(se) else float("nan")
         p = cause.effect.fitted_parameters()[0]
         text = cause.limit_text(limit) if np.isfinite(limit) else f"{cause.name}: not determined by this run"
         out.append(DetectionLimit(cause.name, p.name, p.unit, float(se), float(limit), text))
     return out
+
+
+def _multiple(settings: DiagnosisSettings, q: int, n: int) -> float:
+    """The limit in standard errors: an effect this many from zero is named in DETECTED_SHARE of
+    runs (its square: the noncentrality of the rule's test there)."""
+    return float(np.sqrt(settings.delta_bic_min + q * np.log(n)) + norm.ppf(DETECTED_SHARE))
 
 
 def _stderr_at_zero(series: list[Series], base: Fit, cause: type[Cause], whitener: ArWhitener) -> float:
@@ -227,7 +233,7 @@ class _Injector:
         the log-log interpolation of the two nearest (the seen one where that is not a power law)."""
         top = float(cause.bounds()[1][0])
         q = len(cause.effect.fitted_parameters())
-        target = (np.sqrt(self.settings.delta_bic_min + q * np.log(self.base.n)) + norm.ppf(DETECTED_SHARE)) ** 2
+        target = _multiple(self.settings, q, self.base.n) ** 2
         grow = lambda size, lam: min(size * min(np.sqrt(target / max(lam, target / 16)), MAX_GROWTH), top)
         tried = [(linear, self.noncentrality(cause, linear, white))]
         if not tried[0][1] < CONFIRMED_SHARE * target:       # confirmed, or nan: not checked
