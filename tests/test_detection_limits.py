@@ -92,7 +92,7 @@ def _placed(response, injections=3, linear=1e-3):
     from foamlab.diagnosis.settings import DiagnosisSettings
     injector = _Injector.__new__(_Injector)
     injector.base, injector.settings = SimpleNamespace(n=14157), DiagnosisSettings(limit_injections=injections)
-    injector.noncentrality = lambda cause, size, white=None: response(size / linear)
+    injector.noncentrality = lambda cause, size, refit=None: response(size / linear)
     size, tried = injector.place(CAUSES["cycle_softening"], linear)
     return size / linear, [(s / linear, lam) for s, lam in tried]
 

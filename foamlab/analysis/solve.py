@@ -124,6 +124,17 @@ class Optimum:
     nfev: int
 
 
+#: Half-width of a held parameter's bounds (least squares needs lower < upper): identification
+#: holds coalesced residual orders apart this way (identification.apart).
+HOLD = 1e-9
+
+
+def held(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Which parameters the bounds hold (within HOLD of a value): they do not move in a fit, so they
+    take no share of the information (their Jacobian columns left out of a covariance)."""
+    return np.asarray(upper, float) - np.asarray(lower, float) <= 4 * HOLD
+
+
 def trust_region(fun: Callable, x0: np.ndarray, jac: Callable, lower: np.ndarray, upper: np.ndarray, *,
                  max_nfev: int | None = None, ftol: float = 1e-8, xtol: float = 1e-8, gtol: float = 1e-8):
     """The one call of scipy.optimize.least_squares in identification and analysis: trust-region
@@ -149,9 +160,12 @@ def varpro(model: ExtendedModel, nu0: np.ndarray, keep: list[np.ndarray] | None 
     s2 = float(r @ r) / dof
     stderr = np.full(model.n_eta, np.nan)
     if model.n_eta:
+        free = ~held(lo, hi)
         try:
-            cov = np.linalg.pinv(res.jac.T @ res.jac) * s2
-            stderr = np.sqrt(np.maximum(np.diag(cov), 0.0))[model.n_phi:]
+            J = np.asarray(res.jac)[:, free]
+            se = np.zeros(len(free))
+            se[free] = np.sqrt(np.maximum(np.diag(np.linalg.pinv(J.T @ J) * s2), 0.0))
+            stderr = se[model.n_phi:]
         except np.linalg.LinAlgError:
             pass
     return Optimum(res.x, stderr, sol, int(res.status), str(res.message), int(res.nfev))

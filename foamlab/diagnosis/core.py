@@ -67,7 +67,7 @@ from foamlab.diagnosis.extend import (
     screen,
     without,
 )
-from foamlab.diagnosis.limits import checked, clearing_on_top, detection_limits
+from foamlab.diagnosis.limits import checked, clearing_on_top, detection_limits, opens_search, quiet
 from foamlab.diagnosis.pairs import fit_pair, members, named, redundant_first, screened
 from foamlab.diagnosis.residuals import analyse
 from foamlab.diagnosis.result import Candidate, Diagnosis
@@ -154,10 +154,7 @@ class Procedure:
 
     def _quiet(self, fit: Fit | None = None) -> bool:
         """The current model (or fit) leaves white noise at the noise level (or any residuals at it)."""
-        c = fit or self.current
-        excess = c.rss / (c.n * self.sigma ** 2) - 1
-        return bool(excess < self.settings.at_noise or (
-            excess < self.settings.near_noise and whiteness(c.solution.residual).min_p >= WHITE_P))
+        return quiet(fit or self.current, self.sigma, self.settings)
 
     # -- the procedure
     def run(self) -> Diagnosis:
@@ -246,8 +243,8 @@ class Procedure:
         structure, or where a candidate clears the Delta BIC bar on the decimated runs without
         them: the restarts also find the base better optima, which take such a gain away (a clean
         run, B seed 2018: frame compliance Delta BIC 35.8 decimated, 21.8 on every sample without
-        them, 6.8 with)."""
-        deep = not (self.settings.deep_only_on_structure and self._quiet())
+        them, 6.8 with). Not where a cause clears the rule linearised on top (limits.opens_search)."""
+        deep = opens_search(self.current, self.sigma, self.coarse, current_coarse, self.remaining, self.settings)
         probes, joint = self._probes(current_coarse, restarts=deep), {}
         coarse_cands = self._compared(probes, current_coarse, joint)
         if not deep and max((c.delta_bic for c in coarse_cands), default=0.0) > self.settings.delta_bic_min:

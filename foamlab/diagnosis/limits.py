@@ -13,8 +13,10 @@ own terms through another optimum than the base's (a damping change in the causa
 on B causal 3010 leaves nothing, where the limit said 7 %/cycle is seen; a lag under a sample).
 For the causes that can happen to (Cause.held_by_base) the limit is checked by injection
 (checked): the effect added to the run's own fitted model, identification refitted on that run,
-and the limit raised to the size whose left-over evidence reaches the rule's target
-(docs/analysis.md, "Limits checked by identification").
+and the limit raised to the size whose left-over evidence reaches the rule's target where the
+search would look for it: a quiet refit with no cause clearing the rule linearised on top keeps the
+search in its basin (docs/analysis.md, "Limits checked by identification", "Held orders and the
+quiet gate").
 """
 
 from __future__ import annotations
@@ -26,9 +28,9 @@ from scipy.stats import norm
 
 from foamlab import FoamlabError
 from foamlab.analysis.design import ExtendedModel, Series
-from foamlab.analysis.noise import ArWhitener
+from foamlab.analysis.noise import WHITE_P, ArWhitener, series_noise_sigma, whiteness
 from foamlab.analysis.prepared import PreparedRun
-from foamlab.analysis.solve import Fit, bounds_like, contact_of
+from foamlab.analysis.solve import Fit, at_full_resolution, bounds_like, contact_of, decimation, held
 from foamlab.diagnosis.causes import Cause
 from foamlab.diagnosis.settings import DiagnosisSettings
 from foamlab.identification.fit import refit_core
@@ -93,22 +95,23 @@ def _multiple(settings: DiagnosisSettings, q: int, n: int) -> float:
 
 def _stderr_at_zero(series: list[Series], base: Fit, cause: type[Cause], whitener: ArWhitener) -> float:
     """Standard error of the cause's first parameter with the effect at zero and the base free."""
-    model, rw, Jw = whitened_at_zero(series, base, [cause], whitener)
+    first, rw, Jw = whitened_at_zero(series, base, [cause], whitener)   # the effect's first follows alpha/beta
     sigma2 = float(rw @ rw) / max(len(rw) - Jw.shape[1], 1)
     try:
         cov = np.linalg.pinv(Jw.T @ Jw) * sigma2
     except np.linalg.LinAlgError:
         return float("nan")
-    first = model.n_phi       # the effect's first parameter follows alpha/beta
     v = cov[first, first]
     return float(np.sqrt(v)) if np.isfinite(v) and v > 0 else float("nan")
 
 
 def whitened_at_zero(series: list[Series], base: Fit, causes: list[type[Cause]], whitener: ArWhitener
-                     ) -> tuple[ExtendedModel, np.ndarray, np.ndarray]:
+                     ) -> tuple[int, np.ndarray, np.ndarray]:
     """The fit (the base, or a base with effects) extended by the causes, each new effect at zero:
-    (the model, its residual and its variable-projection Jacobian - alpha/beta, the fit's own
-    effects at their values, then each new effect's parameters - prewhitened)."""
+    (how many of its alpha/beta are free, its residual and its variable-projection Jacobian - the
+    free alpha/beta, the fit's own effects at their values, then each new effect's parameters -
+    prewhitened). Parameters the bounds hold (identification's orders held apart) do not move in
+    any fit: a column of theirs would take up information the rule's fits cannot."""
     params, own = base.params, base.model
     model = ExtendedModel(series, params, list(own.effect_types) + [c.effect for c in causes],
                           {**own.settings, **{c.effect.name: c.settings(series) for c in causes}},
@@ -116,11 +119,12 @@ def whitened_at_zero(series: list[Series], base: Fit, causes: list[type[Cause]],
                           free_base=True, base_bounds=bounds_like(own, series, params), masks=contact_of(base, series))
     nu = model.start(np.concatenate([base.eta, np.zeros(model.n_eta - len(base.eta))]))
     fun, jac = model.residual_fn()
-    r, J = fun(nu), jac(nu)
+    free = ~held(*model.bounds())
+    r, J = fun(nu), jac(nu)[:, free]
     lengths = [int(m.sum()) for m in model.rows()]
     cuts = np.cumsum(lengths)[:-1]
     white = lambda v: whitener.apply(np.split(v, cuts))
-    return model, white(r), np.column_stack([white(J[:, j]) for j in range(J.shape[1])])
+    return int(free[:model.n_phi].sum()), white(r), np.column_stack([white(J[:, j]) for j in range(J.shape[1])])
 
 
 def gain_on_top(series: list[Series], fit: Fit, cause: type[Cause], whitener: ArWhitener) -> float:
@@ -146,9 +150,37 @@ def clearing_on_top(series: list[Series], fit: Fit, causes: list[type[Cause]], s
     decimated ones, the fit on them: every sample's information is then the decimated samples'
     times n_full / n (as detection_limits)."""
     whitener = ArWhitener.fit(fit.solution.used_residuals)
-    n = n_full or fit.n
-    return [c for c in causes if gain_on_top(series, fit, c, whitener) * n / fit.n
-            - len(c.effect.fitted_parameters()) * np.log(n) > settings.delta_bic_min]
+    return [c for c in causes if _clears(_gain(series, fit, c, whitener, n_full), c, settings, n_full or fit.n)]
+
+
+def _gain(series: list[Series], fit: Fit, cause: type[Cause], whitener: ArWhitener, n_full: int | None) -> float:
+    """gain_on_top on the scale of n_full samples (the fit's own where None)."""
+    return gain_on_top(series, fit, cause, whitener) * (n_full or fit.n) / fit.n
+
+
+def _clears(gain: float, cause: type[Cause], settings: DiagnosisSettings, n: int) -> bool:
+    return gain - len(cause.effect.fitted_parameters()) * np.log(n) > settings.delta_bic_min
+
+
+def quiet(fit: Fit, sigma: float, settings: DiagnosisSettings) -> bool:
+    """The fit leaves white noise at the noise level sigma (or any residuals at it)."""
+    excess = fit.rss / (fit.n * sigma ** 2) - 1
+    return bool(excess < settings.at_noise or (
+        excess < settings.near_noise and whiteness(fit.solution.residual).min_p >= WHITE_P))
+
+
+def opens_search(fit: Fit, sigma: float, coarse: list[Series], on: Fit, causes: list[type[Cause]],
+                 settings: DiagnosisSettings) -> bool:
+    """Does the search look past the fit's basin (its restarts and several starts)? Where the fit is
+    not quiet, or a cause clears the evidence rule linearised on top of it (the score test on the
+    decimated runs `coarse`, the fit carried to them `on`; the causes in order, the first that
+    clears ends it). The noise level's estimate scatters by +-5 % of the variance on clean runs:
+    quiet alone would hide an effect the base took up (docs/analysis.md, "Held orders and the
+    quiet gate")."""
+    if not settings.deep_only_on_structure or not quiet(fit, sigma, settings):
+        return True
+    whitener = ArWhitener.fit(on.solution.used_residuals)
+    return any(_clears(_gain(coarse, on, c, whitener, fit.n), c, settings, fit.n) for c in causes)
 
 
 def checked(limits: list[DetectionLimit], ref: PreparedRun, base: Fit, causes: list[type[Cause]],
@@ -163,11 +195,11 @@ def checked(limits: list[DetectionLimit], ref: PreparedRun, base: Fit, causes: l
     jobs = [lim for lim in limits if lim.cause in by_name and np.isfinite(lim.limit) and lim.limit > 0]
     if not jobs:
         return limits
-    injector = _Injector(ref, base, settings)
+    injector = _Injector(ref, base, causes, settings)
     fmap = fmap or (lambda fn, items: [fn(item) for item in items])
     # the refit of the run as it is and the first injection of each cause are independent: one map
-    first = fmap(lambda job: injector.white_rss(*job), [(None, 0.0)] + [(by_name[lim.cause], lim.limit) for lim in jobs])
-    injector.reference = first[0]
+    first = fmap(lambda job: injector.refit(*job), [(None, 0.0)] + [(by_name[lim.cause], lim.limit) for lim in jobs])
+    injector.reference = first[0].white
     placed = dict(zip((lim.cause for lim in jobs),
                       fmap(lambda k: injector.place(by_name[jobs[k].cause], jobs[k].limit, first[k + 1]),
                            range(len(jobs)))))
@@ -182,24 +214,35 @@ def checked(limits: list[DetectionLimit], ref: PreparedRun, base: Fit, causes: l
     return out
 
 
+@dataclass(frozen=True)
+class _Refit:
+    """Identification's refit of the run with an effect injected: its prewhitened residual sum of
+    squares, and what the diagnosis' search would see of the effect on top of it where it stays in
+    the refit's own basin (the gate closed: the refit quiet and no cause clearing the rule
+    linearised), in noise variances (inf: the gate open, the search looks further)."""
+
+    white: float
+    local: float = float("inf")
+
+
 class _Injector:
     """The run's own fitted model with one cause's effect added at a size, and what identification's
     refit of that run leaves of it: the noncentrality of the evidence rule's test, in noise variances
     on the rule's prewhitened scale, against the same refit of the run as it is."""
 
-    def __init__(self, ref: PreparedRun, base: Fit, settings: DiagnosisSettings):
-        self.ref, self.base, self.settings = ref, base, settings
+    def __init__(self, ref: PreparedRun, base: Fit, causes: list[type[Cause]], settings: DiagnosisSettings):
+        self.ref, self.base, self.causes, self.settings = ref, base, causes, settings
         self.orders = base.params.layout.orders
         self.whitener = ArWhitener.fit(base.solution.used_residuals)
         white = self.whitener.apply(base.solution.used_residuals)
         self.sigma2 = float(white @ white) / max(len(white) - base.solution.theta.size, 1)
-        self.reference = float("nan")     # white_rss(None): set by checked
+        self.reference = float("nan")     # refit(None).white: set by checked
 
-    def white_rss(self, cause: type[Cause] | None, size: float) -> float:
-        """The prewhitened residual sum of squares of identification's refit of the run with the
-        cause's effect added to its fitted model at this size (None: the run as it is). nan where the
-        injected run cannot be fitted (a size the model cannot make, a run the refit cannot
-        identify): the check then stops, and the limit stays as it was."""
+    def refit(self, cause: type[Cause] | None, size: float) -> _Refit:
+        """Identification's refit of the run with the cause's effect added to its fitted model at
+        this size (None: the run as it is). white nan where the injected run cannot be fitted (a
+        size the model cannot make, a run the refit cannot identify): the check then stops, and
+        the limit stays as it was."""
         b, s = self.base, self.ref.series
         force = s.y
         if cause is not None:
@@ -210,22 +253,36 @@ class _Injector:
             with_it, without = (m.predict(b.solution.theta, np.concatenate([b.eta, [v]]))[0] for v in (size, 0.0))
             force = s.y + (with_it - without)
         if not np.all(np.isfinite(force)):
-            return float("nan")
+            return _Refit(float("nan"))
+        run = self.ref.with_force(force)
         try:
-            fit = refit_core(self.ref.with_force(force), self.orders)
+            fit = refit_core(run, self.orders)
         except (FoamlabError, np.linalg.LinAlgError):
-            return float("nan")
+            return _Refit(float("nan"))
         if fit is None:
-            return float("nan")
+            return _Refit(float("nan"))
         white = self.whitener.apply(fit.solution.used_residuals)
-        return float(white @ white)
+        return _Refit(float(white @ white), self._local(run, fit, cause) if cause is not None else float("inf"))
 
-    def noncentrality(self, cause: type[Cause], size: float, white: float | None = None) -> float:
-        """What the refit leaves of the effect, in noise variances (white: its white_rss, if known)."""
-        white = self.white_rss(cause, size) if white is None else white
-        return (white - self.reference) / self.sigma2
+    def _local(self, run: PreparedRun, fit: Fit, cause: type[Cause]) -> float:
+        """The cause's linearised gain on top of the refit where the search would stay in the refit's
+        basin (opens_search, as Procedure.search asks it); inf where it would look further."""
+        s = run.series
+        k = decimation([s])
+        coarse = [s.decimated(k)] if k > 1 else [s]
+        on = at_full_resolution(fit, coarse)
+        order = [cause] + [c for c in self.causes if c is not cause]
+        if opens_search(fit, series_noise_sigma([s.y]), coarse, on, order, self.settings):
+            return float("inf")
+        return _gain(coarse, on, cause, ArWhitener.fit(on.solution.used_residuals), fit.n)
 
-    def place(self, cause: type[Cause], linear: float, white: float | None = None
+    def noncentrality(self, cause: type[Cause], size: float, refit: _Refit | None = None) -> float:
+        """What the refit leaves of the effect where the search would see it, in noise variances
+        (refit: the injection's, if done)."""
+        refit = self.refit(cause, size) if refit is None else refit
+        return min((refit.white - self.reference) / self.sigma2, refit.local)
+
+    def place(self, cause: type[Cause], linear: float, refit: _Refit | None = None
               ) -> tuple[float, tuple[tuple[float, float], ...]]:
         """The size whose injection leaves the target: the linearised limit where an injection there
         confirms it; otherwise grown (a power law of slope 2, at most MAX_GROWTH a step) until one is
@@ -235,7 +292,7 @@ class _Injector:
         q = len(cause.effect.fitted_parameters())
         target = _multiple(self.settings, q, self.base.n) ** 2
         grow = lambda size, lam: min(size * min(np.sqrt(target / max(lam, target / 16)), MAX_GROWTH), top)
-        tried = [(linear, self.noncentrality(cause, linear, white))]
+        tried = [(linear, self.noncentrality(cause, linear, refit))]
         if not tried[0][1] < CONFIRMED_SHARE * target:       # confirmed, or nan: not checked
             return linear, tuple(tried)
         lo, hi = tried[0], None

@@ -45,11 +45,11 @@ def screened(series: list[Series], base: Fit, causes: list[type[Cause]]) -> list
     """(predicted gain over the better member in noise variances, a, b) of every pair whose
     predicted gain over its better member exceeds ln(n) per parameter of the other, best first."""
     whitener = ArWhitener.fit(base.solution.used_residuals)
-    model, rw, Jw = whitened_at_zero(series, base, causes, whitener)
-    q, _ = np.linalg.qr(Jw[:, :model.n_phi])
+    n_phi, rw, Jw = whitened_at_zero(series, base, causes, whitener)
+    q, _ = np.linalg.qr(Jw[:, :n_phi])
     # what alpha/beta can take up is not the effects' (the base imitates some of them)
     apart = lambda a: a - q @ (q.T @ a)
-    r, effects = apart(rw), apart(Jw[:, model.n_phi:])
+    r, effects = apart(rw), apart(Jw[:, n_phi:])
     sigma2 = float(r @ r) / len(r)
     sizes = [len(c.effect.fitted_parameters()) for c in causes]
     columns = np.split(np.arange(sum(sizes)), np.cumsum(sizes)[:-1])

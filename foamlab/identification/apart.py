@@ -24,6 +24,7 @@ import numpy as np
 from foamlab.analysis.design import Series
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import (
+    HOLD,
     POLISH_NFEV,
     Fit,
     at_full_resolution,
@@ -46,9 +47,6 @@ COALESCED = 0.05
 CENTRES = np.arange(-0.6, 0.61, 0.15)
 #: Rounds of holding (a held pair can leave another cycle's terms to coalesce).
 ROUNDS = 3
-#: Half-width of a held order's bounds (least squares needs lower < upper).
-HOLD = 1e-9
-
 
 #: The rule a held fit is kept by (the structure selection's: fewest parameters within BIC_TIE).
 RULE = f"kept when its BIC is within {BIC_TIE:g} of the free fit's (fewer parameters at no real cost)"
