@@ -243,7 +243,8 @@ class Procedure:
         structure, or where a candidate clears the Delta BIC bar on the decimated runs without
         them: the restarts also find the base better optima, which take such a gain away (a clean
         run, B seed 2018: frame compliance Delta BIC 35.8 decimated, 21.8 on every sample without
-        them, 6.8 with). Not where a cause clears the rule linearised on top (limits.opens_search)."""
+        them, 6.8 with). Also where a quiet model has a cause clearing the rule linearised on top
+        (limits.opens_search)."""
         deep = opens_search(self.current, self.sigma, self.coarse, current_coarse, self.remaining, self.settings)
         probes, joint = self._probes(current_coarse, restarts=deep), {}
         coarse_cands = self._compared(probes, current_coarse, joint)
