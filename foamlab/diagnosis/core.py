@@ -75,19 +75,21 @@ from foamlab.diagnosis.settings import DEFAULT, DiagnosisSettings
 
 def diagnose_prepared(runs: list[PreparedRun], base: Fit, causes: list[str] | None = None,
                       progress: Callable[[str, float], None] | None = None,
-                      settings: DiagnosisSettings = DEFAULT) -> Diagnosis:
+                      settings: DiagnosisSettings = DEFAULT, coalesced: np.ndarray | None = None) -> Diagnosis:
     """Diagnose prepared runs (the first the reference) from a base model fitted on all of them
     (identification's core fit for one run, analysis.solve.polish for several). progress:
-    called with (stage, fraction 0..1)."""
+    called with (stage, fraction 0..1). coalesced: the base's alpha/beta identification held apart
+    (bool over them), held in the linearised detection limits (limits.detection_limits)."""
     with threadpool_limits(1, user_api="blas"):    # small dense solves: threads only contend
-        return Procedure(runs, base, causes, progress, settings).run()
+        return Procedure(runs, base, causes, progress, settings, coalesced).run()
 
 
 class Procedure:
     """One diagnosis: the runs, the model found so far, and what each round decided."""
 
     def __init__(self, runs: list[PreparedRun], base: Fit, causes: list[str] | None,
-                 progress: Callable[[str, float], None] | None = None, settings: DiagnosisSettings = DEFAULT):
+                 progress: Callable[[str, float], None] | None = None, settings: DiagnosisSettings = DEFAULT,
+                 coalesced: np.ndarray | None = None):
         self.started = time.perf_counter()
         self.settings = settings
         self.report = progress or (lambda stage, fraction: None)
@@ -100,6 +102,7 @@ class Procedure:
         #: the runs the several starts of an effect the base imitates are fitted on (_imitated)
         self.fine = [s.decimated(k) for s in self.series] if k > 1 else self.series
         self.base = self.current = base
+        self.coalesced = coalesced
         self.skipped: dict[str, str] = {}
         self.remaining: list[type[Cause]] = []
         for name in (list(CAUSES) if causes is None else list(causes)):
@@ -463,7 +466,8 @@ class Procedure:
                 coarse = self._coarse(base)
                 heldout_rmse(base, coarse, reestimate=True, workers=self.settings.workers or None)
         self._progress("what this run could have seen", 0.98)
-        limits = detection_limits(self.coarse, self._coarse(base), self.applicable, self.settings, n_full=base.n)
+        limits = detection_limits(self.coarse, self._coarse(base), self.applicable, self.settings, n_full=base.n,
+                                  coalesced=self.coalesced)
         if len(self.series) == 1 and not findings:
             # what `none` (or `unexplained`) means: checked where the base can hold a cause (limits.checked)
             self._progress("what this run could have seen: limits checked by identification", 0.99)

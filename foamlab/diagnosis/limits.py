@@ -65,19 +65,23 @@ class DetectionLimit:
                 "injections": [[float(a), finite(b)] for a, b in self.injections]}
 
 
-def detection_limits(series: list[Series], base: Fit, causes: list[type[Cause]],
-                     settings: DiagnosisSettings, n_full: int | None = None) -> list[DetectionLimit]:
+def detection_limits(series: list[Series], base: Fit, causes: list[type[Cause]], settings: DiagnosisSettings,
+                     n_full: int | None = None, coalesced: np.ndarray | None = None) -> list[DetectionLimit]:
     """The limit of each cause (its first fitted parameter) on these runs at the base fit.
 
     series may be the search's decimated ones (base fitted on them): the information of every
     sample, n_full of them, is then the decimated samples' times n_full / n (the standard error
-    over its square root) - a Jacobian on every sample costs seconds per cause."""
+    over its square root) - a Jacobian on every sample costs seconds per cause.
+    coalesced: the base's alpha/beta identification held apart (bool over them; None: none), held
+    here too: linearised, a pair of nearly equal orders takes up a share of an effect that no fit
+    of the pair reaches (B paper 3045, softening: se 0.00087 with them free, 0.00042 held, 0.00046
+    from the profile likelihood; docs/analysis.md, "Held orders and the quiet gate")."""
     whitener = ArWhitener.fit(base.solution.used_residuals)
     n = n_full or base.n
     thin = np.sqrt(base.n / n)
     out = []
     for cause in causes:
-        se = _stderr_at_zero(series, base, cause, whitener) * thin
+        se = _stderr_at_zero(series, base, cause, whitener, coalesced) * thin
         q = len(cause.effect.fitted_parameters())
         multiple = _multiple(settings, q, n)
         limit = se * multiple if np.isfinite(se) else float("nan")
@@ -93,9 +97,11 @@ def _multiple(settings: DiagnosisSettings, q: int, n: int) -> float:
     return float(np.sqrt(settings.delta_bic_min + q * np.log(n)) + norm.ppf(DETECTED_SHARE))
 
 
-def _stderr_at_zero(series: list[Series], base: Fit, cause: type[Cause], whitener: ArWhitener) -> float:
-    """Standard error of the cause's first parameter with the effect at zero and the base free."""
-    first, rw, Jw = whitened_at_zero(series, base, [cause], whitener)   # the effect's first follows alpha/beta
+def _stderr_at_zero(series: list[Series], base: Fit, cause: type[Cause], whitener: ArWhitener,
+                    coalesced: np.ndarray | None = None) -> float:
+    """Standard error of the cause's first parameter with the effect at zero and the base free
+    (but the coalesced alpha/beta)."""
+    first, rw, Jw = whitened_at_zero(series, base, [cause], whitener, coalesced)   # the effect's first follows alpha/beta
     sigma2 = float(rw @ rw) / max(len(rw) - Jw.shape[1], 1)
     try:
         cov = np.linalg.pinv(Jw.T @ Jw) * sigma2
@@ -105,13 +111,14 @@ def _stderr_at_zero(series: list[Series], base: Fit, cause: type[Cause], whitene
     return float(np.sqrt(v)) if np.isfinite(v) and v > 0 else float("nan")
 
 
-def whitened_at_zero(series: list[Series], base: Fit, causes: list[type[Cause]], whitener: ArWhitener
-                     ) -> tuple[int, np.ndarray, np.ndarray]:
+def whitened_at_zero(series: list[Series], base: Fit, causes: list[type[Cause]], whitener: ArWhitener,
+                     fixed: np.ndarray | None = None) -> tuple[int, np.ndarray, np.ndarray]:
     """The fit (the base, or a base with effects) extended by the causes, each new effect at zero:
     (how many of its alpha/beta are free, its residual and its variable-projection Jacobian - the
     free alpha/beta, the fit's own effects at their values, then each new effect's parameters -
     prewhitened). Parameters the bounds hold (identification's orders held apart) do not move in
-    any fit: a column of theirs would take up information the rule's fits cannot."""
+    any fit: a column of theirs would take up information the rule's fits cannot; fixed: alpha/beta
+    left out as well (bool over them)."""
     params, own = base.params, base.model
     model = ExtendedModel(series, params, list(own.effect_types) + [c.effect for c in causes],
                           {**own.settings, **{c.effect.name: c.settings(series) for c in causes}},
@@ -120,6 +127,8 @@ def whitened_at_zero(series: list[Series], base: Fit, causes: list[type[Cause]],
     nu = model.start(np.concatenate([base.eta, np.zeros(model.n_eta - len(base.eta))]))
     fun, jac = model.residual_fn()
     free = ~held(*model.bounds())
+    if fixed is not None:
+        free[:len(fixed)] &= ~np.asarray(fixed, bool)
     r, J = fun(nu), jac(nu)[:, free]
     lengths = [int(m.sum()) for m in model.rows()]
     cuts = np.cumsum(lengths)[:-1]

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 from typing import Callable
 
+import numpy as np
+
 from foamlab import FoamlabError
 from foamlab.analysis.noise import WHITE_P
 from foamlab.analysis.prepared import PreparedRun, prepare
-from foamlab.analysis.solve import POLISH_NFEV, Fit, at_full_resolution, decimation, polish
+from foamlab.analysis.solve import POLISH_NFEV, Fit, at_full_resolution, decimation, held, polish
 from foamlab.diagnosis.core import diagnose_prepared
 from foamlab.diagnosis.extend import on_base
 from foamlab.diagnosis.form import NAME, base_form_reason, check_other_form
@@ -51,7 +53,8 @@ def diagnose(runs: list[RunData], fit: FitReport | None = None,
     rest = [prepare(r, name=n) for r, n in zip(runs[1:], names[1:])]
     start = FIT_SHARE if progress else 0.0
     d = diagnose_prepared(*_base_of(fit, rest), causes, settings=settings,
-                          progress=lambda stage, f: report(stage, start + (1.0 - start) * f))
+                          progress=lambda stage, f: report(stage, start + (1.0 - start) * f),
+                          coalesced=_coalesced(fit, rest))
     d.base_form_reason = base_form_reason(fit)
     other = fit.alternatives[0] if fit.alternatives and form_finding is None else None
     begun = None
@@ -66,7 +69,8 @@ def diagnose(runs: list[RunData], fit: FitReport | None = None,
         so_far = report.fraction
         d2 = diagnose_prepared(*begun, causes, settings=settings,
                                progress=lambda stage, f: report(f"{other.params.residual_form} form: {stage}",
-                                                                so_far + (1.0 - so_far) * f))
+                                                                so_far + (1.0 - so_far) * f),
+                               coalesced=_coalesced(other, rest))
         if bic(d2.final) < bic(d.final):
             d2.base_form_reason = (f"{other.params.residual_form} residual form: with the extension found it "
                                    f"explains the run better (BIC {bic(d2.final):.1f} vs {bic(d.final):.1f} in the "
@@ -107,6 +111,17 @@ def _base_of(fit: FitReport, rest: list) -> tuple[list[PreparedRun], Fit]:
     if not rest and fit.core_fit is not None:
         return prepared, fit.free_core or fit.core_fit
     return _shared_base(prepared, fit.params)
+
+
+def _coalesced(fit: FitReport, rest: list) -> np.ndarray | None:
+    """The alpha/beta of _base_of's base (its free core) that identification held apart (bool over
+    them), None where it held none or the base is another fit (several runs)."""
+    fit = fit.largest or fit
+    core, free = fit.core_fit, fit.free_core
+    if rest or free is None or core is None or core.model.base_bounds is None:
+        return None
+    mask = held(*core.model.base_bounds)
+    return mask if mask.any() and len(mask) == free.model.n_phi else None
 
 
 #: Rounds of placing every run's turns by the shared base and polishing it again.
