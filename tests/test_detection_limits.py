@@ -117,3 +117,27 @@ def test_a_limit_identification_absorbs_is_raised_to_where_it_is_seen():
 def test_a_limit_is_never_lowered_and_unseen_is_extrapolated():
     size, tried = _placed(lambda s: 0.01 * TARGET * s ** 2, injections=2)
     assert size > tried[-1][0] > 1.0
+
+
+def test_orders_identification_held_apart_are_held_in_the_linearised_limit():
+    """A pair of nearly equal residual orders gives two nearly parallel columns: free, they take up
+    a share of the softening no fit of the pair reaches (B paper seed 3045, chosen for its four
+    held orders: se 0.00087 free, 0.00042 held, 0.00046 from the profile likelihood;
+    docs/analysis.md, "Held orders and the quiet gate")."""
+    from foamlab.analysis.solve import at_full_resolution, decimation
+    from foamlab.diagnosis.causes import CAUSES
+    from foamlab.diagnosis.limits import detection_limits
+    from foamlab.diagnosis.run import _coalesced
+    from foamlab.diagnosis.settings import DEFAULT
+    from foamlab.identification import fit_run
+
+    fit = fit_run(ie.independent_run("B", 3045, None, form="paper"))
+    mask = _coalesced(fit, [])
+    assert mask is not None and mask.sum() >= 2
+    series = [fit.prepared.series]
+    coarse = [s.decimated(decimation(series)) for s in series]
+    base = at_full_resolution(fit.free_core, coarse)
+    se = [detection_limits(coarse, base, [CAUSES["cycle_softening"]], DEFAULT, fit.free_core.n, m)[0].stderr
+          for m in (None, mask)]
+    assert se[1] < 0.7 * se[0], se
+    assert _coalesced(fit, ["another run"]) is None       # several runs: a shared base, no identification's holds
