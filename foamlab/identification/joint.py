@@ -314,12 +314,9 @@ class DecimatedProblem:
 def ranked_searches(search: DecimatedProblem, start: ModelParameters | None,
                     progress: Callable[[str, float], None] | None,
                     other_starts: Iterable[tuple[str, np.ndarray]] = ()):
-    """The global search of alpha and beta on the decimated run from every start, best refined
-    optimum first: yields (fit, fixed nonlinear, the starts' names, the lower and upper bounds,
-    the evaluations so far). other_starts: (name, alpha and beta) tried too. Every start is
-    refined: the best short probe need not lead to the best optimum (B causal 3058: the paper's
-    start probed worst and refined best, 88 noise variances below the best probe's optimum on
-    every sample; docs/analysis.md, "B causal: identification's basin")."""
+    """The global search of alpha and beta on the decimated run, from each start in turn, best
+    short probe first: yields (fit, fixed nonlinear, the starts' names, the lower and upper
+    bounds, the evaluations so far). other_starts: (name, alpha and beta) tried too."""
     candidates: list[tuple[str, np.ndarray]] = list(other_starts)
     if start is not None:
         candidates.append(("paper three-step", search.lay.from_flat(start.to_vector())[1]))
@@ -329,14 +326,9 @@ def ranked_searches(search: DecimatedProblem, start: ModelParameters | None,
     for name, theta0 in candidates:
         probes.append((search.probe(theta0), name))
         if progress:
-            progress(f"joint fit: start '{name}'", 0.5 + 0.15 * len(probes) / len(candidates))
-    refined = []
-    for i, (probe, name) in enumerate(probes):
-        fit, fixed = search.refine(probe.nonlinear)
-        refined.append((fit.sse, i, fit, fixed, name))
-        if progress:
-            progress(f"joint fit: refined '{name}'", 0.65 + 0.15 * (i + 1) / len(probes))
-    for _, _, fit, fixed, best_name in sorted(refined, key=lambda r: r[:2]):
+            progress(f"joint fit: start '{name}'", 0.5 + 0.1 * len(probes))
+    for best, best_name in sorted(probes, key=lambda fr: fr[0].sse):
+        fit, fixed = search.refine(best.nonlinear)
         yield (fit, fixed, [f"{n}{' (chosen)' if n == best_name else ''}" for _, n in probes],
                search.lower, search.upper, search.problem.nfev)
 
