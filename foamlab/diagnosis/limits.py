@@ -112,13 +112,13 @@ def _stderr_at_zero(series: list[Series], base: Fit, cause: type[Cause], whitene
 
 
 def whitened_at_zero(series: list[Series], base: Fit, causes: list[type[Cause]], whitener: ArWhitener,
-                     fixed: np.ndarray | None = None) -> tuple[int, np.ndarray, np.ndarray]:
+                     coalesced: np.ndarray | None = None) -> tuple[int, np.ndarray, np.ndarray]:
     """The fit (the base, or a base with effects) extended by the causes, each new effect at zero:
     (how many of its alpha/beta are free, its residual and its variable-projection Jacobian - the
     free alpha/beta, the fit's own effects at their values, then each new effect's parameters -
     prewhitened). Parameters the bounds hold (identification's orders held apart) do not move in
-    any fit: a column of theirs would take up information the rule's fits cannot; fixed: alpha/beta
-    left out as well (bool over them)."""
+    any fit: a column of theirs would take up information the rule's fits cannot; coalesced:
+    alpha/beta left out as well (bool over them; detection_limits)."""
     params, own = base.params, base.model
     model = ExtendedModel(series, params, list(own.effect_types) + [c.effect for c in causes],
                           {**own.settings, **{c.effect.name: c.settings(series) for c in causes}},
@@ -127,8 +127,8 @@ def whitened_at_zero(series: list[Series], base: Fit, causes: list[type[Cause]],
     nu = model.start(np.concatenate([base.eta, np.zeros(model.n_eta - len(base.eta))]))
     fun, jac = model.residual_fn()
     free = ~held(*model.bounds())
-    if fixed is not None:
-        free[:len(fixed)] &= ~np.asarray(fixed, bool)
+    if coalesced is not None:
+        free[:len(coalesced)] &= ~np.asarray(coalesced, bool)
     r, J = fun(nu), jac(nu)[:, free]
     lengths = [int(m.sum()) for m in model.rows()]
     cuts = np.cumsum(lengths)[:-1]
