@@ -119,6 +119,13 @@ def test_a_limit_is_never_lowered_and_unseen_is_extrapolated():
     assert size > tried[-1][0] > 1.0
 
 
+def test_an_injection_identification_cannot_fit_keeps_what_the_earlier_ones_showed():
+    # unseen at 1 and 4 x the linearised limit, then a size the refit cannot fit: the limit is past
+    # the last unseen one (the power law's 4 x), not the linearised limit nothing confirmed
+    size, tried = _placed(lambda s: 0.0 if s < 10 else float("nan"), injections=4)
+    assert [s for s, _ in tried] == [1.0, 4.0, 16.0] and size == pytest.approx(16.0)
+
+
 def test_orders_identification_held_apart_are_held_in_the_linearised_limit():
     """A pair of nearly equal residual orders gives two nearly parallel columns: free, they take up
     a share of the softening no fit of the pair reaches (B paper seed 3045, chosen for its four

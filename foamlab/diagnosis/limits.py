@@ -250,8 +250,8 @@ class _Injector:
     def refit(self, cause: type[Cause] | None, size: float) -> _Refit:
         """Identification's refit of the run with the cause's effect added to its fitted model at
         this size (None: the run as it is). white nan where the injected run cannot be fitted (a
-        size the model cannot make, a run the refit cannot identify): the check then stops, and
-        the limit stays as it was."""
+        size the model cannot make, a run the refit cannot identify): the check then stops; a
+        first injection's leaves the linearised limit, a later one what the earlier ones showed."""
         b, s = self.base, self.ref.series
         force = s.y
         if cause is not None:
@@ -309,16 +309,19 @@ class _Injector:
             size = grow(*lo) if hi is None else float(np.sqrt(lo[0] * hi[0]))
             if size <= lo[0]:
                 break                   # at the effect's largest size
-            tried.append((size, self.noncentrality(cause, size)))
-            if not np.isfinite(tried[-1][1]):
-                return linear, tuple(tried)
+            lam = self.noncentrality(cause, size)
+            if not np.isfinite(lam):
+                # an injection identification cannot fit: what is known stands (unseen up to lo)
+                tried.append((size, lam))
+                break
+            tried.append((size, lam))
             if tried[-1][1] >= target:
                 hi = tried[-1]
             else:
                 lo = tried[-1]
             if abs(tried[-1][1] / target - 1) <= 1 - CONFIRMED_SHARE:
                 break                   # at the target, as closely as an injection confirms one
-        if hi is None:                  # not seen yet: the power law's size past the last one
+        if hi is None:                  # not seen yet: the power law's size past the last unseen one
             return max(linear, grow(*lo)), tuple(tried)
         slope = (np.log(hi[1] / lo[1]) / np.log(hi[0] / lo[0])) if lo[1] > 0 else np.inf
         size = lo[0] * (target / lo[1]) ** (1 / slope) if 0.5 <= slope <= 12 else hi[0]
