@@ -296,17 +296,11 @@ class _Injector:
         """The size whose injection leaves the target: the linearised limit where an injection there
         confirms it; otherwise grown (a power law of slope 2, at most MAX_GROWTH a step) until one is
         seen, then halved in log size between the last unseen and the first seen; the limit is
-        the log-log interpolation of the two nearest (the seen one where that is not a power law).
-        An unseen injection that left less than the floor counts as the floor: with two injections,
-        the limit was otherwise the grown size itself wherever the first left nothing (0 or less;
-        3 of 21 clean-run limits on seeds 3040-3052, 2.0-2.7 x the four injections' limit)."""
+        the log-log interpolation of the two nearest (the seen one where that is not a power law)."""
         top = float(cause.bounds()[1][0])
         q = len(cause.effect.fitted_parameters())
         target = _multiple(self.settings, q, self.base.n) ** 2
-        # evidence below target / 16 is the refits' scatter (-20 to +20 noise variances between two
-        # refits of one run): the power law takes it as that much, growing and interpolating alike
-        floor = target / 16
-        grow = lambda size, lam: min(size * min(np.sqrt(target / max(lam, floor)), MAX_GROWTH), top)
+        grow = lambda size, lam: min(size * min(np.sqrt(target / max(lam, target / 16)), MAX_GROWTH), top)
         tried = [(linear, self.noncentrality(cause, linear, refit))]
         if not tried[0][1] < CONFIRMED_SHARE * target:       # confirmed, or nan: not checked
             return linear, tuple(tried)
@@ -329,7 +323,6 @@ class _Injector:
                 break                   # at the target, as closely as an injection confirms one
         if hi is None:                  # not seen yet: the power law's size past the last unseen one
             return max(linear, grow(*lo)), tuple(tried)
-        lam = max(lo[1], floor)
-        slope = np.log(hi[1] / lam) / np.log(hi[0] / lo[0])
-        size = lo[0] * (target / lam) ** (1 / slope) if 0.5 <= slope <= 12 else hi[0]
+        slope = (np.log(hi[1] / lo[1]) / np.log(hi[0] / lo[0])) if lo[1] > 0 else np.inf
+        size = lo[0] * (target / lo[1]) ** (1 / slope) if 0.5 <= slope <= 12 else hi[0]
         return float(max(linear, size)), tuple(tried)

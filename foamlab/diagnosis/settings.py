@@ -50,7 +50,7 @@ class DiagnosisSettings:
                                                   "a candidate clears delta_bic_min without them")
     multistart_reach: float = _setting(0.3, "several starts when its joint fit is within this fraction of "
                                             "the round's best Delta BIC")
-    limit_injections: int = _setting(2, "identification refits that check the detection limit of a cause the base "
+    limit_injections: int = _setting(4, "identification refits that check the detection limit of a cause the base "
                                          "can take into its own terms (0: the linearised limit alone)")
     # -- the machine
     workers: int = _setting(0, "processes the search's independent fits run on (0: every core this process may "
