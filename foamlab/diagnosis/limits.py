@@ -310,16 +310,14 @@ class _Injector:
             if size <= lo[0]:
                 break                   # at the effect's largest size
             lam = self.noncentrality(cause, size)
-            if not np.isfinite(lam):
-                # an injection identification cannot fit: what is known stands (unseen up to lo)
-                tried.append((size, lam))
-                break
             tried.append((size, lam))
-            if tried[-1][1] >= target:
+            if not np.isfinite(lam):
+                break                   # identification cannot fit it: what the earlier ones showed stands
+            if lam >= target:
                 hi = tried[-1]
             else:
                 lo = tried[-1]
-            if abs(tried[-1][1] / target - 1) <= 1 - CONFIRMED_SHARE:
+            if abs(lam / target - 1) <= 1 - CONFIRMED_SHARE:
                 break                   # at the target, as closely as an injection confirms one
         if hi is None:                  # not seen yet: the power law's size past the last unseen one
             return max(linear, grow(*lo)), tuple(tried)
