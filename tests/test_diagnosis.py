@@ -10,6 +10,7 @@ from pathlib import Path
 import independent_effects as ie
 import numpy as np
 import pytest
+from diagnosis_support import VERDICT_ONLY
 
 from foamlab.diagnosis import CAUSES, diagnose
 from foamlab.analysis.design import ExtendedModel, Series
@@ -239,7 +240,7 @@ def test_rate_dependence_needs_two_speeds_and_is_named_with_them():
     placed at the extreme sample, the shared base fitted the second run at 7x the noise and a
     clean pair was 'unexplained'."""
     runs = ie.rate_pair("A", 510, 0.5, form="causal")
-    one = diagnose(runs[:1])
+    one = diagnose(runs[:1], settings=VERDICT_ONLY)
     assert "rate_dependence" in one.skipped and one.verdict != "rate_dependence"
     d = diagnose(runs)
     assert d.verdict == "rate_dependence", _summary(d)
@@ -250,7 +251,7 @@ def test_rate_dependence_needs_two_speeds_and_is_named_with_them():
 
 def test_a_disturbance_outside_the_catalogue_is_unexplained_and_located():
     run = hidden_effect_run(None, seed=5, periodic_N=1.0, period_s=30.0, **FAST)
-    d = diagnose([run])
+    d = diagnose([run], settings=VERDICT_ONLY)
     assert d.verdict == "unexplained"
     out = d.to_dict()
     assert out["findings"][0]["effect"] == "unexplained" and out["findings"][0]["where"]
@@ -261,8 +262,10 @@ def test_clean_runs_give_none():
     """No effect: 'none' in at least 5 of the first 6 seeded runs (the false-alarm rate on
     independent runs is benchmarks/bench_detection_independent.py's)."""
     seen = []
+    # the first with the limits' check (its progress too), the others the verdict alone
     verdicts = [diagnose([hidden_effect_run(None, seed=100 + s, sampling_hz=1.0)],
-                         progress=(lambda stage, f: seen.append((stage, f))) if s == 0 else None).verdict
+                         progress=(lambda stage, f: seen.append((stage, f))) if s == 0 else None,
+                         settings=DEFAULT if s == 0 else VERDICT_ONLY).verdict
                 for s in range(6)]
     assert verdicts.count("none") >= 5, verdicts
     # the progress of the first: never backwards, and it names each candidate as its probe ends

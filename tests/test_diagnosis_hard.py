@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import independent_effects as ie
 import pytest
+from diagnosis_support import VERDICT_ONLY
 
 from foamlab.diagnosis import diagnose
 
@@ -44,5 +45,5 @@ def _case_id(case) -> str:
 @pytest.mark.parametrize("regime,seed,effect,expected", CASES,
                          ids=[_case_id(c.values if hasattr(c, "marks") else c) for c in CASES])
 def test_hard_pair_on_the_independent_generator_is_named(regime, seed, effect, expected):
-    d = diagnose([ie.independent_run(regime, seed, effect)])
+    d = diagnose([ie.independent_run(regime, seed, effect)], settings=VERDICT_ONLY)
     assert d.verdict == expected, [(c.name, round(c.delta_bic, 1), c.reason) for c in d.tested[0]] if d.tested else d.verdict

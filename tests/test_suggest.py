@@ -18,6 +18,7 @@ import tomllib
 import independent_effects as ie
 import independent_model as im
 import pytest
+from diagnosis_support import VERDICT_ONLY
 
 from foamlab import cli
 from foamlab.diagnosis import diagnose
@@ -62,7 +63,7 @@ def _loop(causes: dict[str, float], seed: int, tmp_path, regime: im.Regime = REG
     """The first run diagnosed, the suggestion made and written, the suggested method run on the
     same specimen (seed + 1: its own noise), both runs diagnosed together."""
     first = ie.independent_run(regime, seed, causes, form=form, hz=hz)
-    d = diagnose([first])
+    d = diagnose([first], settings=VERDICT_ONLY)
     s = suggest(d, regime.height_mm)
     assert s.made, (s.why, _tested(d))
     ranking = [(p.decides, p.duration_s) for p in s.ranking]
@@ -71,7 +72,7 @@ def _loop(causes: dict[str, float], seed: int, tmp_path, regime: im.Regime = REG
     method = load_method(s.write(tmp_path / "next.toml"))       # what `foamlab run --method` loads
     assert method.steps == s.best.protocol.method.steps
     assert s.best.decides, s.lines()
-    both = diagnose([first, _run_of(method, seed + 1, causes, first, regime, form)])
+    both = diagnose([first, _run_of(method, seed + 1, causes, first, regime, form)], settings=VERDICT_ONLY)
     (cause,) = causes
     assert both.verdict == cause, _tested(both)
     assert _margin(both, cause) > max(_margin(d, cause), 0.0) + LEAD_GAINED, (_tested(d), _tested(both))
@@ -223,7 +224,7 @@ def test_no_close_call_no_suggestion():
     runs = [ie.independent_run(REGIME, 640, {}, hz=HZ),
             ie.independent_run(REGIME.with_(zero_offset_N=-0.5), 641, {}, hz=HZ,
                                speed_mm_min=2 * REGIME.speed_mm_min)]
-    d = diagnose(runs)
+    d = diagnose(runs, settings=VERDICT_ONLY)
     assert d.verdict == "none", _tested(d)
     zeros = d.final.solution.theta[-2:]
     assert zeros == pytest.approx([REGIME.zero_offset_N, -0.5], abs=0.05)
