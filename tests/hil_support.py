@@ -102,6 +102,10 @@ def skip_if_overloaded(missed: int, reply_p99_ms: float, period_ms: float) -> No
                     f"{period_ms:.1f} ms period; {missed} deadlines missed")
 
 
+#: Deadlines any run may miss to the computer (assert_keeps_the_schedule).
+STALLS_ALLOWED = 1
+
+
 def assert_keeps_the_schedule(result):
     """The engine keeps up with the schedule; the computer may cost a few deadlines.
 
@@ -114,14 +118,17 @@ def assert_keeps_the_schedule(result):
     11 of them one 108 ms pause outside any request). At most 0.5 % of the deadlines; unless
     replies take over half a period at p99: then the computer is overloaded (skipped) - and it
     preempts the engine's thread as well as the replies (one core kept busy, the window's test at
-    x15: work p99 1.9 ms of a 4.2 ms period, replies 7.5 ms), so that is asked first.
+    x15: work p99 1.9 ms of a 4.2 ms period, replies 7.5 ms), so that is asked first. One miss is
+    allowed whatever the run's length: at the measured rate (5.6e-4 per deadline) a 113-deadline run
+    at x1 has one in 6 % of runs, and one it had in CI 41 (a read without a reply, its late answer
+    skipped by pymodbus as the next transaction's) was 0.9 % of its deadlines; two in 0.2 %.
     """
     timing = result.timing
     period_ms = timing.period_s * 1e3
     skip_if_overloaded(result.missed, timing.rtt_p99_ms, period_ms)
     assert timing.work_p99_ms <= 0.25 * period_ms, timing
     deadlines = result.n_samples + result.missed
-    assert result.missed <= 0.005 * deadlines, timing
+    assert result.missed <= max(STALLS_ALLOWED, 0.005 * deadlines), timing
 
 
 # ---- in-process, in virtual time -------------------------------------------------------------
