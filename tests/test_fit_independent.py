@@ -27,6 +27,7 @@ import sys
 from pathlib import Path
 
 import independent_model as im
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,3 +63,29 @@ def test_fit_cli_json_reaches_the_noise(tmp_path):
     assert fitted["converged"] is True, fitted["optimizer"]
     assert rmse / regime.noise_N <= TOLERANCE, (f"foamlab fit --json on regime A seed 1: rmse {rmse:.4f} N = "
                                                 f"{rmse / regime.noise_N:.3f} x the noise")
+
+
+#: A clean B causal run of the limits benchmark (seed fixed there before looking) on which the
+#: search's best-probed start led to another basin: identification's first optimum missed the four
+#: samples after the first peak by -3.7 noise on average (the diagnosis then gave a friction that
+#: is not there Delta BIC 47.6). 2018, the other run the trigger fires on among 40, is only part
+#: of the way (19 noise variances better, the first peak still missed): docs/analysis.md,
+#: "B causal: identification's basin".
+OTHER_BASIN = [3058]
+
+
+@pytest.mark.parametrize("seed", OTHER_BASIN)
+def test_a_fit_that_misses_after_the_turns_is_searched_from_every_start(seed):
+    import independent_effects as ie
+    from scipy.stats import chi2
+
+    from foamlab.identification import fit_run
+
+    fit = fit_run(ie.independent_run("B", seed, None, form="causal"))
+    base = (fit.largest or fit).free_core or (fit.largest or fit).core_fit
+    fd = fit.prepared
+    r, used = base.solution.residuals[0], np.flatnonzero(fd.series.used)
+    # each turn's mean residual over the four samples after it, in its noise standard error
+    z = [np.sum(r[after]) / (np.sqrt(len(after)) * fd.noise_N)
+         for after in (used[fd.t[used] > when][:4] for when in fd.nodes.turns_between)]
+    assert chi2.sf(float(np.sum(np.square(z))), len(z)) > 1e-3, np.round(z, 2)
