@@ -4,6 +4,9 @@ wire (the protocols and the wire's faults)."""
 
 from __future__ import annotations
 
+import collections
+import os
+import threading
 import time
 
 import pytest
@@ -94,6 +97,63 @@ def wait_at_rest(sim, timeout_s: float = 5.0) -> dict:
     return status
 
 
+class _Steal:
+    """CPU time the hypervisor took from this virtual machine (/proc/stat's steal, all CPUs),
+    sampled every SAMPLE_S in the background, so a test can ask how much was taken during its
+    run. This host (session 38) takes it in ~100 ms slices while the VM is busy: 10-24 s in a
+    7.5-min run of the schedule tests alone (1-3 %), each slice several 16 Hz deadlines at x4."""
+
+    SAMPLE_S = 0.25
+
+    def __init__(self):
+        self.samples: collections.deque = collections.deque(maxlen=8000)     # (monotonic s, steal s)
+        self.tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+        if self._read() is not None:
+            threading.Thread(target=self._run, name="steal-sampler", daemon=True).start()
+
+    def _read(self) -> float | None:
+        try:
+            with open("/proc/stat", encoding="ascii") as f:
+                fields = f.readline().split()
+            return int(fields[8]) / self.tick if fields[0] == "cpu" and len(fields) > 8 else None
+        except (OSError, ValueError):
+            return None
+
+    def _run(self) -> None:
+        while True:
+            self.samples.append((time.monotonic(), self._read()))
+            time.sleep(self.SAMPLE_S)
+
+    def over(self, seconds: float) -> float:
+        """Steal in the last `seconds` (0 where it cannot be read)."""
+        now = self._read()
+        if now is None or not self.samples:
+            return 0.0
+        since = time.monotonic() - seconds
+        before = next((v for t, v in self.samples if t >= since), self.samples[-1][1])
+        return max(now - before, 0.0)
+
+
+STEAL = _Steal()
+
+
+def skip_if_stolen(result) -> None:
+    """Deadlines missed while the hypervisor took at least as much CPU time from this VM as those
+    deadlines span: the host missed them, not the engine (skipped, and said). Steal on the CPU the
+    run did not use counts too: lenient by up to the number of CPUs."""
+    if not result.missed:
+        return
+    period = result.timing.period_s
+    stolen = STEAL.over((result.n_samples + result.missed) * period + STEAL_MARGIN_S)
+    if stolen >= result.missed * period:
+        pytest.skip(f"the hypervisor took {stolen:.2f} s of CPU during the run; {result.missed} deadlines "
+                    f"({result.missed * period:.2f} s) missed")
+
+
+#: Seconds before and after the run's deadlines counted in its steal (its start and the test's end).
+STEAL_MARGIN_S = 5.0
+
+
 def skip_if_overloaded(missed: int, reply_p99_ms: float, period_ms: float) -> None:
     """Deadlines missed while replies take over half a period at p99: the computer is overloaded,
     not the engine late (assert_keeps_the_schedule) - skipped, and said."""
@@ -125,6 +185,7 @@ def assert_keeps_the_schedule(result):
     """
     timing = result.timing
     period_ms = timing.period_s * 1e3
+    skip_if_stolen(result)
     skip_if_overloaded(result.missed, timing.rtt_p99_ms, period_ms)
     assert timing.work_p99_ms <= 0.25 * period_ms, timing
     deadlines = result.n_samples + result.missed

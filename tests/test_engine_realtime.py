@@ -8,7 +8,7 @@ import pytest
 
 from foamlab.methods import load_method
 from tests.hil_support import (approach, assert_keeps_the_schedule, machine_for, make_engine,
-                               short_method, simulated, wait_at_rest)
+                               short_method, simulated, skip_if_stolen, wait_at_rest)
 
 pytestmark = [pytest.mark.realtime, pytest.mark.hil, pytest.mark.schedule, pytest.mark.timeout(60)]
 
@@ -33,6 +33,7 @@ def test_16_hz_schedule_in_real_time(tmp_path):
     assert result.status == "finished", result.reason
     timing = result.timing
     expected = method.expected_samples(72.5)
+    skip_if_stolen(result)         # a stalled host stretches the run too
     assert expected <= result.n_samples + result.missed <= expected + 4
     assert result.n_samples + result.missed >= MIN_DEADLINES
     assert_keeps_the_schedule(result)
