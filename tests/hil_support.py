@@ -121,7 +121,9 @@ class _Steal:
 
     def _run(self) -> None:
         while True:
-            self.samples.append((time.monotonic(), self._read()))
+            value = self._read()
+            if value is not None:
+                self.samples.append((time.monotonic(), value))
             time.sleep(self.SAMPLE_S)
 
     def over(self, seconds: float) -> float:
@@ -135,6 +137,8 @@ class _Steal:
 
 
 STEAL = _Steal()
+#: Seconds before and after the run's deadlines counted in its steal (its start and the test's end).
+STEAL_MARGIN_S = 5.0
 
 
 def skip_if_stolen(result) -> None:
@@ -148,10 +152,6 @@ def skip_if_stolen(result) -> None:
     if stolen >= result.missed * period:
         pytest.skip(f"the hypervisor took {stolen:.2f} s of CPU during the run; {result.missed} deadlines "
                     f"({result.missed * period:.2f} s) missed")
-
-
-#: Seconds before and after the run's deadlines counted in its steal (its start and the test's end).
-STEAL_MARGIN_S = 5.0
 
 
 def skip_if_overloaded(missed: int, reply_p99_ms: float, period_ms: float) -> None:

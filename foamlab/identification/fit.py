@@ -306,8 +306,8 @@ def _structure_after_turns(fit: Fit, fd: PreparedRun) -> bool:
     r = fit.solution.residuals[0]
     used = np.flatnonzero(fd.series.used)
     stat, dof = 0.0, 0
-    for when in turns:
-        after = used[fd.t[used] > when][:TURN_AFTER_STEPS]
+    for first in np.searchsorted(fd.t[used], turns, side="right"):   # the first used sample after each
+        after = used[first:first + TURN_AFTER_STEPS]
         if len(after):
             stat += float(np.sum(r[after])) ** 2 / (len(after) * fd.noise_N ** 2)
             dof += 1
