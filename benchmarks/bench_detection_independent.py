@@ -310,7 +310,9 @@ def main(argv=None) -> int:
         lines = table_pairs(records)
         print("\n".join(lines)) if args.no_publish else publish(SECTION_PAIRS, lines)
         return 0
-    subset = args.subset or (f"causes {args.causes}, sizes {args.sizes}, {args.seeds} seeds each, "
+    subset = args.subset or (f"regime {args.regime}: {OTHER_CLEAN} clean seeds, every cause but rate_dependence at both "
+                             "sizes in both forms, one seed each" if args.regime else
+                             f"causes {args.causes}, sizes {args.sizes}, {args.seeds} seeds each, "
                              f"{args.clean_seeds} clean seeds{', every regime/form' if args.full else ''}")
     lines = table(records, subset, INTRO_OTHER if args.regime else INTRO)
     if args.no_publish:
