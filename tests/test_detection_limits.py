@@ -148,3 +148,22 @@ def test_orders_identification_held_apart_are_held_in_the_linearised_limit():
           for m in (None, mask)]
     assert se[1] < 0.7 * se[0], se
     assert _coalesced(fit, ["another run"]) is None       # several runs: a shared base, no identification's holds
+
+
+def test_a_memory_lag_limit_is_where_its_own_effect_is_seen_not_its_slope():
+    """A memory lag releases a turn's jump over tau: the sample after the turn sees exp(-dt / tau),
+    flat at tau = 0, so the slope there promises too little (limits._sized). A causal, seed 3068 of
+    the limits benchmark's fresh seeds (session 39): the slope said 107 ms, and the generator's lag
+    at half of that (53 ms) was named. The limit from the effect at each size, before the check by
+    injection (VERDICT_ONLY: what that check adds is test_limits_the_base_can_hold_...), at 0.5 x
+    and 1.5 x."""
+    from diagnosis_support import VERDICT_ONLY
+
+    run = lambda ms: ie.independent_run("A", 3068, {"memory_lag": ms} if ms else {}, form="causal")
+    clean = diagnose([run(0.0)], settings=VERDICT_ONLY)
+    limit = {lim.cause: lim for lim in clean.limits}["memory_lag"]
+    assert clean.verdict == "none" and limit.limit < 0.5 * limit.linearised, limit
+    assert limit.to_dict()["linearised"] == pytest.approx(limit.linearised)
+    for multiple, named in ((0.5, False), (1.5, True)):
+        d = diagnose([run(1000.0 * multiple * limit.limit)], settings=VERDICT_ONLY)
+        assert (d.verdict == "memory_lag") is named, (multiple, limit.limit, d.verdict)

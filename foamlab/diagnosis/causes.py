@@ -55,12 +55,17 @@ class Cause:
     #: always fitted from several starts on the finer samples (Procedure._imitated), whatever the
     #: search's fit showed.
     always_multistart: ClassVar[bool] = False
+    #: The effect grows faster than its size near zero (its slope there promises too little): its
+    #: detection limit is found with the effect at each size (limits._sized), not its slope.
+    nonlinear_in_size: ClassVar[bool] = False
 
     @classmethod
     def held_by_base(cls) -> bool:
         """The base can take this effect into the model's own terms (identification absorbs it, the
-        base imitates it, or holds it from its start): its detection limit is checked by injection."""
-        return cls.absorbed_by_identification or cls.imitated_by_base or cls.always_multistart
+        base imitates it, or holds it from its start), or its limit is found from its own effect with
+        the base linearised (nonlinear_in_size: what the base's refit takes of it is not in that): its
+        detection limit is checked by injection."""
+        return cls.absorbed_by_identification or cls.imitated_by_base or cls.always_multistart or cls.nonlinear_in_size
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
@@ -333,6 +338,7 @@ class RateDependence(Cause):
 @register
 class MemoryLag(Cause):
     effect = fx.MemoryLag
+    nonlinear_in_size = True
 
     @classmethod
     def scale(cls, series):
