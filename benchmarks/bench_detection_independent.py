@@ -126,11 +126,6 @@ def plan_other(regime: str, hz: float) -> list[tuple]:
     return cases + [(cause, size, OTHER_SEED0 + j, regime, form, hz) for j, (cause, size, form) in enumerate(forms)]
 
 
-def _other_regimes() -> dict:
-    import independent_model as im
-    return im.OTHER_REGIMES
-
-
 def key(case: tuple) -> tuple:
     cause, size, seed, reg, form, hz = case
     return (cause or "clean", float(size), int(seed), reg, form, float(hz))
@@ -294,8 +289,8 @@ def main(argv=None) -> int:
     if unknown:
         print(f"error: not a catalogue cause: {', '.join(sorted(unknown))}", file=sys.stderr)
         return 2
-    if args.regime and args.regime not in _other_regimes():
-        print(f"error: not another regime: {args.regime} (known: {', '.join(_other_regimes())})", file=sys.stderr)
+    if args.regime and args.regime not in ie.im.OTHER_REGIMES:
+        print(f"error: not another regime: {args.regime} (known: {', '.join(ie.im.OTHER_REGIMES)})", file=sys.stderr)
         return 2
     if not args.publish_only:
         cases = (plan_pairs(args.seeds, args.hz) if args.two else plan_other(args.regime, args.hz) if args.regime

@@ -109,7 +109,7 @@ def independent_run(regime: str | im.Regime, seed: int, causes: Mapping[str, flo
     speed of rate_dependence, the regime's own speed by default). Returns a RunData."""
     from foamlab.rundata import RunData, Specimen  # hand-over only, not model code
 
-    reg = {**im.REGIMES, **im.OTHER_REGIMES}[regime] if isinstance(regime, str) else regime
+    reg = im.BY_NAME[regime] if isinstance(regime, str) else regime
     v_ref = v_ref_mm_min or reg.speed_mm_min
     changes = {k: v for k, v in (("form", form), ("sampling_hz", hz), ("speed_mm_min", speed_mm_min),
                                  ("cycles", cycles)) if v is not None}
@@ -142,6 +142,6 @@ def rate_pair(regime: str, seed: int, m: float, *, form: str | None = None, hz: 
               ratio: float = 2.0) -> list:
     """rate_dependence's two runs (seeds seed, seed + 1): the regime's speed (the reference) and
     `ratio` times it, the damping of each scaled by (v / v_ref)^m."""
-    v = {**im.REGIMES, **im.OTHER_REGIMES}[regime].speed_mm_min
+    v = im.BY_NAME[regime].speed_mm_min
     return [independent_run(regime, seed + i, {"rate_dependence": m}, form=form, hz=hz,
                             speed_mm_min=v * s, v_ref_mm_min=v) for i, s in enumerate((1.0, ratio))]

@@ -204,6 +204,8 @@ REGIME_C = Regime(
     zero_offset_N=0.1, width_mm=50.0, depth_mm=50.0,
 )
 OTHER_REGIMES = {"C": REGIME_C}
+#: Every named regime, for looking one up by its name.
+BY_NAME = {**REGIMES, **OTHER_REGIMES}
 
 #: The same regimes with their turning points on samples (stroke / rate * fs an integer, motion
 #: from the first sample): the case foamlab's closed_form and the fit's switching handle exactly.
