@@ -38,7 +38,7 @@ from foamlab.acquisition.events import (ABORTED, CONNECTING, CONTACT_SEARCH, END
                                         IDLE, PARK_AFTER, PARKING, RUNNING, STOPPING, TARING, Listeners,
                                         ProgressReporter, RunAborted, RunResult)
 from foamlab.acquisition.safety import (Limits, StallWatch, Stopper,
-                                        check_crosshead_status, check_safe_to_tare, fault_name, park)
+                                        check_safe_to_tare, fault_name, park)
 from foamlab.acquisition.sampling import Sampler
 from foamlab.acquisition.schedule import CpuWakeupLatency, raise_thread_priority
 from foamlab.acquisition.settings import DEFAULT, AcquisitionSettings
@@ -231,14 +231,15 @@ class RunEngine:
 
     def _prepare(self) -> None:
         crosshead = self.machine.crosshead
-        status = crosshead.status()
+        # a reply lost to a busy link is asked for again, as in every other request of the run
+        status = self._command(crosshead.status)
         if status.emergency_stopped or status.fault:
             what = "emergency stop" if status.emergency_stopped else f"fault ({fault_name(self.machine)})"
             raise RunAborted(END_FAULT, f"the crosshead has a latched {what}: reset it before starting a run")
         if status.moving:
             self._command(crosshead.stop)
             self._wait_at_rest()
-        self._start_position = crosshead.read_position()
+        self._start_position = self._command(crosshead.read_position)
         lim = self.limits
         if not lim.travel_upper_mm <= self._start_position <= lim.travel_lower_mm:
             raise RunAborted(END_LIMIT, f"the crosshead is at {self._start_position:.3f} mm, outside the travel "
@@ -289,9 +290,8 @@ class RunEngine:
         deadline = self.clock.now() + self.settings.stop_confirm_s + 5.0 / self.speedup
         while self.clock.now() < deadline:
             self._check_flags()
-            status = self.machine.crosshead.status()
-            check_crosshead_status(status, self.machine)
-            if not status.moving:
+            status = self._sampler.read_status()   # a lost poll is tolerated as between samples
+            if status is not None and not status.moving:
                 return
             self.clock.wait(self._wake, 0.005)
         raise RunAborted(END_FAULT, "the crosshead did not come to rest after a stop")
@@ -361,8 +361,8 @@ class RunEngine:
                               self._state, fraction, immediate)
 
     # -- ending ------------------------------------------------------------------------
-    def _command(self, action: Callable, *args) -> None:
-        command(action, *args, attempts=self.settings.command_attempts)
+    def _command(self, action: Callable, *args):
+        return command(action, *args, attempts=self.settings.command_attempts)
 
     def _park(self) -> str:
         """Back to the start position; a new stop request or a limit halts it."""
@@ -431,8 +431,9 @@ def safety_note(stop_note: str, rest_note: str, status_note: str) -> str:
     return "; ".join(p for p in parts if p)
 
 
-def command(action: Callable, *args, attempts: int = DEFAULT.command_attempts) -> None:
-    """Send an idempotent command (move, jog, stop, tare, limits), retried on a lost reply.
+def command(action: Callable, *args, attempts: int = DEFAULT.command_attempts):
+    """Send an idempotent command (move, jog, stop, tare, limits) or query (status, position),
+    retried on a lost reply; what it returns.
 
     The driver already retried the request itself; a command whose reply went missing may
     still have been done, and sending it again does the same thing. A lost link is not
@@ -440,8 +441,7 @@ def command(action: Callable, *args, attempts: int = DEFAULT.command_attempts) -
     """
     for attempt in range(attempts):
         try:
-            action(*args)
-            return
+            return action(*args)
         except DeviceConnectionLost:
             raise
         except DeviceError as exc:
