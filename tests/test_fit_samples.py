@@ -66,3 +66,27 @@ def test_a_batch_row_names_the_fit_and_the_diagnosis_sets_apart():
                    rmse_before=0.18, rmse_after=0.15, evidence_samples=4690)
     back = BatchRow.from_record(row.to_record())
     assert (back.rmse_samples, back.dropped, back.evidence_samples) == (4700, 9, 4690)
+
+
+def test_gaps_without_samples_are_said_and_those_ending_at_a_turn_apart():
+    """A stretch of missed deadlines: the fit draws the displacement across it as a straight line;
+    where the gap ends at a turning point the crosshead may have arrived early and waited unseen
+    (ci45: 3 s gaps of a loaded host at x20, a fit at 74 x the noise) - said apart."""
+    from foamlab.analysis.prepared import GAP_WARN_STEPS, prepare
+
+    run = im.generate(im.REGIME_A, 1).to_rundata()
+    x = run.displacement_mm
+    peak = int(np.argmax(x[:len(x) // 3]))                 # the first cycle's peak sample
+    width = GAP_WARN_STEPS + 3
+    middle = peak // 2                                      # inside the first loading
+    keep = np.ones(len(x), bool)
+    keep[middle:middle + width] = False
+    cut = RunData(run.time_s[keep], x[keep], run.force_N[keep], specimen=run.specimen, source=run.source)
+    (line,) = [w for w in prepare(cut).warnings if "gap(s)" in w]
+    assert line.startswith("1 gap(s)") and "straight line" in line and "turning point" not in line
+    keep[peak - width:peak] = False                         # the samples before the peak: the turn after the gap
+    cut = RunData(run.time_s[keep], x[keep], run.force_N[keep], specimen=run.specimen, source=run.source)
+    gaps = [w for w in prepare(cut).warnings if "gap(s)" in w]
+    assert len(gaps) == 2 and gaps[0].startswith("1 gap(s)") and "straight line" in gaps[0]
+    assert gaps[1].startswith("1 gap(s)") and "ends at a turning point" in gaps[1]
+    assert not [w for w in prepare(run).warnings if "gap(s)" in w]

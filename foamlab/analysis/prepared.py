@@ -52,6 +52,10 @@ FLAT_FORCE_NOISE_MULTIPLE = 20.0
 #: The model's response between the nodes of a path with corner nodes is computed on a
 #: uniform grid this many times finer than the samples (model_response).
 RESPONSE_REFINE = 8
+#: A stretch without samples longer than this many sampling steps is said: the displacement across
+#: it is a straight line between the samples either side, whatever the crosshead did (it may have
+#: arrived at a turn and waited there), and the model's memory is computed on that line.
+GAP_WARN_STEPS = 5
 
 
 def model_response(params: ModelParameters, fd: "PreparedRun") -> ModelResponse:
@@ -276,6 +280,29 @@ def _turning_points(x: np.ndarray, seg: Segmentation) -> tuple[list[int], list[i
     return minima, maxima, dwell_starts
 
 
+def _gap_notes(t: np.ndarray, observed: np.ndarray, step: float, extremes) -> list[str]:
+    """The stretches without samples longer than GAP_WARN_STEPS steps, said in one warning; those
+    that end at a turning point in one of their own ([] if none): the crosshead may have arrived
+    there during the gap and waited unseen, a path far from the straight line the fit takes."""
+    rows = observed[:-1][np.diff(t[observed]) > GAP_WARN_STEPS * step]
+    if not len(rows):
+        return []
+    steps = t[rows + 1] - t[rows]
+    at_turn = np.array([any(first <= i + 1 <= last for first, last, _ in extremes) for i in rows])
+    out = []
+    for which, what in ((~at_turn, "the displacement across each is taken as a straight line"),
+                        (at_turn, "each ends at a turning point, where the crosshead may have waited unseen, "
+                                  "and the fit may be off from there on")):
+        if not which.any():
+            continue
+        longest = np.sort(np.argsort(np.where(which, steps, -1.0))[::-1][:min(3, int(which.sum()))])
+        where = ", ".join(f"{steps[k]:.3g} s after {t[rows[k]]:.4g} s" for k in longest)
+        more = f" and {int(which.sum()) - len(longest)} more" if which.sum() > len(longest) else ""
+        out.append(f"{int(which.sum())} gap(s) without samples longer than {GAP_WARN_STEPS} sampling steps "
+                   f"({where}{more}): {what}")
+    return out
+
+
 def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> PreparedRun:
     """Segment the run and check that it can be identified (FoamlabError if not)."""
     run, off_schedule = on_schedule(run)
@@ -342,6 +369,7 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
     loading_times = [run.time_s[c.loading.stop - 1] - run.time_s[c.loading.start] for c in cycles]
     if off_schedule:
         warnings.append(f"{off_schedule} samples taken off the sampling schedule left out (their instants are unsure)")
+    warnings += _gap_notes(run.time_s, observed, native, extremes)
     # a measured displacement turns between its samples; an exact one (a polyline of its
     # samples: foamlab's own synthetic runs) at them - the fit checks the other (other_turns)
     nodes = path_nodes(run.time_s, path, sorted(extremes), corner_tol,
