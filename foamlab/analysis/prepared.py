@@ -280,6 +280,12 @@ def _turning_points(x: np.ndarray, seg: Segmentation) -> tuple[list[int], list[i
     return minima, maxima, dwell_starts
 
 
+def _sampling_notes(off_schedule: int, t: np.ndarray, observed: np.ndarray, step: float, extremes) -> list[str]:
+    """The samples left out (taken off the sampling schedule) and the gaps (_gap_notes), said."""
+    dropped = [f"{off_schedule} samples taken off the sampling schedule left out (their instants are unsure)"]
+    return (dropped if off_schedule else []) + _gap_notes(t, observed, step, extremes)
+
+
 def _gap_notes(t: np.ndarray, observed: np.ndarray, step: float, extremes) -> list[str]:
     """The stretches without samples longer than GAP_WARN_STEPS steps, said in one warning; those
     that end at a turning point in one of their own ([] if none): the crosshead may have arrived
@@ -367,9 +373,7 @@ def prepare(run: RunData, x_scale_mm: float | None = None, name: str = "") -> Pr
     path = displacement_path(run.time_s, run.displacement_mm, corners)
     corner_tol = max(3.0 * noise_sigma(run.displacement_mm), 1e-9 * max(seg.stroke_mm, 1.0))
     loading_times = [run.time_s[c.loading.stop - 1] - run.time_s[c.loading.start] for c in cycles]
-    if off_schedule:
-        warnings.append(f"{off_schedule} samples taken off the sampling schedule left out (their instants are unsure)")
-    warnings += _gap_notes(run.time_s, observed, native, extremes)
+    warnings += _sampling_notes(off_schedule, run.time_s, observed, native, extremes)
     # a measured displacement turns between its samples; an exact one (a polyline of its
     # samples: foamlab's own synthetic runs) at them - the fit checks the other (other_turns)
     nodes = path_nodes(run.time_s, path, sorted(extremes), corner_tol,
