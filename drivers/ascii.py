@@ -39,6 +39,7 @@ from .base import (
     LoadCellStatus,
     Machine,
     MachineSample,
+    handshake,
 )
 from .mark10_device import CommandSet, GaugeUnit, StandUnit, reply_fields
 from .serial_line import SerialLine
@@ -441,14 +442,17 @@ class AsciiMachine(Machine):
                 return
             self.line.connect()
             try:
-                self.link.send_text(self.link.stand_unit.command)
-                self.link.gauge_set(self.link.gauge_unit.command)
-                self.link.gauge_set(self.commands.gauge["full"].send)
-                self.crosshead.set_travel_limits(self.crosshead.safety_upper_mm, self.crosshead.safety_lower_mm)
+                handshake(self._handshake)
             except DeviceError:
                 self.line.close()
                 raise
             self._configured = True
+
+    def _handshake(self) -> None:
+        self.link.send_text(self.link.stand_unit.command)
+        self.link.gauge_set(self.link.gauge_unit.command)
+        self.link.gauge_set(self.commands.gauge["full"].send)
+        self.crosshead.set_travel_limits(self.crosshead.safety_upper_mm, self.crosshead.safety_lower_mm)
 
     def read_sample(self) -> MachineSample:
         start = time.monotonic()

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import abc
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 
@@ -35,6 +36,23 @@ class DeviceProtocolError(DeviceError):
 class DeviceRefused(DeviceProtocolError):
     """The device understood and answered with its own error (a Modbus exception, a `*22`):
     repeating the request will not help, and the run stops at once."""
+
+
+#: Sends of a connect's handshake whose reply was lost (DeviceTimeout). Each step reads or writes a
+#: setting, the same however often it arrives: one reply lost to a busy computer (CI run 47: the
+#: CS2RS's 0x0001 unanswered in 2 x 40 ms) must not refuse the machine.
+HANDSHAKE_ATTEMPTS = 3
+
+
+def handshake(steps: Callable[[], None], attempts: int = HANDSHAKE_ATTEMPTS) -> None:
+    """Run a connect's handshake, again from its start after a lost reply (other errors raise at once)."""
+    for attempt in range(attempts):
+        try:
+            steps()
+            return
+        except DeviceTimeout:
+            if attempt == attempts - 1:
+                raise
 
 
 @dataclass(frozen=True)

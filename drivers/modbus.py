@@ -8,7 +8,7 @@ Both share one ModbusLink (one socket or one serial line, two unit ids; drivers.
 
 from __future__ import annotations
 
-from .base import DeviceError, Machine
+from .base import DeviceError, Machine, handshake
 from .cs2rs import Cs2rsCrosshead
 from .dad141 import Dad141LoadCell
 from .modbus_link import MODBUS_EXCEPTIONS, DeviceOnLink, ModbusLink
@@ -49,13 +49,16 @@ class ModbusMachine(Machine):
                 return
             try:
                 self.link.connect()
-                self.crosshead.check_settings()     # the drive's scaling is the profile's, or no run
-                limits = self.profile["limits"]
-                self.crosshead.set_travel_limits(limits["travel_upper_mm"], limits["travel_lower_mm"])
+                handshake(self._handshake)
             except DeviceError:
                 self.link.close()
                 raise
             self._checked = True
+
+    def _handshake(self) -> None:
+        self.crosshead.check_settings()     # the drive's scaling is the profile's, or no run
+        limits = self.profile["limits"]
+        self.crosshead.set_travel_limits(limits["travel_upper_mm"], limits["travel_lower_mm"])
 
     def identify(self) -> str:
         """What the devices say they are (the CS2RS documents no identification register)."""

@@ -23,6 +23,7 @@ from drivers.base import (
     DeviceTimeout,
     LoadCellStatus,
 )
+from drivers.cs2rs import DeviceMismatch
 from drivers.profile import load_profile, open_machine
 from recorded_peer import CLOSE, RecordedPeer, crc16_modbus, mbap, rtu
 
@@ -229,6 +230,27 @@ def test_connect_checks_pulses_per_rev_and_writes_nothing():
         assert machine.crosshead.travel_limits == (-20.0, 70.0)
         machine.close()
         peer.verify()
+
+
+def test_a_handshake_reply_lost_is_asked_again_and_a_wrong_setting_still_refuses():
+    """CI run 47: the CS2RS's 0x0001 unanswered in 2 x 40 ms refused the machine on a busy host.
+    The handshake is made again after a lost reply; the setting it reads is still checked."""
+    ppr = read_request(0x0001, 1)
+    for pulses, refused in ((10000, False), (2500, True)):
+        frame = Frames("tcp")             # a new client: transaction ids from 1
+        silent = [frame(CROSSHEAD, ppr), frame(CROSSHEAD, ppr, retry=True)]
+        with RecordedPeer(silent + [frame(CROSSHEAD, ppr, read_reply(pulses))]) as peer:
+            machine = open_machine(load_profile("sim-modbus-tcp"), connect=False, port=peer.port,
+                                   timeout_s=0.05, retries=1)
+            try:
+                if refused:
+                    with pytest.raises(DeviceMismatch, match="reads 2500 pulse/rev"):
+                        machine.connect()
+                else:
+                    machine.connect()
+            finally:
+                machine.close()
+            peer.verify()
 
 
 # ----------------------------------------------------------------------------- errors
