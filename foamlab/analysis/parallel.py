@@ -59,6 +59,16 @@ def processes(workers: int | None = None) -> int:
     return (workers or default_workers()) if can_fork() else 1
 
 
+def serial_map(fn: Callable[[T], R], items: Sequence[T], done: Callable[[int, R], None] | None = None) -> list[R]:
+    """fork_map in this process, one item after the other."""
+    out = []
+    for i, item in enumerate(items):
+        out.append(fn(item))
+        if done is not None:
+            done(i, out[-1])
+    return out
+
+
 def fork_map(fn: Callable[[T], R], items: Sequence[T], shared: Iterable[object] = (), workers: int | None = None,
              done: Callable[[int, R], None] | None = None) -> list[R]:
     """[fn(item) for item in items], on up to ``workers`` forked processes where that is safe.
@@ -69,12 +79,7 @@ def fork_map(fn: Callable[[T], R], items: Sequence[T], shared: Iterable[object] 
     items = list(items)
     n = min(processes(workers), len(items))
     if n <= 1:
-        out = []
-        for i, item in enumerate(items):
-            out.append(fn(item))
-            if done is not None:
-                done(i, out[-1])
-        return out
+        return serial_map(fn, items, done)
     global _task
     by_id = {id(o): o for o in shared}
     _task = (fn, items, by_id)

@@ -470,8 +470,10 @@ class Procedure:
                                   coalesced=self.coalesced)
         if len(self.series) == 1 and not findings:
             # what `none` (or `unexplained`) means: checked where the base can hold a cause (limits.checked)
-            self._progress("what this run could have seen: limits checked by identification", 0.99)
-            limits = checked(limits, self.ref, self.base, self.applicable, self.settings, self._map)
+            stage = "what this run could have seen: limits checked by identification"
+            self._progress(stage, 0.98)
+            limits = checked(limits, self.ref, self.base, self.applicable, self.settings, self._map,
+                             lambda k, n: self._progress(f"{stage} ({k} of {n})", 0.98 + 0.019 * k / n))
         return Diagnosis(
             verdict=verdict, limits=limits, findings=findings, partial=partial, tested=self.tested, skipped=self.skipped,
             base=base, final=final, base_analysis=base_analysis, final_analysis=final_analysis,

@@ -32,6 +32,7 @@ from scipy.stats import norm
 from foamlab import FoamlabError
 from foamlab.analysis.design import ExtendedModel, Series
 from foamlab.analysis.noise import WHITE_P, ArWhitener, series_noise_sigma, whiteness
+from foamlab.analysis.parallel import serial_map
 from foamlab.analysis.prepared import PreparedRun
 from foamlab.analysis.solve import Fit, at_full_resolution, bounds_like, contact_of, decimation, held
 from foamlab.diagnosis.causes import Cause
@@ -251,25 +252,31 @@ def opens_search(fit: Fit, sigma: float, coarse: list[Series], on: Fit, causes: 
 
 
 def checked(limits: list[DetectionLimit], ref: PreparedRun, base: Fit, causes: list[type[Cause]],
-            settings: DiagnosisSettings, fmap=None) -> list[DetectionLimit]:
+            settings: DiagnosisSettings, fmap=None, progress=None) -> list[DetectionLimit]:
     """The limits of the causes the base can take into its own terms (Cause.held_by_base) checked by
     injection, at most settings.limit_injections refits each: a limit is only raised, never lowered
     (a refit can find the base a better optimum by luck; it cannot make an effect more visible).
-    ref: the run (one) as prepared, base: its base fit on every sample; fmap(fn, items): a map
-    (the diagnosis' forked one)."""
+    ref: the run (one) as prepared, base: its base fit on every sample; fmap(fn, items, done=None): a
+    map (the diagnosis' forked one) calling done(i, result) as each item ends; progress(k, n): k of
+    the check's n jobs done (the refit of the run as it is, each cause's first injection, then each
+    cause's placement) - the check is most of a clean run's diagnosis (docs/benchmarks.md)."""
     todo = [c for c in causes if c.held_by_base() and settings.limit_injections > 0]
     by_name = {c.name: c for c in todo}
     jobs = [lim for lim in limits if lim.cause in by_name and np.isfinite(lim.limit) and lim.limit > 0]
     if not jobs:
         return limits
     injector = _Injector(ref, base, causes, settings)
-    fmap = fmap or (lambda fn, items: [fn(item) for item in items])
+    fmap = fmap or serial_map
+    total = 1 + 2 * len(jobs)
+    ended = iter(range(1, total + 1))
+    tick = (lambda i, result: progress(next(ended), total)) if progress else None
     # the refit of the run as it is and the first injection of each cause are independent: one map
-    first = fmap(lambda job: injector.refit(*job), [(None, 0.0)] + [(by_name[lim.cause], lim.limit) for lim in jobs])
+    first = fmap(lambda job: injector.refit(*job), [(None, 0.0)] + [(by_name[lim.cause], lim.limit) for lim in jobs],
+                 done=tick)
     injector.reference = first[0].white
     placed = dict(zip((lim.cause for lim in jobs),
                       fmap(lambda k: injector.place(by_name[jobs[k].cause], jobs[k].limit, first[k + 1]),
-                           range(len(jobs)))))
+                           range(len(jobs)), done=tick)))
     out = []
     for lim in limits:
         if lim.cause not in placed:
