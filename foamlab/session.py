@@ -158,17 +158,29 @@ def _start_builtin(choice: MachineChoice):
 
 def _bring_to_rest(machine: Machine, timeout_s: float = REST_TIMEOUT_S) -> None:
     """Stop the crosshead if it moves (a jog, a park cut short), wait for it to stand still,
-    e-stop it if it does not in time."""
+    e-stop it if it does not in time. A status that cannot be read counts as moving: the stop is
+    sent all the same (it is harmless at rest), and what happened is said."""
+    from drivers.base import DeviceConnectionLost, DeviceError  # noqa: PLC0415
+
+    def moving() -> bool:
+        try:
+            return machine.crosshead.status().moving
+        except DeviceConnectionLost:
+            raise
+        except DeviceError as exc:
+            log.warning("crosshead status unreadable before closing (%s): taken as moving", exc)
+            return True
+
     try:
-        if not machine.crosshead.status().moving:
+        if not moving():
             return
         machine.crosshead.stop()
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            if not machine.crosshead.status().moving:
+            if not moving():
                 return
             time.sleep(0.02)   # polling a drive's status flag: nothing to wait on but the wire
-        log.error("crosshead still moving %.0f s after stop: emergency stop", timeout_s)
+        log.error("crosshead not confirmed at rest %.0f s after stop: emergency stop", timeout_s)
         machine.crosshead.emergency_stop()
     except Exception as exc:  # a dead link cannot be told anything; the drive's watchdog stops it
-        log.warning("could not confirm the crosshead at rest before closing: %s", exc)
+        log.error("could not bring the crosshead to rest before closing: %s", exc)

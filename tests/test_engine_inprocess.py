@@ -300,3 +300,20 @@ def test_the_in_process_machine_answers_as_a_driver():
     machine.crosshead.move_to(START_MM, 60.0)       # refused while latched, as a drive ignores it
     assert not machine.crosshead.status().moving
     assert machine.requests["status"] == 5 and machine.requests["move"] == 2
+
+
+def test_closing_a_session_stops_a_moving_crosshead_whose_status_reply_was_lost():
+    """session._bring_to_rest: a status that cannot be read is taken as moving - the stop is sent
+    all the same (before: one lost reply left a jogging crosshead moving, a warning logged)."""
+    from foamlab.session import _bring_to_rest
+
+    machine = InProcessMachine(speedup=50.0, noise_sigma_N=0.02)
+    try:
+        machine.crosshead.jog(-1, 100.0)          # up, away from the specimen
+        assert machine.sim.crosshead_status().moving
+        machine.fail("status", DeviceTimeout("no reply to status"))
+        _bring_to_rest(machine, timeout_s=5.0)
+        assert machine.requests["stop"] == 1 and machine.requests["estop"] == 0
+        assert_at_rest(machine)
+    finally:
+        machine.sim.close()
