@@ -16,6 +16,7 @@ from pathlib import Path
 from drivers.base import DeviceError
 from drivers.profile import open_machine
 from foamlab.acquisition import RunEngine
+from foamlab.acquisition.engine import command
 from foamlab.methods import load_method
 from foamlab.rundata import Specimen
 from simulator.inprocess import InProcessMachine
@@ -65,7 +66,7 @@ def approach(machine, position_mm: float = SPECIMEN_TOP_MM - 0.3, timeout_s: flo
     """
     machine.connect()
     try:
-        machine.crosshead.move_to(position_mm, 400.0)
+        command(machine.crosshead.move_to, position_mm, 400.0)   # a lost reply asked again (ci49)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             try:
