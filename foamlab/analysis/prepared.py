@@ -299,12 +299,13 @@ def _gap_notes(t: np.ndarray, observed: np.ndarray, step: float, extremes) -> li
     for which, what in ((~at_turn, "the displacement across each is taken as a straight line"),
                         (at_turn, "each ends at a turning point, where the crosshead may have waited unseen, "
                                   "and the fit may be off from there on")):
-        if not which.any():
+        these = np.flatnonzero(which)
+        if not len(these):
             continue
-        longest = np.sort(np.argsort(np.where(which, steps, -1.0))[::-1][:min(3, int(which.sum()))])
+        longest = np.sort(these[np.argsort(steps[these])[::-1][:3]])    # the three longest, in time order
         where = ", ".join(f"{steps[k]:.3g} s after {t[rows[k]]:.4g} s" for k in longest)
-        more = f" and {int(which.sum()) - len(longest)} more" if which.sum() > len(longest) else ""
-        out.append(f"{int(which.sum())} gap(s) without samples longer than {GAP_WARN_STEPS} sampling steps "
+        more = f" and {len(these) - len(longest)} more" if len(these) > len(longest) else ""
+        out.append(f"{len(these)} gap(s) without samples longer than {GAP_WARN_STEPS} sampling steps "
                    f"({where}{more}): {what}")
     return out
 
