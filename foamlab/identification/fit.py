@@ -143,9 +143,15 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
 def refit_core(fd: PreparedRun, orders: Orders, settings: FitSettings = DEFAULT) -> Fit | None:
     """Identification's core fit of one form and structure on a prepared run: its starts, search
     and polish, the turns as placed, no orders held apart (diagnosis.limits refits a run with an
-    effect injected, to see what of it identification takes into the model's own terms)."""
+    effect injected, to see what of it identification takes into the model's own terms).
+    _fit_structure's steps without the report's statistics, which the check does not read (a
+    model evaluation and the standard errors: 8 % of a refit)."""
     with threadpool_limits(1, user_api="blas"):
-        return _fit_prepared(fd, orders, False, None, hold=False, settings=settings).core_fit
+        paper = paper_steps(fd, orders)
+        search = JointSearch(fd, orders, paper.start, None)
+        jf = search.fit()
+        base = converged(_polished(fd, jf, search, paper, nfev=settings.polish_nfev), settings.max_nfev)
+        return base if _from_core(fd, jf, base) is not None else None
 
 
 def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progress, paper,
