@@ -31,6 +31,7 @@ otherwise (structure, and where it is).
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -80,8 +81,15 @@ def diagnose_prepared(runs: list[PreparedRun], base: Fit, causes: list[str] | No
     (identification's core fit for one run, analysis.solve.polish for several). progress:
     called with (stage, fraction 0..1). coalesced: the base's alpha/beta identification held apart
     (bool over them), held in the linearised detection limits (limits.detection_limits)."""
-    with threadpool_limits(1, user_api="blas"):    # small dense solves: threads only contend
-        return Procedure(runs, base, causes, progress, settings, coalesced).run()
+    procedure = Procedure(runs, base, causes, progress, settings, coalesced)
+    return procedure.checked(procedure.run())
+
+
+def removed_share(base: Fit, final: Fit, sigma: float) -> float:
+    """The share of the base's residual sum of squares above the noise (sigma) that `final` removes."""
+    excess = base.rss - base.n * sigma ** 2
+    removed = base.rss - final.rss
+    return 1.0 if removed >= excess else max(removed, 0.0) / excess
 
 
 class Procedure:
@@ -160,7 +168,21 @@ class Procedure:
         return quiet(fit or self.current, self.sigma, self.settings)
 
     # -- the procedure
+    def checked(self, d: Diagnosis) -> Diagnosis:
+        """This procedure's diagnosis d with its limits checked where one run shows nothing
+        (limits.checked; the refits hold their own BLAS threads); apart from `run`: of two residual
+        forms diagnosed, the kept one only (a 13 s check of a form then beaten; docs/benchmarks.md)."""
+        if len(self.series) != 1 or d.findings:
+            return d
+        stage = "what this run could have seen: limits checked by identification"
+        self._progress(stage, 0.98)
+        limits = checked(d.limits, self.ref, self.base, self.applicable, self.settings, self._map,
+                         lambda k, n: self._progress(f"{stage} ({k} of {n})", 0.98 + 0.019 * k / n))
+        return replace(d, limits=limits, seconds=time.perf_counter() - self.started)
+
+    @threadpool_limits.wrap(1, user_api="blas")      # small dense solves: threads only contend
     def run(self) -> Diagnosis:
+        """The verdict, the findings and the linearised limits (`checked` checks them)."""
         for _ in range(self.settings.max_findings):
             if not self.remaining or self._done():
                 break
@@ -185,15 +207,10 @@ class Procedure:
         self.pairs()
         return self.verdict()
 
-    def _removed_share(self, final: Fit) -> float:
-        """The share of the base's residual sum of squares above the noise that `final` removes."""
-        excess = self.base.rss - self.base.n * self.sigma ** 2
-        removed = self.base.rss - final.rss
-        return 1.0 if removed >= excess else max(removed, 0.0) / excess
-
     def _explained(self) -> bool:
         """The findings explain the structure the base leaves, as verdict() judges them."""
-        return bool(self.findings) and (self._removed_share(self.current) >= self.settings.explained_share_min
+        share = removed_share(self.base, self.current, self.sigma)
+        return bool(self.findings) and (share >= self.settings.explained_share_min
                                          or whiteness(self.current.solution.residual).min_p >= WHITE_P)
 
     def pairs(self) -> None:
@@ -451,7 +468,7 @@ class Procedure:
         base_analysis = analyse(self.series, base.solution.residuals, self.sigma, self.settings)
         final_analysis = (analyse(self.series, final.solution.residuals, self.sigma, self.settings)
                           if findings else base_analysis)
-        share = self._removed_share(final)
+        share = removed_share(base, final, self.sigma)
         if findings and final_analysis.whiteness.min_p < WHITE_P and share < self.settings.explained_share_min:
             # provisional findings that together still leave most of the structure: partial only
             partial, findings, final = self.first_partial or findings, [], base
@@ -468,12 +485,6 @@ class Procedure:
         self._progress("what this run could have seen", 0.98)
         limits = detection_limits(self.coarse, self._coarse(base), self.applicable, self.settings, n_full=base.n,
                                   coalesced=self.coalesced)
-        if len(self.series) == 1 and not findings:
-            # what `none` (or `unexplained`) means: checked where the base can hold a cause (limits.checked)
-            stage = "what this run could have seen: limits checked by identification"
-            self._progress(stage, 0.98)
-            limits = checked(limits, self.ref, self.base, self.applicable, self.settings, self._map,
-                             lambda k, n: self._progress(f"{stage} ({k} of {n})", 0.98 + 0.019 * k / n))
         return Diagnosis(
             verdict=verdict, limits=limits, findings=findings, partial=partial, tested=self.tested, skipped=self.skipped,
             base=base, final=final, base_analysis=base_analysis, final_analysis=final_analysis,

@@ -10,7 +10,7 @@ from foamlab import FoamlabError
 from foamlab.analysis.noise import WHITE_P
 from foamlab.analysis.prepared import PreparedRun, prepare
 from foamlab.analysis.solve import POLISH_NFEV, Fit, at_full_resolution, decimation, held, polish
-from foamlab.diagnosis.core import diagnose_prepared
+from foamlab.diagnosis.core import Procedure
 from foamlab.diagnosis.extend import on_base
 from foamlab.diagnosis.form import NAME, base_form_reason, check_other_form
 from foamlab.diagnosis.result import Diagnosis
@@ -52,9 +52,9 @@ def diagnose(runs: list[RunData], fit: FitReport | None = None,
     # the other runs' turns are placed as each form's base fits them (_shared_base)
     rest = [prepare(r, name=n) for r, n in zip(runs[1:], names[1:])]
     start = FIT_SHARE if progress else 0.0
-    d = diagnose_prepared(*_base_of(fit, rest), causes, settings=settings,
-                          progress=lambda stage, f: report(stage, start + (1.0 - start) * f),
-                          coalesced=_coalesced(fit, rest))
+    kept = Procedure(*_base_of(fit, rest), causes, lambda stage, f: report(stage, start + (1.0 - start) * f),
+                     settings, _coalesced(fit, rest))
+    d = kept.run()
     d.base_form_reason = base_form_reason(fit)
     other = fit.alternatives[0] if fit.alternatives and form_finding is None else None
     begun = None
@@ -67,15 +67,17 @@ def diagnose(runs: list[RunData], fit: FitReport | None = None,
         # unless the extended model leaves only noise, the other form's base is diagnosed too
         # and the better extended model kept
         so_far = report.fraction
-        d2 = diagnose_prepared(*begun, causes, settings=settings,
-                               progress=lambda stage, f: report(f"{other.params.residual_form} form: {stage}",
-                                                                so_far + (1.0 - so_far) * f),
-                               coalesced=_coalesced(other, rest))
+        second = Procedure(*begun, causes, lambda stage, f: report(f"{other.params.residual_form} form: {stage}",
+                                                                   so_far + (1.0 - so_far) * f),
+                           settings, _coalesced(other, rest))
+        d2 = second.run()
         if bic(d2.final) < bic(d.final):
+            kept = second
             d2.base_form_reason = (f"{other.params.residual_form} residual form: with the extension found it "
                                    f"explains the run better (BIC {bic(d2.final):.1f} vs {bic(d.final):.1f} in the "
                                    f"{fit.params.residual_form} form, which alone predicted held-out blocks better)")
             d = d2
+    d = kept.checked(d)         # the limits of the form kept only
     if form_finding is not None:
         d.form_finding, d.verdict = form_finding, NAME
     d.notes += [f"{name}: {p.off_schedule} samples taken off the sampling schedule left out "
