@@ -168,10 +168,10 @@ class Procedure:
         return quiet(fit or self.current, self.sigma, self.settings)
 
     # -- the procedure
+    @threadpool_limits.wrap(1, user_api="blas")
     def checked(self, d: Diagnosis) -> Diagnosis:
-        """This procedure's diagnosis d with its limits checked where one run shows nothing
-        (limits.checked; the refits hold their own BLAS threads); apart from `run`: of two residual
-        forms diagnosed, the kept one only (a 13 s check of a form then beaten; docs/benchmarks.md)."""
+        """d (this procedure's) with its limits checked where one run shows nothing (limits.checked);
+        apart from `run`: of two residual forms diagnosed, the kept one's only (docs/benchmarks.md)."""
         if len(self.series) != 1 or d.findings:
             return d
         stage = "what this run could have seen: limits checked by identification"
