@@ -144,14 +144,12 @@ def refit_core(fd: PreparedRun, orders: Orders, settings: FitSettings = DEFAULT)
     """Identification's core fit of one form and structure on a prepared run: its starts, search
     and polish, the turns as placed, no orders held apart (diagnosis.limits refits a run with an
     effect injected, to see what of it identification takes into the model's own terms).
-    _fit_structure's steps without the report's statistics, which the check does not read (a
-    model evaluation and the standard errors: 8 % of a refit)."""
+    _fit_structure's fits without its report, whose statistics the check does not read (a model
+    evaluation and the standard errors: 8 % of a refit)."""
     with threadpool_limits(1, user_api="blas"):
         paper = paper_steps(fd, orders)
         search = JointSearch(fd, orders, paper.start, None)
-        jf = search.fit()
-        base = converged(_polished(fd, jf, search, paper, nfev=settings.polish_nfev), settings.max_nfev)
-        return base if _from_core(fd, jf, base) is not None else None
+        return _structure_fits(fd, paper, search, lambda stage, fraction: None, hold=False, settings=settings)[1]
 
 
 def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progress, paper,
@@ -459,6 +457,18 @@ def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, 
                    rival: float = np.inf, hold: bool = True, settings: FitSettings = DEFAULT) -> FitReport:
     """One structure: the search's best optimum polished, then carried to every sample by the
     analysis core."""
+    jf, base, apart, free = _structure_fits(fd, paper, search, report, rival, hold, settings)
+    report("statistics", 0.9)
+    return _result(fd, orders, paper, jf, time.perf_counter(), base, apart=apart, free=free,
+                   warnings=_cancelling(base, apart, hold), structure=forced(orders))
+
+
+def _structure_fits(fd: PreparedRun, paper, search: JointSearch, report: Progress, rival: float = np.inf,
+                    hold: bool = True, settings: FitSettings = DEFAULT
+                    ) -> tuple[JointFit, Fit | None, HeldApart | None, Fit]:
+    """_fit_structure's fits: (the fit in identification's terms, the core's fit - None where the
+    model's own evaluation does not reproduce it -, the orders held apart or None, the core's fit
+    with every order free)."""
     jf = search.fit()
     report("polish on every sample", 0.8)
     base = _polished(fd, jf, search, paper, rival, settings.polish_nfev)
@@ -476,9 +486,7 @@ def _fit_structure(fd: PreparedRun, orders: Orders, paper, search: JointSearch, 
             jf = polished
         else:
             base = None
-    report("statistics", 0.9)
-    return _result(fd, orders, paper, jf, time.perf_counter(), base, apart=apart, free=free,
-                   warnings=_cancelling(base, apart, hold), structure=forced(orders))
+    return jf, base, apart, free
 
 
 def _held_apart(fd: PreparedRun, jf: JointFit, base: Fit, report: Progress, settings: FitSettings = DEFAULT
