@@ -11,6 +11,8 @@ a frame, issue 27), are in docs/analysis.md, "What a run could have seen".
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import independent_effects as ie
 import numpy as np
 import pytest
@@ -126,6 +128,33 @@ def test_an_injection_identification_cannot_fit_keeps_what_the_earlier_ones_show
     # the last unseen one (the power law's 4 x), not the linearised limit nothing confirmed
     size, tried = _placed(lambda s: 0.0 if s < 10 else float("nan"), injections=4)
     assert [s for s, _ in tried] == [1.0, 4.0, 16.0] and size == pytest.approx(16.0)
+
+
+def test_a_cause_of_either_sign_is_checked_on_both_and_its_limit_holds_for_either(monkeypatch):
+    """A damping change can rise or drop (its bounds): identification can take a drop into its own
+    terms where it leaves a rise (independent A causal seeds 6000, 6004: a 20 %/cycle drop left only
+    the noise, the rise's check said 14 %/cycle is seen). Both signs are injected; the limit is the
+    larger, and every injection is listed with its sign."""
+    from foamlab.diagnosis import limits as L
+    from foamlab.diagnosis.causes import CAUSES
+    from foamlab.diagnosis.settings import DiagnosisSettings
+    linear = 0.1
+
+    def fake_init(self, ref, base, causes, settings):
+        self.base, self.settings, self.reference = SimpleNamespace(n=14157), settings, 0.0
+
+    seen = lambda size: TARGET * (size / linear) ** 2 / (9.0 if size < 0 else 1.0)    # a drop: 1/9 seen
+    monkeypatch.setattr(L._Injector, "__init__", fake_init)
+    monkeypatch.setattr(L._Injector, "refit", lambda self, cause, size: L._Refit(0.0))
+    monkeypatch.setattr(L._Injector, "noncentrality", lambda self, cause, size, refit=None: seen(size))
+    drop, friction = CAUSES["damping_cycle_change"], CAUSES["direction_friction"]
+    lims = [L.DetectionLimit(c.name, "", "", linear / 2, linear, c.limit_text(linear)) for c in (drop, friction)]
+    out = {lim.cause: lim for lim in L.checked(lims, None, None, [drop, friction], DiagnosisSettings(limit_injections=4))}
+    assert out["damping_cycle_change"].limit == pytest.approx(3 * linear, rel=1e-3)
+    assert [np.sign(s) for s, _ in out["damping_cycle_change"].injections] == [1, -1, -1]
+    assert "30 %/cycle" in out["damping_cycle_change"].text
+    # friction has one sign: one injection, at +linear, confirmed
+    assert out["direction_friction"].limit == pytest.approx(linear) and len(out["direction_friction"].injections) == 1
 
 
 def test_orders_identification_held_apart_are_held_in_the_linearised_limit():

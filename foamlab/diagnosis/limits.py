@@ -262,7 +262,11 @@ def checked(limits: list[DetectionLimit], ref: PreparedRun, base: Fit, causes: l
     cause's placement) - the check is most of a clean run's diagnosis (docs/benchmarks.md)."""
     todo = [c for c in causes if c.held_by_base() and settings.limit_injections > 0]
     by_name = {c.name: c for c in todo}
-    jobs = [lim for lim in limits if lim.cause in by_name and np.isfinite(lim.limit) and lim.limit > 0]
+    # a cause with both signs is checked on each: identification can take a change of one sign
+    # into its own terms and not the other's (independent A causal seeds 6000, 6004: a damping
+    # drop of 20 %/cycle left only the noise, the rise's check said 11 %/cycle is seen)
+    jobs = [(lim, sign) for lim in limits if lim.cause in by_name and np.isfinite(lim.limit) and lim.limit > 0
+            for sign in _signs(by_name[lim.cause])]
     if not jobs:
         return limits
     injector = _Injector(ref, base, causes, settings)
@@ -271,21 +275,29 @@ def checked(limits: list[DetectionLimit], ref: PreparedRun, base: Fit, causes: l
     ended = iter(range(1, total + 1))
     tick = (lambda i, result: progress(next(ended), total)) if progress else None
     # the refit of the run as it is and the first injection of each cause are independent: one map
-    first = fmap(lambda job: injector.refit(*job), [(None, 0.0)] + [(by_name[lim.cause], lim.limit) for lim in jobs],
-                 done=tick)
+    first = fmap(lambda job: injector.refit(*job),
+                 [(None, 0.0)] + [(by_name[lim.cause], sign * lim.limit) for lim, sign in jobs], done=tick)
     injector.reference = first[0].white
-    placed = dict(zip((lim.cause for lim in jobs),
-                      fmap(lambda k: injector.place(by_name[jobs[k].cause], jobs[k].limit, first[k + 1]),
-                           range(len(jobs)), done=tick)))
+    placed = fmap(lambda k: injector.place(by_name[jobs[k][0].cause], jobs[k][0].limit, first[k + 1], jobs[k][1]),
+                  range(len(jobs)), done=tick)
+    sides: dict[str, list] = {}
+    for (lim, _), side in zip(jobs, placed):
+        sides.setdefault(lim.cause, []).append(side)
     out = []
     for lim in limits:
-        if lim.cause not in placed:
+        if lim.cause not in sides:
             out.append(lim)
             continue
-        size, tried = placed[lim.cause]
+        size = max(size for size, _ in sides[lim.cause])      # the limit holds for either sign
+        tried = tuple(t for _, side in sides[lim.cause] for t in side)
         text = by_name[lim.cause].limit_text(size) if np.isfinite(size) else lim.text
         out.append(replace(lim, limit=float(size), text=text, injections=tried, linearised=lim.limit))
     return out
+
+
+def _signs(cause: type[Cause]) -> tuple[float, ...]:
+    """The signs a cause's effect can take (its bounds): 1, or 1 and -1."""
+    return (1.0, -1.0) if float(cause.bounds()[0][0]) < 0 else (1.0,)
 
 
 @dataclass(frozen=True)
@@ -356,25 +368,27 @@ class _Injector:
         refit = self.refit(cause, size) if refit is None else refit
         return min((refit.white - self.reference) / self.sigma2, refit.local)
 
-    def place(self, cause: type[Cause], linear: float, refit: _Refit | None = None
+    def place(self, cause: type[Cause], linear: float, refit: _Refit | None = None, sign: float = 1.0
               ) -> tuple[float, tuple[tuple[float, float], ...]]:
-        """The size whose injection leaves the target: the linearised limit where an injection there
-        confirms it; otherwise grown (a power law of slope 2, at most MAX_GROWTH a step) until one is
-        seen, then halved in log size between the last unseen and the first seen; the limit is
-        the log-log interpolation of the two nearest (the seen one where that is not a power law)."""
-        top = float(cause.bounds()[1][0])
+        """The size (a magnitude, injected with this sign) whose injection leaves the target: the
+        linearised limit where an injection there confirms it; otherwise grown (a power law of slope
+        2, at most MAX_GROWTH a step) until one is seen, then halved in log size between the last
+        unseen and the first seen; the limit is the log-log interpolation of the two nearest (the
+        seen one where that is not a power law). The tries are (signed size, what was left)."""
+        lo_bound, hi_bound = (float(b[0]) for b in cause.bounds())
+        top = hi_bound if sign > 0 else -lo_bound
         q = len(cause.effect.fitted_parameters())
         target = _multiple(self.settings, q, self.base.n) ** 2
         grow = lambda size, lam: min(size * min(np.sqrt(target / max(lam, target / 16)), MAX_GROWTH), top)
-        tried = [(linear, self.noncentrality(cause, linear, refit))]
+        tried = [(linear, self.noncentrality(cause, sign * linear, refit))]
         if not tried[0][1] < CONFIRMED_SHARE * target:       # confirmed, or nan: not checked
-            return linear, tuple(tried)
+            return linear, _signed(tried, sign)
         lo, hi = tried[0], None
         while len(tried) < self.settings.limit_injections:
             size = grow(*lo) if hi is None else float(np.sqrt(lo[0] * hi[0]))
             if size <= lo[0]:
                 break                   # at the effect's largest size
-            lam = self.noncentrality(cause, size)
+            lam = self.noncentrality(cause, sign * size)
             tried.append((size, lam))
             if not np.isfinite(lam):
                 break                   # identification cannot fit it: what the earlier ones showed stands
@@ -385,7 +399,11 @@ class _Injector:
             if abs(lam / target - 1) <= 1 - CONFIRMED_SHARE:
                 break                   # at the target, as closely as an injection confirms one
         if hi is None:                  # not seen yet: the power law's size past the last unseen one
-            return max(linear, grow(*lo)), tuple(tried)
+            return max(linear, grow(*lo)), _signed(tried, sign)
         slope = (np.log(hi[1] / lo[1]) / np.log(hi[0] / lo[0])) if lo[1] > 0 else np.inf
         size = lo[0] * (target / lo[1]) ** (1 / slope) if 0.5 <= slope <= 12 else hi[0]
-        return float(max(linear, size)), tuple(tried)
+        return float(max(linear, size)), _signed(tried, sign)
+
+
+def _signed(tried: list[tuple[float, float]], sign: float) -> tuple[tuple[float, float], ...]:
+    return tuple((sign * size, lam) for size, lam in tried)
