@@ -7,8 +7,9 @@ For each fixed seed (3000 + i, regime/form (A causal, B paper, B causal, A paper
 before looking) a clean run of tests/independent_model.py is diagnosed: its verdict counts as a
 false alarm unless `none`, and its per-cause detection limits are read. Each cause is then hidden
 by tests/independent_effects.py in the same run (same seed: the same noise) at 0.5x and 1.5x the
-limit this run reported, and the run diagnosed again. The limit means what it says when a cause
-at 1.5x is named in >= 90 % of seeds and one at 0.5x in <= 10 %.
+limit this run reported (a cause of either sign, TWO_SIGNED, at -0.5x and -1.5x its drop's own
+limit too), and the run diagnosed again. The limit means what it says when a cause at 1.5x is named in >= 90 % of seeds
+and one at 0.5x in <= 10 %.
 
 The limit is in the effect parameter's unit; the generator takes physical sizes
 (independent_effects.UNITS): TO_GENERATOR converts. A frame's limit is a compliance (mm/N): the
@@ -42,11 +43,18 @@ SECTION = "Diagnosis: do the detection limits mean what they say? (benchmarks/be
 COMBOS = (("A", "causal"), ("B", "paper"), ("B", "causal"), ("A", "paper"))
 SEED0 = 3000
 MULTIPLES = (0.5, 1.5)
+#: Causes whose effect takes either sign: hidden at -0.5x and -1.5x too (limits.checked checks both;
+#: the limit is said as +-), and counted in a row of their own.
+TWO_SIGNED = ("damping_cycle_change",)
 #: Effect parameter's unit -> the generator's (independent_effects.UNITS); None: the frame (1 / x).
 TO_GENERATOR = {"direction_friction": 1.0, "channel_lag": 1000.0, "memory_lag": 1000.0,
                 "cycle_softening": 100.0, "damping_cycle_change": 100.0, "force_zero_drift": 60.0,
                 "machine_compliance": None}
 NAMED_AT_1_5, NAMED_AT_0_5 = 0.9, 0.1
+
+
+def multiples(cause: str) -> tuple[float, ...]:
+    return MULTIPLES + (tuple(-m for m in MULTIPLES) if cause in TWO_SIGNED else ())
 
 
 def generator_size(cause: str, limit: float, multiple: float) -> float:
@@ -68,17 +76,19 @@ def run_seed(i: int, causes: list[str], done: set, keep) -> None:
     seed = SEED0 + i
     clean, seconds = diagnose_one(regime, form, seed, None)
     limits = {lim.cause: lim.limit for lim in clean.limits}
+    # a cause of either sign: its drop's own limit (limits.checked; nan where not checked)
+    below = {lim.cause: lim.limit_below for lim in clean.limits if lim.limit_below == lim.limit_below}
     if ("clean", 0.0, seed) not in done:
         # the linearised limit beside the one checked by injection (nan: not checked; limits.checked)
         keep({"cause": "clean", "multiple": 0.0, "seed": seed, "regime": regime, "form": form,
-              "verdict": clean.verdict, "seconds": seconds, "limits": limits,
+              "verdict": clean.verdict, "seconds": seconds, "limits": limits, "limits_below": below,
               "linearised": {lim.cause: lim.linearised for lim in clean.limits if lim.injections},
               "injections": {lim.cause: len(lim.injections) for lim in clean.limits if lim.injections}})
     for cause in causes:
-        for m in MULTIPLES:
+        for m in multiples(cause):
             if (cause, m, seed) in done:
                 continue
-            limit = limits.get(cause, float("nan"))
+            limit = (limits if m > 0 else below).get(cause, float("nan"))
             rec = {"cause": cause, "multiple": m, "seed": seed, "regime": regime, "form": form, "limit": limit}
             if not limit == limit or limit <= 0:         # nan: the run holds no information on it
                 keep(dict(rec, verdict="no limit", size=None, seconds=0.0))
@@ -107,9 +117,11 @@ def table(records: list[dict]) -> list[str]:
     ]
     raised = lambda cause: sum(r.get("linearised", {}).get(cause, r["limits"][cause]) < r["limits"][cause]
                                for r in records if r["cause"] == "clean")
-    for cause in [c for c in TO_GENERATOR if any(r["cause"] == c for r in records)]:
-        low = [r for r in records if r["cause"] == cause and r["multiple"] == 0.5 and r["size"] is not None]
-        high = [r for r in records if r["cause"] == cause and r["multiple"] == 1.5 and r["size"] is not None]
+    rows = [(c, sign) for c in TO_GENERATOR if any(r["cause"] == c for r in records)
+            for sign in ((1, -1) if c in TWO_SIGNED else (1,))]
+    for cause, sign in rows:
+        low = [r for r in records if r["cause"] == cause and r["multiple"] == sign * 0.5 and r["size"] is not None]
+        high = [r for r in records if r["cause"] == cause and r["multiple"] == sign * 1.5 and r["size"] is not None]
         if not low or not high:
             continue
         n_low = sum(r["verdict"] == cause for r in low)
@@ -120,7 +132,8 @@ def table(records: list[dict]) -> list[str]:
             if r["verdict"] != cause:
                 missed[r["verdict"]] = missed.get(r["verdict"], 0) + 1
         meets = n_high >= NAMED_AT_1_5 * len(high) and n_low <= NAMED_AT_0_5 * len(low)
-        lines.append(f"| {cause} | {n_low}/{len(low)} | {n_high}/{len(high)} | "
+        label = cause + ("" if cause not in TWO_SIGNED else " (rise)" if sign > 0 else " (drop)")
+        lines.append(f"| {label} | {n_low}/{len(low)} | {n_high}/{len(high)} | "
                      f"{min(sizes):.3g}..{max(sizes):.3g} {ie.UNITS[cause]} | "
                      f"{', '.join(f'{k} {v}' for k, v in missed.items()) or '-'} | {raised(cause)} | "
                      f"{'yes' if meets else 'no'} |")
@@ -160,7 +173,7 @@ def main(argv=None) -> int:
 
             for i in range(a.first, a.seeds):
                 done = {(r["cause"], float(r["multiple"]), int(r["seed"])) for r in load(a.out)}
-                if all((c, m, SEED0 + i) in done for c in causes for m in MULTIPLES) and ("clean", 0.0, SEED0 + i) in done:
+                if all((c, m, SEED0 + i) in done for c in causes for m in multiples(c)) and ("clean", 0.0, SEED0 + i) in done:
                     continue
                 run_seed(i, causes, done, keep)
     records = load(a.out)

@@ -186,8 +186,11 @@ class DampingCycleChange(Cause):
         return 1.0
 
     @classmethod
-    def limit_text(cls, limit):
-        return f"no damping change beyond ±{100 * limit:.2g} %/cycle"
+    def limit_text(cls, limit, below=None):
+        if below is None or not np.isfinite(below) or np.isclose(below, limit, rtol=0.05):
+            return f"no damping change beyond ±{100 * max(limit, below or 0.0):.2g} %/cycle"
+        # identification can take one sign into its own terms and not the other (limits.checked)
+        return f"no damping rise above +{100 * limit:.2g} %/cycle, no drop below -{100 * below:.2g} %/cycle"
 
     @classmethod
     def describe(cls, values, stderr):

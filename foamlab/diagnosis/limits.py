@@ -62,12 +62,15 @@ class DetectionLimit:
     #: the checks by injection (checked): (size, what identification left of it in noise variances)
     injections: tuple[tuple[float, float], ...] = ()
     linearised: float = float("nan")   # the limit from the slope at zero, where checked or sized (else nan)
+    #: a cause of either sign checked by injection (checked): limit is its rise's, this its drop's
+    #: (a magnitude: the change below zero); nan for the others (limit holds for both, or one sign)
+    limit_below: float = float("nan")
 
     def to_dict(self) -> dict:
         finite = lambda v: float(v) if np.isfinite(v) else None
         return {"cause": self.cause, "parameter": self.parameter, "unit": self.unit,
                 "stderr": finite(self.stderr), "limit": finite(self.limit), "text": self.text,
-                "linearised": finite(self.linearised),
+                "linearised": finite(self.linearised), "limit_below": finite(self.limit_below),
                 "injections": [[float(a), finite(b)] for a, b in self.injections]}
 
 
@@ -262,9 +265,10 @@ def checked(limits: list[DetectionLimit], ref: PreparedRun, base: Fit, causes: l
     cause's placement) - the check is most of a clean run's diagnosis (docs/benchmarks.md)."""
     todo = [c for c in causes if c.held_by_base() and settings.limit_injections > 0]
     by_name = {c.name: c for c in todo}
-    # a cause with both signs is checked on each: identification can take a change of one sign
-    # into its own terms and not the other's (independent A causal seeds 6000, 6004: a damping
-    # drop of 20 %/cycle left only the noise, the rise's check said 11 %/cycle is seen)
+    # a cause with both signs is checked on each, and has a limit for each: identification can take
+    # a change of one sign into its own terms and not the other's (independent A causal seeds 6000,
+    # 6004: a damping drop of 20 %/cycle left only the noise; their clean runs' rise is seen from
+    # 14-15 %/cycle, the drop from 31-36)
     jobs = [(lim, sign) for lim in limits if lim.cause in by_name and np.isfinite(lim.limit) and lim.limit > 0
             for sign in _signs(by_name[lim.cause])]
     if not jobs:
@@ -288,10 +292,13 @@ def checked(limits: list[DetectionLimit], ref: PreparedRun, base: Fit, causes: l
         if lim.cause not in sides:
             out.append(lim)
             continue
-        size = max(size for size, _ in sides[lim.cause])      # the limit holds for either sign
+        (size, _), *drop = sides[lim.cause]           # each sign's own limit: one can be 3 x the other
+        below = float(drop[0][0]) if drop else float("nan")
         tried = tuple(t for _, side in sides[lim.cause] for t in side)
-        text = by_name[lim.cause].limit_text(size) if np.isfinite(size) else lim.text
-        out.append(replace(lim, limit=float(size), text=text, injections=tried, linearised=lim.limit))
+        text = (by_name[lim.cause].limit_text(size, below) if drop else by_name[lim.cause].limit_text(size)) \
+            if np.isfinite(size) else lim.text
+        out.append(replace(lim, limit=float(size), text=text, injections=tried, linearised=lim.limit,
+                           limit_below=below))
     return out
 
 

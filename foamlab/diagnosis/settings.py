@@ -51,7 +51,8 @@ class DiagnosisSettings:
     multistart_reach: float = _setting(0.3, "several starts when its joint fit is within this fraction of "
                                             "the round's best Delta BIC")
     limit_injections: int = _setting(4, "identification refits that check the detection limit of a cause the base "
-                                         "can take into its own terms (0: the linearised limit alone)")
+                                         "can take into its own terms, per sign it can take (0: the linearised "
+                                         "limit alone)")
     # -- the machine
     workers: int = _setting(0, "processes the search's independent fits run on (0: every core this process may "
                                "use; the same results at any number)")
