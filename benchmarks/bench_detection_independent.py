@@ -23,6 +23,9 @@ Results go line by line to --out (JSON lines): an interrupted run resumes where 
 --regime C: the other regime of tests/independent_model.py (OTHER_REGIMES), which no setting was
 tuned on: clean seeds and each cause at both sizes in both forms, one seed each (its own section).
 
+--drops: the damping change's drops (DROPS: -10 and -20 %/cycle, issue 27's blind runs' sizes) beside
+its rises, with rows and a smallest size of their own.
+
 --two: each pair of PAIRS hidden together at the causes' large sizes (seeds 4000 + 2i, the same
 regime/form rotation): a run counts when its findings name both (issue 27 asks 3 of 4).
 """
@@ -62,6 +65,9 @@ SIZES = {
     "damping_cycle_change": (30.0, 100.0),
     "rate_dependence": (0.2, 0.5),
 }
+#: --drops: the damping change's drops (negative sizes), as issue 27's blind runs had them: the third
+#: cycle's damping force 20 and 40 % below the first's. Rows and a smallest size of their own.
+DROPS = {"damping_cycle_change": (-10.0, -20.0)}
 COMBOS = (("A", "causal"), ("B", "paper"), ("B", "causal"), ("A", "paper"))
 SEED0, CLEAN_SEED0, PAIR_SEED0 = 1000, 2000, 4000
 #: --two: causes of different families hidden together, each at its large size (fixed before looking,
@@ -102,15 +108,17 @@ def plan_pairs(seeds: int, hz: float) -> list[tuple]:
             for j in range(seeds) for p in PAIRS]
 
 
-def plan(causes: list[str], sizes: str, seeds: int, clean_seeds: int, full: bool, hz: float) -> list[tuple]:
-    """Seed by seed across the causes (a run stopped early still covers every cause)."""
+def plan(causes: list[str], sizes: str, seeds: int, clean_seeds: int, full: bool, hz: float,
+         drops: bool = False) -> list[tuple]:
+    """Seed by seed across the causes (a run stopped early still covers every cause); drops: DROPS too."""
     which = {"small": (0,), "large": (1,), "all": (0, 1)}[sizes]
     cases = []
     for j in range(max(seeds, clean_seeds)):
         combos = COMBOS if full else (COMBOS[j % len(COMBOS)],)
         for cause in causes if j < seeds else ():
-            for i in which:
-                cases += [(cause, SIZES[cause][i], SEED0 + 2 * j, reg, form, hz) for reg, form in combos]
+            sized = [SIZES[cause][i] for i in which] + [DROPS[cause][i] for i in which if drops and cause in DROPS]
+            for size in sized:
+                cases += [(cause, size, SEED0 + 2 * j, reg, form, hz) for reg, form in combos]
         for k in range(2 if j < clean_seeds else 0):        # two clean seeds a round: 20 by the 10th
             if 2 * j + k < clean_seeds:
                 cases += [(None, 0.0, CLEAN_SEED0 + 2 * j + k, reg, form, hz) for reg, form in
@@ -192,15 +200,19 @@ def table(records: list[dict], subset: str, intro: str = INTRO) -> list[str]:
         "|---|---:|---:|---|---|---:|---:|",
     ]
     smallest: dict[str, str] = {}
-    for cause in ie.CAUSES:
+    groups = [(cause, sign) for cause in ie.CAUSES for sign in (1, -1)
+              if any(r["cause"] == cause and sign * r["size"] >= 0 for r in records)]
+    label = lambda cause, sign: cause if sign > 0 and cause not in DROPS else \
+        f"{cause} ({'rise' if sign > 0 else 'drop'})"
+    for cause, sign in groups:
         # smallest effect first (a frame's stiffness: the stiffer, the smaller)
         strength = (lambda v: 1.0 / v) if cause == "machine_compliance" else abs
-        for size in sorted({r["size"] for r in records if r["cause"] == cause}, key=strength):
+        for size in sorted({r["size"] for r in records if r["cause"] == cause and sign * r["size"] >= 0}, key=strength):
             rows = [r for r in records if r["cause"] == cause and r["size"] == size]
             named = [r for r in rows if r["verdict"] == cause]
             share = len(named) / len(rows)
-            if share >= NAMED_SHARE and cause not in smallest:
-                smallest[cause] = f"{size:g} {ie.UNITS[cause]}"
+            if share >= NAMED_SHARE and label(cause, sign) not in smallest:
+                smallest[label(cause, sign)] = f"{size:g} {ie.UNITS[cause]}"
             combos = {}
             for r in rows:
                 c = combos.setdefault(f"{r['regime']}/{r['form']}", [0, 0])
@@ -216,8 +228,8 @@ def table(records: list[dict], subset: str, intro: str = INTRO) -> list[str]:
                      f"{statistics.median(r['seconds'] for r in clean):.1f} | {max(r['seconds'] for r in clean):.1f} |")
     single = [r["seconds"] for r in records if r["runs"] == 1]
     lines += ["", "Smallest size named in >= 90 % of its seeds: " +
-              "; ".join(f"{c} {smallest.get(c, 'not reached at the sizes run')}" for c in ie.CAUSES
-                        if any(r["cause"] == c for r in records)) + "."]
+              "; ".join(f"{label(c, sign)} {smallest.get(label(c, sign), 'not reached at the sizes run')}"
+                        for c, sign in groups) + "."]
     if clean:
         lines.append(f"False alarms on clean runs: {len(clean) - none}/{len(clean)} "
                      f"({100 * (len(clean) - none) / len(clean):.0f} %).")
@@ -274,6 +286,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=10, help="seeds per cause and size (1000, 1002, ...)")
     ap.add_argument("--clean-seeds", type=int, default=20, help="clean seeds (2000, 2001, ...)")
     ap.add_argument("--full", action="store_true", help="every seed in every regime and form")
+    ap.add_argument("--drops", action="store_true", help="the damping change's drops too (DROPS)")
     ap.add_argument("--hz", type=float, default=16.0)
     ap.add_argument("--workers", type=int, default=0, help="dask LocalCluster workers (0: in this process)")
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_detection_independent.jsonl"))
@@ -294,7 +307,7 @@ def main(argv=None) -> int:
         return 2
     if not args.publish_only:
         cases = (plan_pairs(args.seeds, args.hz) if args.two else plan_other(args.regime, args.hz) if args.regime
-                 else plan(causes, args.sizes, args.seeds, args.clean_seeds, args.full, args.hz))
+                 else plan(causes, args.sizes, args.seeds, args.clean_seeds, args.full, args.hz, args.drops))
         run_all(cases, args.out, args.workers)
     records = [r for r in load(args.out) if ("+" in r["cause"]) == args.two
                and (r["regime"] == args.regime if args.regime else r["regime"] in ("A", "B"))]
@@ -308,7 +321,8 @@ def main(argv=None) -> int:
     subset = args.subset or (f"regime {args.regime}: {OTHER_CLEAN} clean seeds, every cause but rate_dependence at both "
                              "sizes in both forms, one seed each" if args.regime else
                              f"causes {args.causes}, sizes {args.sizes}, {args.seeds} seeds each, "
-                             f"{args.clean_seeds} clean seeds{', every regime/form' if args.full else ''}")
+                             f"{args.clean_seeds} clean seeds{', every regime/form' if args.full else ''}"
+                             f"{', damping drops (DROPS)' if args.drops else ''}")
     lines = table(records, subset, INTRO_OTHER if args.regime else INTRO)
     if args.no_publish:
         print("\n".join(lines))
