@@ -110,6 +110,11 @@ class Cause:
         return float(np.clip(0.3 * cls.scale(series), lo[0], hi[0]))
 
     @classmethod
+    def signs(cls) -> tuple[float, ...]:
+        """The signs its effect can take (its bounds): 1, or 1 and -1 (a damping rise or drop)."""
+        return (1.0, -1.0) if float(cls.bounds()[0][0]) < 0 else (1.0,)
+
+    @classmethod
     def limit_text(cls, limit: float) -> str:
         """The smallest size this run would name, in words and physical units."""
         p = cls.effect.fitted_parameters()[0]
@@ -187,8 +192,10 @@ class DampingCycleChange(Cause):
 
     @classmethod
     def limit_text(cls, limit, below=None):
-        if below is None or not np.isfinite(below) or np.isclose(below, limit, rtol=0.05):
-            return f"no damping change beyond ±{100 * max(limit, below or 0.0):.2g} %/cycle"
+        if below is None or not np.isfinite(below):
+            return f"no damping change beyond ±{100 * limit:.2g} %/cycle"
+        if np.isclose(below, limit, rtol=0.05):
+            return f"no damping change beyond ±{100 * max(limit, below):.2g} %/cycle"
         # identification can take one sign into its own terms and not the other (limits.checked)
         return f"no damping rise above +{100 * limit:.2g} %/cycle, no drop below -{100 * below:.2g} %/cycle"
 

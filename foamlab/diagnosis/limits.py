@@ -270,7 +270,7 @@ def checked(limits: list[DetectionLimit], ref: PreparedRun, base: Fit, causes: l
     # 6004: a damping drop of 20 %/cycle left only the noise; their clean runs' rise is seen from
     # 14-15 %/cycle, the drop from 31-36)
     jobs = [(lim, sign) for lim in limits if lim.cause in by_name and np.isfinite(lim.limit) and lim.limit > 0
-            for sign in _signs(by_name[lim.cause])]
+            for sign in by_name[lim.cause].signs()]
     if not jobs:
         return limits
     injector = _Injector(ref, base, causes, settings)
@@ -300,11 +300,6 @@ def checked(limits: list[DetectionLimit], ref: PreparedRun, base: Fit, causes: l
         out.append(replace(lim, limit=float(size), text=text, injections=tried, linearised=lim.limit,
                            limit_below=below))
     return out
-
-
-def _signs(cause: type[Cause]) -> tuple[float, ...]:
-    """The signs a cause's effect can take (its bounds): 1, or 1 and -1."""
-    return (1.0, -1.0) if float(cause.bounds()[0][0]) < 0 else (1.0,)
 
 
 @dataclass(frozen=True)
