@@ -541,10 +541,6 @@ def _orders(orders) -> Orders | None:
     return Orders(*orders)
 
 
-#: Samples this many steps from a corner of the path are not in the evaluation check.
-CORNER_STEPS = 2.0
-
-
 def _from_core(fd: PreparedRun, jf: JointFit, base: Fit, reproduced: bool = True,
                held: np.ndarray | None = None) -> JointFit | None:
     """The core's polished base in identification's terms (canonical order, the zero offset in
@@ -589,15 +585,7 @@ def _from_core(fd: PreparedRun, jf: JointFit, base: Fit, reproduced: bool = True
     polished = JointFit(params, lay, lin, phi, fixed, zero, zero_fitted, jacobian, residual,
                         jacobian.shape[1], jf.nfev, jf.starts + ["polish on every sample (analysis core)"],
                         base.status, base.message)
-    # the model's causal evaluation cuts a corner between samples by up to a tenth of a step
-    # (model_response): the samples next to one are left out of the check
-    step = fd.native_step_s
-    near = np.zeros(len(fd.t), bool)
-    for tc in fd.nodes.t[fd.nodes.corners]:
-        near |= np.abs(fd.t - tc) <= CORNER_STEPS * step
-    checked = ~near[rows]
-    polished_check = replace(polished, residual=residual[checked])
-    return polished if not reproduced or evaluable(fd, polished_check, rows[checked]) else None
+    return polished if not reproduced or evaluable(fd, polished, rows) else None
 
 
 def _result(fd: PreparedRun, orders: Orders, paper, jf: JointFit, started: float, base: Fit | None = None, *,
