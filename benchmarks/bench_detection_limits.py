@@ -47,6 +47,7 @@ MULTIPLES = (0.5, 1.5)
 TO_GENERATOR = {"direction_friction": 1.0, "channel_lag": 1000.0, "memory_lag": 1000.0,
                 "cycle_softening": 100.0, "damping_cycle_change": 100.0, "force_zero_drift": 60.0,
                 "machine_compliance": None}
+NAMED_AT_1_5, NAMED_AT_0_5 = 0.9, 0.1
 
 
 def two_signed(cause: str) -> bool:
@@ -55,7 +56,6 @@ def two_signed(cause: str) -> bool:
     from foamlab.diagnosis.causes import CAUSES
 
     return CAUSES[cause].held_by_base() and len(CAUSES[cause].signs()) > 1
-NAMED_AT_1_5, NAMED_AT_0_5 = 0.9, 0.1
 
 
 def multiples(cause: str) -> tuple[float, ...]:

@@ -416,7 +416,7 @@ def evaluable(fd: PreparedRun, jf: "JointFit", rows: np.ndarray | None = None) -
     a check on every sample rejected every search optimum of such runs (docs/analysis.md,
     "The evaluation check at the corners")."""
     rows = fd.observed if rows is None else rows
-    keep = ~near_corners(fd)[rows]
+    keep = ~_near_corners(fd)[rows]
     rows, residual = rows[keep], jf.residual[keep]
     response = model_response(jf.params, fd)
     predicted = np.maximum(response.force, jf.contact_zero_N)[rows]
@@ -426,7 +426,7 @@ def evaluable(fd: PreparedRun, jf: "JointFit", rows: np.ndarray | None = None) -
     return bool(np.sqrt(np.mean((predicted - fitted) ** 2)) <= tolerance)
 
 
-def near_corners(fd: PreparedRun) -> np.ndarray:
+def _near_corners(fd: PreparedRun) -> np.ndarray:
     """bool over the run's samples: within CORNER_STEPS sampling steps of a corner of the path."""
     near = np.zeros(len(fd.t), bool)
     for tc in fd.nodes.t[fd.nodes.corners]:
