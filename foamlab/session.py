@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping
@@ -34,8 +33,6 @@ log = logging.getLogger(__name__)
 
 #: The built-in simulated machine's wire protocol unless another is chosen.
 BUILTIN_TRANSPORT = "modbus-tcp"
-#: Closing a session: how long a moving crosshead gets to come to rest before an e-stop (wall s).
-REST_TIMEOUT_S = 3.0
 
 
 @dataclass(frozen=True)
@@ -116,11 +113,15 @@ class MachineSession:
 
     def close(self) -> None:
         """Leave the crosshead at rest and let go of the link (if held), then stop the simulator."""
+        from foamlab.acquisition.safety import bring_to_rest  # noqa: PLC0415
+
         try:
             if self.connected:
                 self.connected = False
-                _bring_to_rest(self.machine)
-                self.machine.close()
+                try:
+                    bring_to_rest(self.machine)
+                finally:
+                    self.machine.close()
         finally:
             if self.simulator is not None:
                 self.simulator.stop()
@@ -154,33 +155,3 @@ def _start_builtin(choice: MachineChoice):
                                        **choice.simulator)
     except (ValueError, TimeoutError) as exc:    # bad specimen file, effect or fault spec; no start
         raise FoamlabError(f"cannot start the simulated machine: {exc}") from None
-
-
-def _bring_to_rest(machine: Machine, timeout_s: float = REST_TIMEOUT_S) -> None:
-    """Stop the crosshead if it moves (a jog, a park cut short), wait for it to stand still,
-    e-stop it if it does not in time. A status that cannot be read counts as moving: the stop is
-    sent all the same (it is harmless at rest), and what happened is said."""
-    from drivers.base import DeviceConnectionLost, DeviceError  # noqa: PLC0415
-
-    def moving() -> bool:
-        try:
-            return machine.crosshead.status().moving
-        except DeviceConnectionLost:
-            raise
-        except DeviceError as exc:
-            log.warning("crosshead status unreadable before closing (%s): taken as moving", exc)
-            return True
-
-    try:
-        if not moving():
-            return
-        machine.crosshead.stop()
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if not moving():
-                return
-            time.sleep(0.02)   # polling a drive's status flag: nothing to wait on but the wire
-        log.error("crosshead not confirmed at rest %.0f s after stop: emergency stop", timeout_s)
-        machine.crosshead.emergency_stop()
-    except Exception as exc:  # a dead link cannot be told anything; the drive's watchdog stops it
-        log.error("could not bring the crosshead to rest before closing: %s", exc)

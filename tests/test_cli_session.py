@@ -7,6 +7,7 @@ engine's clock rate and connection handling) is compared, not run.
 
 import copy
 import dataclasses
+from types import SimpleNamespace
 
 import pytest
 
@@ -41,8 +42,11 @@ class _FakeSim:
 
 
 class _FakeMachine:
+    """A built machine: closing a session asks its crosshead's status (at rest here) before closing."""
+
     def __init__(self, profile, connect, overrides):
         self.profile, self.connect_now, self.overrides = profile, connect, overrides
+        self.crosshead = SimpleNamespace(status=lambda: SimpleNamespace(moving=False))
 
     def close(self):
         pass

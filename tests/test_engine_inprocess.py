@@ -9,6 +9,8 @@ failing request is scripted on the machine's link.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -303,16 +305,17 @@ def test_the_in_process_machine_answers_as_a_driver():
 
 
 def test_closing_a_session_stops_a_moving_crosshead_whose_status_reply_was_lost():
-    """session._bring_to_rest: a status that cannot be read is taken as moving - the stop is sent
-    all the same (before: one lost reply left a jogging crosshead moving, a warning logged)."""
-    from foamlab.session import _bring_to_rest
+    """safety.bring_to_rest (a session's close): a status that cannot be read is taken as moving -
+    the stop is sent all the same (before: one lost reply left a jogging crosshead moving, a warning
+    logged) - and the crosshead is confirmed at rest."""
+    from foamlab.acquisition.safety import bring_to_rest
 
     machine = InProcessMachine(speedup=50.0, noise_sigma_N=0.02)
     try:
         machine.crosshead.jog(-1, 100.0)          # up, away from the specimen
         assert machine.sim.crosshead_status().moving
         machine.fail("status", DeviceTimeout("no reply to status"))
-        _bring_to_rest(machine, timeout_s=5.0)
+        assert bring_to_rest(machine, replace(DEFAULT, stop_confirm_s=5.0)) == ""
         assert machine.requests["stop"] == 1 and machine.requests["estop"] == 0
         assert_at_rest(machine)
     finally:

@@ -1,5 +1,6 @@
 """Safety: the limits every sample is checked against, the crosshead's own alarms, and the
-ways a run leaves the machine - stop (else emergency stop), confirm at rest, park - and the
+ways a run or a session leaves the machine - stop (else emergency stop), confirm at rest, park,
+bring to rest before closing - and the
 checks before anything moves or is zeroed, shared by the window and the run engine: the
 travel a method needs (check_run_fits) and the tare refusal (check_safe_to_tare).
 
@@ -275,6 +276,25 @@ class Stopper:
             note += f"; emergency stop failed: {exc}"
         log.error(note)
         return note
+
+
+def bring_to_rest(machine: Machine, settings: AcquisitionSettings = DEFAULT) -> str:
+    """Leave the crosshead at rest before letting go of the link (a jog, a park cut short): where it
+    moves, or its status cannot be read (taken as moving), stopped and confirmed at rest as a run's
+    end is (Stopper). "" when it was or came to rest; else what happened, in one line, logged as an
+    error - never swallowed."""
+    try:
+        if not machine.crosshead.status().moving:
+            return ""
+    except DeviceError as exc:      # a lost link too: Stopper reconnects for settings.stop_retry_s
+        log.warning("crosshead status unreadable before closing (%s): taken as moving", exc)
+    stopper = Stopper(machine, threading.Event(), settings=settings)
+    said = stopper.stop()
+    if said not in ("stopped", "emergency stopped"):
+        note = f"closing: {said}"
+        log.error(note)
+        return note
+    return stopper.confirm_at_rest()
 
 
 def park(machine: Machine, stopper: Stopper, limits: Limits, target: float, speed: float, *,
