@@ -25,6 +25,7 @@ quiet gate").
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Callable, NamedTuple
 
 import numpy as np
 from scipy.stats import norm
@@ -90,13 +91,14 @@ def detection_limits(series: list[Series], base: Fit, causes: list[type[Cause]],
     thin = np.sqrt(base.n / n)
     out = []
     for cause in causes:
-        se = _stderr_at_zero(series, base, cause, whitener, coalesced) * thin
+        at_zero = _at_zero(series, base, [cause], whitener, coalesced)
+        se = _stderr_at_zero(at_zero) * thin
         q = len(cause.effect.fitted_parameters())
         multiple = _multiple(settings, q, n)
         limit = se * multiple if np.isfinite(se) else float("nan")
         linearised = float("nan")
         if cause.nonlinear_in_size and np.isfinite(limit) and limit > 0:
-            linearised, limit = limit, _sized(series, base, cause, whitener, coalesced, multiple ** 2 * base.n / n, limit)
+            linearised, limit = limit, _sized(at_zero, q, multiple ** 2 * base.n / n, limit)
         p = cause.effect.fitted_parameters()[0]
         text = cause.limit_text(limit) if np.isfinite(limit) else f"{cause.name}: not determined by this run"
         out.append(DetectionLimit(cause.name, p.name, p.unit, float(se), float(limit), text, linearised=linearised))
@@ -109,11 +111,10 @@ def _multiple(settings: DiagnosisSettings, q: int, n: int) -> float:
     return float(np.sqrt(settings.delta_bic_min + q * np.log(n)) + norm.ppf(DETECTED_SHARE))
 
 
-def _stderr_at_zero(series: list[Series], base: Fit, cause: type[Cause], whitener: ArWhitener,
-                    coalesced: np.ndarray | None = None) -> float:
+def _stderr_at_zero(at_zero: _AtZero) -> float:
     """Standard error of the cause's first parameter with the effect at zero and the base free
     (but the coalesced alpha/beta)."""
-    first, rw, Jw = whitened_at_zero(series, base, [cause], whitener, coalesced)   # the effect's first follows alpha/beta
+    first, rw, Jw = at_zero.n_phi, at_zero.rw, at_zero.Jw     # the effect's first follows alpha/beta
     sigma2 = float(rw @ rw) / max(len(rw) - Jw.shape[1], 1)
     try:
         cov = np.linalg.pinv(Jw.T @ Jw) * sigma2
@@ -123,8 +124,7 @@ def _stderr_at_zero(series: list[Series], base: Fit, cause: type[Cause], whitene
     return float(np.sqrt(v)) if np.isfinite(v) and v > 0 else float("nan")
 
 
-def _sized(series: list[Series], base: Fit, cause: type[Cause], whitener: ArWhitener, coalesced: np.ndarray | None,
-           target: float, linear: float) -> float:
+def _sized(at_zero: _AtZero, k: int, target: float, linear: float) -> float:
     """The size whose own effect, not its slope at zero, reaches the target noncentrality (on these
     series' scale) with the base linearised: the effect at that size on the variable-projection
     residual, prewhitened, less what the base's free alpha/beta take up. For an effect that grows
@@ -132,15 +132,13 @@ def _sized(series: list[Series], base: Fit, cause: type[Cause], whitener: ArWhit
     it as exp(-dt / tau), flat at zero) the slope at zero promises too little; named at half its
     linearised limit in 6 of 20 runs (docs/analysis.md, "A memory lag's limit by its size").
     Searched on a grid of factors of the linearised limit, log-log interpolated; never above it
-    (linear: the linearised limit)."""
-    model, nu, free, white, _ = _extended(series, base, [cause], whitener, coalesced)
-    fun, jac = model.residual_fn()
+    (linear: the linearised limit; k: the cause's fitted parameters, the last of at_zero's)."""
+    model, nu, white, rw, Jw = at_zero.model, at_zero.nu, at_zero.white, at_zero.rw, at_zero.Jw
+    fun = at_zero.fun
     r0 = fun(nu)
-    k = len(cause.effect.fitted_parameters())
-    others = jac(nu)[:, free][:, :-k]          # the free alpha/beta and the fit's own effects
-    q, _ = np.linalg.qr(np.column_stack([white(c) for c in others.T]) if others.shape[1] else np.zeros((len(r0), 0)))
-    rw = white(r0)
-    sigma2 = float(rw @ rw) / max(len(rw) - int(free.sum()), 1)
+    others = Jw[:, :-k]                        # the free alpha/beta and the fit's own effects, whitened
+    q, _ = np.linalg.qr(others) if others.shape[1] else (np.zeros((len(rw), 0)), None)
+    sigma2 = float(rw @ rw) / max(len(rw) - Jw.shape[1], 1)
     first = model.n_nonlinear - k
 
     def lam(size: float) -> float:
@@ -173,10 +171,32 @@ def whitened_at_zero(series: list[Series], base: Fit, causes: list[type[Cause]],
     prewhitened). Parameters the bounds hold (identification's orders held apart) do not move in
     any fit: a column of theirs would take up information the rule's fits cannot; coalesced:
     alpha/beta left out as well (bool over them; detection_limits)."""
+    at_zero = _at_zero(series, base, causes, whitener, coalesced)
+    return at_zero.n_phi, at_zero.rw, at_zero.Jw
+
+
+class _AtZero(NamedTuple):
+    """The base extended by causes at zero (_at_zero): the model, its parameters, its residual
+    function, the prewhitening, how many alpha/beta are free, and the whitened residual and
+    variable-projection Jacobian (free parameters only)."""
+
+    model: ExtendedModel
+    nu: np.ndarray
+    fun: Callable[[np.ndarray], np.ndarray]
+    white: Callable[[np.ndarray], np.ndarray]
+    n_phi: int
+    rw: np.ndarray
+    Jw: np.ndarray
+
+
+def _at_zero(series: list[Series], base: Fit, causes: list[type[Cause]], whitener: ArWhitener,
+             coalesced: np.ndarray | None = None) -> _AtZero:
+    """whitened_at_zero's work, with what _sized needs beside it (one Jacobian for both)."""
     model, nu, free, white, n_phi = _extended(series, base, causes, whitener, coalesced)
     fun, jac = model.residual_fn()
     r, J = fun(nu), jac(nu)[:, free]
-    return n_phi, white(r), np.column_stack([white(J[:, j]) for j in range(J.shape[1])])
+    return _AtZero(model, nu, fun, white, n_phi, white(r),
+                   np.column_stack([white(J[:, j]) for j in range(J.shape[1])]))
 
 
 def _extended(series: list[Series], base: Fit, causes: list[type[Cause]], whitener: ArWhitener,
