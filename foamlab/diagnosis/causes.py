@@ -115,8 +115,9 @@ class Cause:
         return (1.0, -1.0) if float(cls.bounds()[0][0]) < 0 else (1.0,)
 
     @classmethod
-    def limit_text(cls, limit: float) -> str:
-        """The smallest size this run would name, in words and physical units."""
+    def limit_text(cls, limit: float, below: float | None = None) -> str:
+        """The smallest size this run would name, in words and physical units. below: a drop's own
+        limit where a cause of either sign has one (limits.checked; its overrides say it)."""
         p = cls.effect.fitted_parameters()[0]
         return f"no {cls.name} above {limit:.2g} {p.unit}"
 
@@ -164,7 +165,7 @@ class CycleSoftening(Cause):
         return 0.1
 
     @classmethod
-    def limit_text(cls, limit):
+    def limit_text(cls, limit, below=None):
         return f"no softening above {100 * limit:.2g} %/cycle"
 
     @classmethod
@@ -233,7 +234,7 @@ class ChannelLag(Cause):
         return np.array(sorted({float(np.clip(v, lo[0], hi[0])) for v in vals}))[:, None]
 
     @classmethod
-    def limit_text(cls, limit):
+    def limit_text(cls, limit, below=None):
         return f"no force channel lag above {1000 * limit:.2g} ms"
 
     @classmethod
@@ -253,7 +254,7 @@ class ForceZeroDrift(Cause):
         return 0.05 * force_scale(series) / max(duration, 1e-9)
 
     @classmethod
-    def limit_text(cls, limit):
+    def limit_text(cls, limit, below=None):
         return f"no force zero drift beyond ±{60 * limit:.2g} N/min"
 
     @classmethod
@@ -281,7 +282,7 @@ class MachineCompliance(Cause):
         return {"tau_frame_s": 0.0}
 
     @classmethod
-    def limit_text(cls, limit):
+    def limit_text(cls, limit, below=None):
         return f"no frame softer than {1 / limit:.3g} N/mm (compliance above {1000 * limit:.2g} um/N)"
 
     @classmethod
@@ -314,7 +315,7 @@ class DirectionFriction(Cause):
         return {"v_smooth_mm_s": 0.01 * min(s.speed_mm_min for s in series) / 60.0}
 
     @classmethod
-    def limit_text(cls, limit):
+    def limit_text(cls, limit, below=None):
         return f"no friction against the motion above {limit:.2g} N"
 
     @classmethod
@@ -336,7 +337,7 @@ class RateDependence(Cause):
         return 0.5
 
     @classmethod
-    def limit_text(cls, limit):
+    def limit_text(cls, limit, below=None):
         return f"no rate dependence of the damping beyond exponent ±{limit:.2g}"
 
     @classmethod
@@ -362,7 +363,7 @@ class MemoryLag(Cause):
         return np.array(sorted({float(np.clip(v, lo[0], hi[0])) for v in vals}))[:, None]
 
     @classmethod
-    def limit_text(cls, limit):
+    def limit_text(cls, limit, below=None):
         return f"no memory lag above {1000 * limit:.2g} ms"
 
     @classmethod

@@ -315,8 +315,7 @@ def checked(limits: list[DetectionLimit], ref: PreparedRun, base: Fit, causes: l
         (size, _), *drop = sides[lim.cause]           # each sign's own limit: one can be 3 x the other
         below = float(drop[0][0]) if drop else float("nan")
         tried = tuple(t for _, side in sides[lim.cause] for t in side)
-        text = (by_name[lim.cause].limit_text(size, below) if drop else by_name[lim.cause].limit_text(size)) \
-            if np.isfinite(size) else lim.text
+        text = by_name[lim.cause].limit_text(size, below) if np.isfinite(size) else lim.text
         out.append(replace(lim, limit=float(size), text=text, injections=tried, linearised=lim.limit,
                            limit_below=below))
     return out
