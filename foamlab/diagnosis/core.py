@@ -85,6 +85,18 @@ def diagnose_prepared(runs: list[PreparedRun], base: Fit, causes: list[str] | No
     return procedure.checked(procedure.run())
 
 
+def counted(progress: Callable[[str, float], None], stage: str, cands: list[Candidate], total: int,
+            start: float, end: float, before: int = 0) -> Callable[[int, object], None]:
+    """A map's done callback naming each candidate as its fit ends: stage with {} for its name,
+    (k of total) counted from `before`, progress(stage, fraction) from start to end."""
+    ended = iter(range(before + 1, total + 1))
+
+    def done(i: int, _) -> None:
+        k = next(ended)
+        progress(f"{stage.format(cands[i].name)} ({k} of {total})", start + (end - start) * k / max(total, 1))
+    return done
+
+
 def removed_share(base: Fit, final: Fit, sigma: float) -> float:
     """The share of the base's residual sum of squares above the noise (sigma) that `final` removes."""
     excess = base.rss - base.n * sigma ** 2
@@ -154,18 +166,10 @@ class Procedure:
         "Two causes"). Nor is the noise level alone: a second cause can leave the first's model at
         1.00 x the noise's variance (the estimate's own scatter) and clear the evidence rule by far
         (a 250 N/mm frame under softening: Delta BIC 257 on top), so a quiet model is searched again
-        where a cause left would, linearised, clear the rule (_flagged)."""
-        return bool(self.findings) and self._quiet() and not self._flagged()
-
-    def _flagged(self) -> bool:
-        """A cause left would clear the evidence rule on top of the current model, linearised
-        (limits.clearing_on_top: a score test, about 0.2 s for every cause)."""
-        return bool(clearing_on_top(self.coarse, self._coarse(self.current), self.remaining, self.settings,
-                                    self.current.n))
-
-    def _quiet(self, fit: Fit | None = None) -> bool:
-        """The current model (or fit) leaves white noise at the noise level (or any residuals at it)."""
-        return quiet(fit or self.current, self.sigma, self.settings)
+        where a cause left would, linearised, clear the rule (limits.clearing_on_top: a score test,
+        about 0.2 s for every cause)."""
+        return bool(self.findings) and quiet(self.current, self.sigma, self.settings) and not bool(
+            clearing_on_top(self.coarse, self._coarse(self.current), self.remaining, self.settings, self.current.n))
 
     # -- the procedure
     @threadpool_limits.wrap(1, user_api="blas")
@@ -217,7 +221,7 @@ class Procedure:
         """Stage 7 (pairs.py): where the findings do not explain the structure the base leaves,
         the screened pairs of causes fitted jointly, best first; the first whose members each pass
         the rules on top of the other replaces the findings."""
-        if not self.settings.pair_candidates or self._explained() or self._quiet(self.base):
+        if not self.settings.pair_candidates or self._explained() or quiet(self.base, self.sigma, self.settings):
             return
         self._progress("pairs of causes that mask each other", 0.96)
         base_coarse = self._coarse(self.base)
@@ -358,7 +362,10 @@ class Procedure:
         size = processes(self.settings.workers or None)
         for first in range(0, len(todo), size):
             batch = todo[first:first + size]
-            fits = self._map(lambda c: reidentify(self.ref, self.series, c.fit), batch, *(c.fit for c in batch))
+            done = counted(self._progress, "restarted {} from identification on the data without it", batch,
+                           len(todo), 0.9, 0.92, first)
+            fits = self._map(lambda c: reidentify(self.ref, self.series, c.fit), batch, *(c.fit for c in batch),
+                             done=done)
             for c, fit in zip(batch, fits):
                 c.fit = fit
                 compare([c], self.current)
@@ -372,7 +379,9 @@ class Procedure:
         improved = False
         strong = [c for c in polished if c.delta_bic > self.settings.delta_bic_min]
         # each refit depends only on its own candidate: on the machine's cores, then taken in order
-        for alt in self._map(lambda c: without(self.series, c.fit), strong, *(c.fit for c in strong)):
+        done = counted(self._progress, "fair comparison: the model without {} refitted from its start", strong, len(strong),
+                       0.92, 0.93)
+        for alt in self._map(lambda c: without(self.series, c.fit), strong, *(c.fit for c in strong), done=done):
             if alt.rss < self.current.rss:
                 self.current, improved = alt, True
         if improved and not self.findings:
@@ -406,7 +415,10 @@ class Procedure:
                                current_coarse, None if full_budget else PROBE_NFEV)
             return coarse, self._full(coarse)
 
-        for (c, _), (coarse, fit) in zip(work, self._map(again, work, current_coarse, *(c.fit for c, _ in work))):
+        done = counted(self._progress, "{} fitted again from the better base", [c for c, _ in work], len(work),
+                       0.93, 0.95)
+        for (c, _), (coarse, fit) in zip(work, self._map(again, work, current_coarse, *(c.fit for c, _ in work),
+                                                         done=done)):
             if c.fit.rss >= self.current.rss or fit.rss < c.fit.rss:
                 c.coarse_fit, c.fit = coarse, fit
             if coarse is None:      # several starts: found on other samples than the search's
