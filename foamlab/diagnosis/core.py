@@ -379,8 +379,8 @@ class Procedure:
         improved = False
         strong = [c for c in polished if c.delta_bic > self.settings.delta_bic_min]
         # each refit depends only on its own candidate: on the machine's cores, then taken in order
-        done = counted(self._progress, "fair comparison: the model without {} refitted from its start", strong, len(strong),
-                       0.92, 0.93)
+        done = counted(self._progress, "fair comparison: the model without {} refitted from its start", strong,
+                       len(strong), 0.92, 0.93)
         for alt in self._map(lambda c: without(self.series, c.fit), strong, *(c.fit for c in strong), done=done):
             if alt.rss < self.current.rss:
                 self.current, improved = alt, True
