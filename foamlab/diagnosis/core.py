@@ -168,8 +168,8 @@ class Procedure:
         (a 250 N/mm frame under softening: Delta BIC 257 on top), so a quiet model is searched again
         where a cause left would, linearised, clear the rule (limits.clearing_on_top: a score test,
         about 0.2 s for every cause)."""
-        return bool(self.findings) and quiet(self.current, self.sigma, self.settings) and not bool(
-            clearing_on_top(self.coarse, self._coarse(self.current), self.remaining, self.settings, self.current.n))
+        return bool(self.findings) and quiet(self.current, self.sigma, self.settings) and not clearing_on_top(
+            self.coarse, self._coarse(self.current), self.remaining, self.settings, self.current.n)
 
     # -- the procedure
     @threadpool_limits.wrap(1, user_api="blas")
