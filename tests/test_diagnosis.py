@@ -268,12 +268,13 @@ def test_clean_runs_give_none():
                          settings=DEFAULT if s == 0 else VERDICT_ONLY).verdict
                 for s in range(6)]
     assert verdicts.count("none") >= 5, verdicts
-    # the progress of the first: never backwards, and it names each candidate as its probe ends
-    # (the probes run side by side: analysis.parallel)
+    # the progress of the first: never backwards, says the probes start and names each candidate as
+    # its probe ends (the probes run side by side: analysis.parallel)
     fractions = [f for _, f in seen]
     assert all(b >= a - 1e-12 for a, b in zip(fractions, fractions[1:])) and fractions[-1] == 1.0, seen
     stages = " | ".join(stage for stage, _ in seen)
     assert all(f"tested {name} (" in stages for name in ("cycle_softening", "channel_lag", "memory_lag")), stages
+    assert stages.index("causes on the decimated runs at once") < stages.index("tested "), stages
     if verdicts[0] in ("none", "unexplained"):     # nothing found: the check's jobs counted as they end (most of a clean run's time)
         checks = [stage for stage, _ in seen if stage.startswith("what this run could have seen: limits checked")]
         n = int(checks[-1].split(" of ")[-1].rstrip(")"))

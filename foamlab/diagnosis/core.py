@@ -315,10 +315,10 @@ class Procedure:
         same probes without restarts), only those the restarts change are probed again."""
         accepted = [c.cause for c in self.findings]
         todo = [c for c in self.remaining if before is None or c.absorbed_by_identification]
+        self._progress(f"testing {len(todo)} causes on the decimated runs at once", 0.0)
         done = lambda i, _: self._progress(f"tested {todo[i].name} ({i + 1} of {len(todo)})", 0.6 * (i + 1) / len(todo))
-        fits = self._map(lambda cause: probe(self.ref, self.coarse, current_coarse, accepted + [cause],
-                                             restarts=restarts), todo, current_coarse, done=done)
-        fresh = dict(zip(todo, fits))
+        probed = lambda cause: probe(self.ref, self.coarse, current_coarse, accepted + [cause], restarts=restarts)
+        fresh = dict(zip(todo, self._map(probed, todo, current_coarse, done=done)))
         return [fresh[c] if c in fresh else before[i] for i, c in enumerate(self.remaining)]
 
     def _compared(self, probes: list[Fit], current_coarse: Fit, joint: dict[int, Fit]) -> list[Candidate]:
@@ -332,8 +332,8 @@ class Procedure:
         joint.update(zip(map(id, todo), self._map(lambda f: fit_joint(self.coarse, f, current_coarse), todo,
                                                   current_coarse, *todo)))
         picked = set(map(id, chosen))
-        fits = [joint[id(f)] if id(f) in picked else f for f in ranked]
-        coarse_cands = [Candidate(f.causes[-1], f, current_coarse) for f in fits]
+        coarse_cands = [Candidate(f.causes[-1], joint[id(f)] if id(f) in picked else f, current_coarse)
+                        for f in ranked]
         compare(coarse_cands, current_coarse)
         return sorted(coarse_cands, key=lambda c: -c.delta_bic)
 
