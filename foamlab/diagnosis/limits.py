@@ -302,8 +302,12 @@ def checked(limits: list[DetectionLimit], ref: PreparedRun, base: Fit, causes: l
     first = fmap(lambda job: injector.refit(*job),
                  [(None, 0.0)] + [(by_name[lim.cause], sign * lim.limit) for lim, sign in jobs], done=tick)
     injector.reference = first[0].white
-    placed = fmap(lambda k: injector.place(by_name[jobs[k][0].cause], jobs[k][0].limit, first[k + 1], jobs[k][1]),
-                  range(len(jobs)), done=tick)
+    # the ladders furthest from their target first: they have the most refits left, and a long one
+    # started last keeps one core busy alone at the end
+    order = sorted(range(len(jobs)), key=lambda k: injector.share(by_name[jobs[k][0].cause], first[k + 1]))
+    ladders = fmap(lambda k: injector.place(by_name[jobs[k][0].cause], jobs[k][0].limit, first[k + 1], jobs[k][1]),
+                   order, done=tick)
+    placed = [side for _, side in sorted(zip(order, ladders), key=lambda kv: kv[0])]
     sides: dict[str, list] = {}
     for (lim, _), side in zip(jobs, placed):
         sides.setdefault(lim.cause, []).append(side)
@@ -389,6 +393,15 @@ class _Injector:
         refit = self.refit(cause, size) if refit is None else refit
         return min((refit.white - self.reference) / self.sigma2, refit.local)
 
+    def share(self, cause: type[Cause], refit: _Refit) -> float:
+        """What the refit leaves of the effect as a share of the cause's target (inf: nan, not
+        checked further)."""
+        lam = self.noncentrality(cause, 0.0, refit)
+        return lam / self._target(cause) if np.isfinite(lam) else np.inf
+
+    def _target(self, cause: type[Cause]) -> float:
+        return _multiple(self.settings, len(cause.effect.fitted_parameters()), self.base.n) ** 2
+
     def place(self, cause: type[Cause], linear: float, refit: _Refit | None = None, sign: float = 1.0
               ) -> tuple[float, tuple[tuple[float, float], ...]]:
         """The size (a magnitude, injected with this sign) whose injection leaves the target: the
@@ -398,8 +411,7 @@ class _Injector:
         seen one where that is not a power law). The tries are (signed size, what was left)."""
         lo_bound, hi_bound = (float(b[0]) for b in cause.bounds())
         top = hi_bound if sign > 0 else -lo_bound
-        q = len(cause.effect.fitted_parameters())
-        target = _multiple(self.settings, q, self.base.n) ** 2
+        target = self._target(cause)
         grow = lambda size, lam: min(size * min(np.sqrt(target / max(lam, target / 16)), MAX_GROWTH), top)
         tried = [(linear, self.noncentrality(cause, sign * linear, refit))]
         if not tried[0][1] < CONFIRMED_SHARE * target:       # confirmed, or nan: not checked
