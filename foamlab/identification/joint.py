@@ -258,7 +258,8 @@ class DecimatedProblem:
         w, blocks, coarse = self.w, self.blocks, self.coarse
         self.problem = SeparableProblem(lambda th: w * blocks(coarse.design(th)),
                                         lambda th: w * blocks(coarse.design_derivatives(th)),
-                                        lay.derivative_pairs[1], w[:, 0] * fd.fit_force, lay.combine)
+                                        lay.derivative_pairs[1], w[:, 0] * fd.fit_force, lay.combine,
+                                        prefetch=coarse.design_derivatives)
         # stop when an iteration gains less than a tenth of the noise variance (the
         # weighted SSE is ~ rows x sigma^2): further progress is below what the data resolve
         self.ftol = 0.1 / len(self.problem.y)
@@ -445,7 +446,8 @@ def _restricted(problem: SeparableProblem, fixed: np.ndarray, base: np.ndarray):
 
     sub = SeparableProblem(lambda th: problem.design(expand(th)),
                            lambda th: problem.derivatives(expand(th)),
-                           problem.column_of, problem.y, lambda g: problem.combine(g)[:, free])
+                           problem.column_of, problem.y, lambda g: problem.combine(g)[:, free],
+                           prefetch=(lambda th: problem.prefetch(expand(th))) if problem.prefetch else None)
     return sub, expand
 
 
@@ -496,6 +498,7 @@ def _polish(fd: PreparedRun, lay: Layout, linear: np.ndarray, nonlinear: np.ndar
 
     def fun(p):
         lin, nl, zero = unpack(p)
+        full.design_derivatives(nl)         # the column cache filled for the Jacobian that follows
         return np.maximum(full.force(lin, nl), zero) - y
 
     def jac(p):

@@ -123,7 +123,11 @@ class SeparableProblem:
     def __init__(self, design: Callable[[np.ndarray], np.ndarray],
                  derivatives: Callable[[np.ndarray], np.ndarray],
                  column_of: np.ndarray, y: np.ndarray,
-                 combine: Callable[[np.ndarray], np.ndarray] | None = None):
+                 combine: Callable[[np.ndarray], np.ndarray] | None = None,
+                 prefetch: Callable[[np.ndarray], object] | None = None):
+        """prefetch(theta): called before the residual at theta the optimizer asks for (a column
+        cache filled with the derivatives too: the Jacobian follows most of its evaluations)."""
+        self.prefetch = prefetch
         self.design = design
         self.derivatives = derivatives
         self.column_of = np.asarray(column_of, dtype=int)
@@ -142,6 +146,8 @@ class SeparableProblem:
         return self._last
 
     def residual(self, theta: np.ndarray) -> np.ndarray:
+        if self.prefetch is not None and np.asarray(theta, float).tobytes() != self._last_key:
+            self.prefetch(theta)
         return -self.solve(theta).residual       # least_squares minimises |f|^2; sign irrelevant
 
     def jacobian(self, theta: np.ndarray) -> np.ndarray:
