@@ -59,6 +59,9 @@ def diagnose(runs: list[RunData], fit: FitReport | None = None,
     other = fit.alternatives[0] if fit.alternatives and form_finding is None else None
     begun = None
     if other is not None and d.verdict != "none" and not _at_the_noise(d):
+        # its base on several runs is polished again with their turns placed for it (seconds)
+        report(f"the other residual form ({other.params.residual_form}): its base, and whether it could explain "
+               "the run better", report.fraction)
         other.prepared.series.name = names[0]
         begun = _base_of(other, rest)      # the other form's runs and base: for the check and its diagnosis
     if begun is not None and _other_may_win(d, begun, rest):
