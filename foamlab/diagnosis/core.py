@@ -85,9 +85,9 @@ def diagnose_prepared(runs: list[PreparedRun], base: Fit, causes: list[str] | No
     return procedure.checked(procedure.run())
 
 
-def counted(progress: Callable[[str, float], None], stage: str, cands: list[Candidate], total: int,
-            start: float, end: float, before: int = 0) -> Callable[[int, object], None]:
-    """A map's done callback naming each candidate as its fit ends: stage with {} for its name,
+def counted(progress: Callable[[str, float], None], stage: str, cands: list[Candidate] | list[type[Cause]],
+            total: int, start: float, end: float, before: int = 0) -> Callable[[int, object], None]:
+    """A map's done callback naming each candidate (or cause) as its fit ends: stage with {} for its name,
     (k of total) counted from `before`, progress(stage, fraction) from start to end."""
     ended = iter(range(before + 1, total + 1))
 
@@ -316,7 +316,7 @@ class Procedure:
         accepted = [c.cause for c in self.findings]
         todo = [c for c in self.remaining if before is None or c.absorbed_by_identification]
         self._progress(f"testing {len(todo)} causes on the decimated runs at once", 0.0)
-        done = lambda i, _: self._progress(f"tested {todo[i].name} ({i + 1} of {len(todo)})", 0.6 * (i + 1) / len(todo))
+        done = counted(self._progress, "tested {}", todo, len(todo), 0.0, 0.6)
         probed = lambda cause: probe(self.ref, self.coarse, current_coarse, accepted + [cause], restarts=restarts)
         fresh = dict(zip(todo, self._map(probed, todo, current_coarse, done=done)))
         return [fresh[c] if c in fresh else before[i] for i, c in enumerate(self.remaining)]

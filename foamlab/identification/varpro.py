@@ -137,18 +137,19 @@ class SeparableProblem:
         self._last: LinearSolve | None = None
         self.nfev = 0
 
-    def solve(self, theta: np.ndarray) -> LinearSolve:
+    def solve(self, theta: np.ndarray, prefetch: Callable[[np.ndarray], object] | None = None) -> LinearSolve:
+        """The linear parameters at theta (the last theta's kept); prefetch(theta) first where it is new."""
         key = np.asarray(theta, float).tobytes()
         if key != self._last_key:
+            if prefetch is not None:
+                prefetch(theta)
             self._last = solve_linear(self.design(theta), self.y)
             self._last_key = key
             self.nfev += 1
         return self._last
 
     def residual(self, theta: np.ndarray) -> np.ndarray:
-        if self.prefetch is not None and np.asarray(theta, float).tobytes() != self._last_key:
-            self.prefetch(theta)
-        return -self.solve(theta).residual       # least_squares minimises |f|^2; sign irrelevant
+        return -self.solve(theta, self.prefetch).residual       # least_squares minimises |f|^2; sign irrelevant
 
     def jacobian(self, theta: np.ndarray) -> np.ndarray:
         sol = self.solve(theta)
