@@ -147,6 +147,7 @@ def test_a_cause_of_either_sign_is_checked_on_both_and_has_a_limit_for_each(monk
 
     def fake_init(self, ref, base, causes, settings):
         self.base, self.settings, self.reference = SimpleNamespace(n=14157), settings, 0.0
+        self.base_white, self.sigma2, self.from_base = 0.0, 1.0, False      # the refits find the base's fit
 
     seen = lambda size: TARGET * (size / linear) ** 2 / (9.0 if size < 0 else 1.0)    # a drop: 1/9 seen
     monkeypatch.setattr(L._Injector, "__init__", fake_init)
@@ -163,6 +164,41 @@ def test_a_cause_of_either_sign_is_checked_on_both_and_has_a_limit_for_each(monk
     # friction has one sign: one injection, at +linear, confirmed
     friction = out["direction_friction"]
     assert friction.limit == pytest.approx(linear) and len(friction.injections) == 1 and np.isnan(friction.limit_below)
+
+
+def test_where_the_refit_misses_the_runs_own_fit_injections_are_read_from_the_base(monkeypatch):
+    """Identification's refit of a run can stop in a worse optimum than identification's own fit of
+    that run (independent B paper 3077: 284 noise variances above its base; the injected runs' refits
+    found the better one, so every injection's noncentrality read -250 where the effect was small,
+    every limit came out 2-4 x its neighbours' and six causes were named at half their limit).
+    There the check reads what identification leaves in the basin it found: the run as it is and
+    each injection polished from the base (limits._Injector.lost)."""
+    from foamlab.diagnosis import limits as L
+    from foamlab.diagnosis.causes import CAUSES
+    from foamlab.diagnosis.settings import DEFAULT
+    from foamlab.identification import fit_run
+
+    fit = fit_run(ie.independent_run("A", SEED, None, hz=2))
+    base, ref = fit.free_core or fit.core_fit, fit.prepared
+    worse = SimpleNamespace(solution=SimpleNamespace(used_residuals=[3 * r for r in base.solution.used_residuals]))
+    monkeypatch.setattr(L, "refit_core", lambda run, orders: worse)
+    monkeypatch.setattr(L._Injector, "_local", lambda self, run, refit, cause: float("inf"))   # the gate open
+    friction = CAUSES["direction_friction"]
+    injector = L._Injector(ref, base, [friction], DEFAULT)
+    assert injector.lost(injector.refit(None, 0.0))
+    injector.reference = injector.refit(None, 0.0).white
+    assert injector.noncentrality(friction, 1.0) == 0.0     # both refits in the worse optimum: nothing seen
+    injector.from_base = True
+    own = injector.refit(None, 0.0)
+    assert not injector.lost(own) and own.white <= injector.base_white * (1 + 1e-6)
+    injector.reference = own.white
+    # a friction of 1 N: what the base's basin leaves of it, 67 noise variances on this 2 Hz run
+    # (the base takes in a friction of 0.2 N whole)
+    assert 20 < injector.noncentrality(friction, 1.0) < 200
+    # checked switches by itself: its first injection reads the friction, not the worse optimum's 0
+    lim = L.DetectionLimit(friction.name, "", "", 0.2, 1.0, friction.limit_text(1.0))
+    (out,) = L.checked([lim], ref, base, [friction], DEFAULT)
+    assert out.injections[0][0] == pytest.approx(1.0) and out.injections[0][1] > 20, out.injections
 
 
 def test_orders_identification_held_apart_are_held_in_the_linearised_limit():
