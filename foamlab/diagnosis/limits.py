@@ -354,9 +354,9 @@ class _Injector:
         self.orders = base.params.layout.orders
         self.whitener = ArWhitener.fit(base.solution.used_residuals)
         white = self.whitener.apply(base.solution.used_residuals)
-        self.sigma2 = float(white @ white) / max(len(white) - base.solution.theta.size, 1)
-        self.reference = float("nan")     # refit(None).white: set by checked
         self.base_white = float(white @ white)
+        self.sigma2 = self.base_white / max(len(white) - base.solution.theta.size, 1)
+        self.reference = float("nan")     # refit(None).white: set by checked
         self.from_base = False            # refits from the base, not searched: set by checked (lost)
 
     def refit(self, cause: type[Cause] | None, size: float) -> _Refit:
