@@ -185,8 +185,9 @@ def test_where_the_refit_misses_the_runs_own_fit_injections_are_read_from_the_ba
     monkeypatch.setattr(L._Injector, "_local", lambda self, run, refit, cause: float("inf"))   # the gate open
     friction = CAUSES["direction_friction"]
     injector = L._Injector(ref, base, [friction], DEFAULT)
-    assert injector.lost(injector.refit(None, 0.0))
-    injector.reference = injector.refit(None, 0.0).white
+    as_it_is = injector.refit(None, 0.0)
+    assert injector.lost(as_it_is)
+    injector.reference = as_it_is.white
     assert injector.noncentrality(friction, 1.0) == 0.0     # both refits in the worse optimum: nothing seen
     injector.from_base = True
     own = injector.refit(None, 0.0)
