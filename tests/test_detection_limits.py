@@ -202,6 +202,33 @@ def test_where_the_refit_misses_the_runs_own_fit_injections_are_read_from_the_ba
     assert out.injections[0][0] == pytest.approx(1.0) and out.injections[0][1] > 20, out.injections
 
 
+def test_a_lag_is_injected_as_a_real_channel_reads_it():
+    """The check injects a channel lag as the force that late along the path (limits._Injector,
+    analysis.prepared.force_late): on a run foamlab never made, what the independent generator's
+    own delay adds (the specimen's force evaluated tau earlier), within a fifth of it (rms). The
+    lag effect's batch form - the sampled force interpolated - is off by most of it: after a turn
+    the force falls steeply within a step, and interpolating across the turn put 20-50 N at the
+    sample after it where the delay puts 2-52 N (docs/analysis.md, "A lag is read along the path")."""
+    from foamlab.analysis.prepared import force_late
+    from foamlab.diagnosis import limits as L
+    from foamlab.diagnosis.causes import CAUSES
+    from foamlab.diagnosis.settings import DEFAULT
+    from foamlab.identification import fit_run
+    from foamlab.model.effects import ChannelLag
+
+    clean = ie.independent_run("A", SEED, None)
+    truth = ie.independent_run("A", SEED, {"channel_lag": 40.0}).force_N - clean.force_N    # the same noise
+    fit = fit_run(clean)
+    lag = CAUSES["channel_lag"]
+    injector = L._Injector(fit.prepared, fit.free_core or fit.core_fit, [lag], DEFAULT)
+    rms = lambda v: float(np.sqrt(np.mean(np.square(v))))
+    assert rms(truth) > 0.5                                   # N: the lag shows
+    assert rms(injector._injected(lag, 0.040) - truth) < 0.2 * rms(truth)   # 0.05 of it on this run
+    model = np.maximum(force_late(injector.base.params, fit.prepared, 0.0), 0.0)     # the fitted model now
+    interpolated = ChannelLag(0.040).sensor_batch(clean.time_s, model) - model
+    assert rms(interpolated - truth) > 0.4 * rms(truth)         # 0.54 of it on this run
+
+
 def test_orders_identification_held_apart_are_held_in_the_linearised_limit():
     """A pair of nearly equal residual orders gives two nearly parallel columns: free, they take up
     a share of the softening no fit of the pair reaches (B paper seed 3045, chosen for its four

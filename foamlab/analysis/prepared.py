@@ -68,19 +68,36 @@ def model_response(params: ModelParameters, fd: "PreparedRun") -> ModelResponse:
     t, x, nodes = fd.t, fd.x, fd.nodes
     if not nodes.inserted:
         return evaluate(params, t, x, fd.labels)
-    step = fd.native_step_s / RESPONSE_REFINE
-    grid = nodes.t[0] + step * np.arange(int(np.ceil((nodes.t[-1] - nodes.t[0]) / step)) + 1)
-    grid_x = np.interp(grid, nodes.t, nodes.x)
-    # each turning point at the last grid point not after its node (there x is at the extreme)
-    at = lambda idx: [int(np.searchsorted(grid, nodes.t[i] + 1e-9 * step, side="right")) - 1 for i in idx]
-    labels = labels_from_extrema(len(grid), at(nodes.labels.starts), at(nodes.labels.peaks))
-    fine = evaluate(params, grid, grid_x, labels)
+    grid, fine = _on_grid(params, fd)
     back = lambda values: np.interp(t, grid, values)
     # the paper form's residual has no memory: exact on the nodes themselves (on the grid its
     # stroke would be cut at the turn, and near the peak Eq. 11 is steep in the stroke)
     residual = (paper_residual(params, nodes.t, nodes.x, nodes.labels)[nodes.of_sample]
                 if params.residual_form == "paper" else back(fine.residual))
     return ModelResponse(t, x, elastic_force(params, x), back(fine.damping), residual, fd.labels)
+
+
+def force_late(params: ModelParameters, fd: "PreparedRun", delay_s: float) -> np.ndarray:
+    """The model's force (unclipped) at the run's samples as a channel delay_s late reads it: the
+    force at t - delay_s along the path with its corner nodes, on model_response's finer grid.
+    Not the sampled force interpolated (the channel_lag effect's batch form): after a turn the
+    force falls steeply within a sampling step, and a sample a lag after it reads the other
+    branch (docs/analysis.md, "A lag is read along the path")."""
+    grid, fine = _on_grid(params, fd)
+    return np.interp(fd.t - delay_s, grid, fine.force)
+
+
+def _on_grid(params: ModelParameters, fd: "PreparedRun") -> tuple[np.ndarray, ModelResponse]:
+    """The model on a uniform grid RESPONSE_REFINE times finer than the samples through the path's
+    nodes, each turning point at the last grid point not after its node: (grid, response)."""
+    nodes = fd.nodes
+    step = fd.native_step_s / RESPONSE_REFINE
+    grid = nodes.t[0] + step * np.arange(int(np.ceil((nodes.t[-1] - nodes.t[0]) / step)) + 1)
+    grid_x = np.interp(grid, nodes.t, nodes.x)
+    # each turning point at the last grid point not after its node (there x is at the extreme)
+    at = lambda idx: [int(np.searchsorted(grid, nodes.t[i] + 1e-9 * step, side="right")) - 1 for i in idx]
+    labels = labels_from_extrema(len(grid), at(nodes.labels.starts), at(nodes.labels.peaks))
+    return grid, evaluate(params, grid, grid_x, labels)
 
 
 @dataclass

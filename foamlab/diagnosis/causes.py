@@ -58,6 +58,10 @@ class Cause:
     #: The effect grows faster than its size near zero (its slope there promises too little): its
     #: detection limit is found with the effect at each size (limits._sized), not its slope.
     nonlinear_in_size: ClassVar[bool] = False
+    #: The effect is the whole reading late (its parameter the delay, in s): the detection limit's
+    #: check injects the force that late along the path (limits, analysis.prepared.force_late), not
+    #: the effect's batch form, which interpolates the sampled force across a turn.
+    reads_late: ClassVar[bool] = False
 
     @classmethod
     def held_by_base(cls) -> bool:
@@ -213,6 +217,7 @@ class ChannelLag(Cause):
     # every sample, < 0 from the search's joint fit (decimated or not: regime B; docs/analysis.md)
     always_multistart = True
     multistart_sizes = (0.025, 0.1)          # x 20 steps: half a step and two steps
+    reads_late = True
 
     @classmethod
     def bounds(cls):

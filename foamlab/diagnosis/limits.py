@@ -35,7 +35,7 @@ from foamlab import FoamlabError
 from foamlab.analysis.design import ExtendedModel, Series
 from foamlab.analysis.noise import WHITE_P, ArWhitener, series_noise_sigma, whiteness
 from foamlab.analysis.parallel import serial_map
-from foamlab.analysis.prepared import PreparedRun
+from foamlab.analysis.prepared import PreparedRun, force_late
 from foamlab.analysis.solve import Fit, at_full_resolution, bounds_like, contact_of, converged, decimation, held, polish
 from foamlab.diagnosis.causes import Cause
 from foamlab.diagnosis.settings import DiagnosisSettings
@@ -364,15 +364,7 @@ class _Injector:
         this size (None: the run as it is). white nan where the injected run cannot be fitted (a
         size the model cannot make, a run the refit cannot identify): the check then stops; a
         first injection's leaves the linearised limit, a later one what the earlier ones showed."""
-        b, s = self.base, self.ref.series
-        force = s.y
-        if cause is not None:
-            m = ExtendedModel([s], b.params, list(b.model.effect_types) + [cause.effect],
-                              {**b.model.settings, cause.effect.name: cause.settings([s])},
-                              effect_bounds={**b.model.effect_bounds, cause.effect.name: cause.bounds()},
-                              masks=contact_of(b, [s]))
-            with_it, without = (m.predict(b.solution.theta, np.concatenate([b.eta, [v]]))[0] for v in (size, 0.0))
-            force = s.y + (with_it - without)
+        force = self.ref.series.y + (self._injected(cause, size) if cause is not None else 0.0)
         if not np.all(np.isfinite(force)):
             return _Refit(float("nan"))
         run = self.ref.with_force(force)
@@ -384,6 +376,22 @@ class _Injector:
             return _Refit(float("nan"))
         white = self.whitener.apply(fit.solution.used_residuals)
         return _Refit(float(white @ white), self._local(run, fit, cause) if cause is not None else float("inf"))
+
+    def _injected(self, cause: type[Cause], size: float) -> np.ndarray:
+        """What the cause at this size adds to the run's force, on the run's own fitted model: the
+        effect added to it; a reading late (Cause.reads_late) read along the path that late, as a
+        real channel is (the effect's batch form put 20-50 N at the sample after a turn where an
+        independent lag puts 2-52; docs/analysis.md, "A lag is read along the path")."""
+        b, s = self.base, self.ref.series
+        if cause.reads_late:
+            late, now = (np.maximum(force_late(b.params, self.ref, delay), 0.0) for delay in (size, 0.0))
+            return late - now
+        m = ExtendedModel([s], b.params, list(b.model.effect_types) + [cause.effect],
+                          {**b.model.settings, cause.effect.name: cause.settings([s])},
+                          effect_bounds={**b.model.effect_bounds, cause.effect.name: cause.bounds()},
+                          masks=contact_of(b, [s]))
+        with_it, without = (m.predict(b.solution.theta, np.concatenate([b.eta, [v]]))[0] for v in (size, 0.0))
+        return with_it - without
 
     def lost(self, refit: _Refit) -> bool:
         """The refit of the run as it is ended further above identification's own fit of it (the base)
