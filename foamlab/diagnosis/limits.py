@@ -380,8 +380,8 @@ class _Injector:
     def _injected(self, cause: type[Cause], size: float) -> np.ndarray:
         """What the cause at this size adds to the run's force, on the run's own fitted model: the
         effect added to it; a reading late (Cause.reads_late) read along the path that late, as a
-        real channel is (the effect's batch form put 20-50 N at the sample after a turn where an
-        independent lag puts 2-52; docs/analysis.md, "A lag is read along the path")."""
+        real channel is (the effect's batch form put 30-33 N at the sample after a turn where an
+        independent lag puts 2-52 on A causal 3068; docs/analysis.md, "A lag is read along the path")."""
         b, s = self.base, self.ref.series
         if cause.reads_late:
             late, now = (np.maximum(force_late(b.params, self.ref, delay), 0.0) for delay in (size, 0.0))
