@@ -225,7 +225,7 @@ def test_a_lag_is_injected_as_a_real_channel_reads_it():
     rms = lambda v: float(np.sqrt(np.mean(np.square(v))))
     assert rms(truth) > 0.5                                   # N: the lag shows
     assert rms(injector._injected(lag, 0.040) - truth) < 0.2 * rms(truth)   # 0.05 of it on this run
-    model = np.maximum(force_late(injector.base.params, fit.prepared, 0.0), 0.0)     # the fitted model now
+    model = np.maximum(force_late(injector.base.params, fit.prepared, (0.0,))[0], 0.0)     # the fitted model now
     interpolated = ChannelLag(0.040).sensor_batch(clean.time_s, model) - model
     assert rms(interpolated - truth) > 0.4 * rms(truth)         # 0.54 of it on this run
 

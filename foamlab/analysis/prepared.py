@@ -11,6 +11,7 @@ identified raises a FoamlabError that says what is missing, before any optimiser
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -77,14 +78,14 @@ def model_response(params: ModelParameters, fd: "PreparedRun") -> ModelResponse:
     return ModelResponse(t, x, elastic_force(params, x), back(fine.damping), residual, fd.labels)
 
 
-def force_late(params: ModelParameters, fd: "PreparedRun", delay_s: float) -> np.ndarray:
-    """The model's force (unclipped) at the run's samples as a channel delay_s late reads it: the
-    force at t - delay_s along the path with its corner nodes, on model_response's finer grid.
-    Not the sampled force interpolated (the channel_lag effect's batch form): after a turn the
-    force falls steeply within a sampling step, and a sample a lag after it reads the other
-    branch (docs/analysis.md, "A lag is read along the path")."""
+def force_late(params: ModelParameters, fd: "PreparedRun", delays_s: Sequence[float]) -> np.ndarray:
+    """The model's force (unclipped) at the run's samples as a channel each of delays_s late reads
+    it, one row each: the force at t - delay along the path with its corner nodes, on
+    model_response's finer grid (evaluated once for all). Not the sampled force interpolated (the
+    channel_lag effect's batch form): after a turn the force falls steeply within a sampling step,
+    and a sample a lag after it reads the other branch (docs/analysis.md, "A lag is read along the path")."""
     grid, fine = _on_grid(params, fd)
-    return np.interp(fd.t - delay_s, grid, fine.force)
+    return np.array([np.interp(fd.t - delay, grid, fine.force) for delay in delays_s])
 
 
 def _on_grid(params: ModelParameters, fd: "PreparedRun") -> tuple[np.ndarray, ModelResponse]:

@@ -384,7 +384,7 @@ class _Injector:
         independent lag puts 2-52 on A causal 3068; docs/analysis.md, "A lag is read along the path")."""
         b, s = self.base, self.ref.series
         if cause.reads_late:
-            late, now = (np.maximum(force_late(b.params, self.ref, delay), 0.0) for delay in (size, 0.0))
+            late, now = np.maximum(force_late(b.params, self.ref, (size, 0.0)), 0.0)
             return late - now
         m = ExtendedModel([s], b.params, list(b.model.effect_types) + [cause.effect],
                           {**b.model.settings, cause.effect.name: cause.settings([s])},
