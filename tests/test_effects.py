@@ -4,7 +4,7 @@ each effect does what its docstring says, and the batch form is smooth in its pa
 import numpy as np
 import pytest
 
-from foamlab.model import ModelParameters, ModelResponse, SpecimenState, label_history, triangular_history
+from foamlab.model import ModelParameters, ModelResponse, SpecimenState, evaluate, label_history, triangular_history
 from foamlab.model.effects import (
     EFFECTS,
     EffectChain,
@@ -41,11 +41,11 @@ def online_model(params):
     return model
 
 
-def run_machine(params, effects, speed=SPEED, cycles=2):
+def run_machine(params, effects, speed=SPEED, cycles=2, max_step_s=0.05):
     """Two triangular cycles from contact, with a 1 s hold at each peak; the noise-free trace."""
     clock = ManualClock()
     m = SimulatedMachine(clock=clock, specimen=params, effects=effects, noise_sigma_N=0.0,
-                         specimen_top_mm=0.0, max_step_s=0.05)
+                         specimen_top_mm=0.0, max_step_s=max_step_s)
     m.start_trace()
     for _ in range(cycles):
         for target in (AMPLITUDE, 0.0):
@@ -74,7 +74,12 @@ def test_catalogue_is_complete():
         assert e.magnitude == 0.123 and e.with_vector(e.vector()).values == e.values
 
 
-@pytest.mark.parametrize("name", CATALOGUE)
+#: Online forms that are exact between physics steps only: a turn's jump read as a line across one
+#: step, where the batch form reads it at the turn (model.turns; test_..._converges_... below).
+ACROSS_TURNS = ("memory_lag",)
+
+
+@pytest.mark.parametrize("name", [n for n in CATALOGUE if n not in ACROSS_TURNS])
 def test_batch_equals_online(name, params, base_trace):
     effect = EFFECTS[name]()
     tr = run_machine(params, EffectChain([effect]))
@@ -86,6 +91,20 @@ def test_batch_equals_online(name, params, base_trace):
     # batch form on the machine's samples, with the machine's own stepping of the base model
     batch = effect.measured_force(online_model(params), t, x, velocity=v)
     assert np.abs(batch - online).max() < 1e-7 * np.abs(online).max() + 1e-9
+
+
+def test_memory_lag_online_converges_to_the_batch_form_as_its_step_shrinks(params):
+    """The simulator's memory_lag reads a turn's jump as a line across its physics step; the batch
+    form reads it at the turn. Their difference is the online step's error: first order in it."""
+    effect = EFFECTS["memory_lag"]()
+    errors, largest = [], 0.0
+    for step in (0.05, 0.0125):
+        tr = run_machine(params, EffectChain([effect]), max_step_s=step)
+        t, x, v, online = tr["t"], tr["x_crosshead_mm"], tr["velocity_mm_s"], tr["sensor_force_N"]
+        batch = effect.measured_force(online_model(params), t, x, velocity=v)
+        errors.append(np.abs(batch - online).max())
+        largest = max(largest, np.abs(online).max())
+    assert errors[0] < 0.03 * largest and errors[1] < 0.4 * errors[0], (errors, largest)
 
 
 @pytest.mark.parametrize("name", CATALOGUE)
@@ -269,11 +288,14 @@ def test_memory_lag_releases_the_force_after_a_turning_point(params, base_trace)
     lagged = EffectChain([EFFECTS["memory_lag"](tau)]).response(model, t, x, velocity=v)
     b = base.base
     memory = b.damping + b.residual
-    expected = np.where(base.contact_force > 0, b.elastic + _first_order(t, memory, tau), 0.0)
+    expected = np.where(base.contact_force > 0, b.elastic + _first_order_along_the_path(params, t, x, tau), 0.0)
     inside = (lagged.contact_force > 0) & (base.contact_force > 0)
-    # (the reference is an independent explicit stepping, first-order accurate)
+    # (the reference is an independent explicit stepping, first-order accurate, of the model's
+    # memory along the path 200 x finer than the samples: the jump at the turn where it happens;
+    # the library's operators there, the machine's SOE ones in the batch form: 0.063 N of 39 apart.
+    # The jump as a line across the sampling step, as the batch form had it before: 0.47 N)
     err = np.abs(lagged.contact_force - np.maximum(expected, 0.0))[inside]
-    assert err.max() < 1e-4 * np.abs(memory).max(), err.max()
+    assert err.max() < 3e-3 * np.abs(memory).max(), (err.max(), np.abs(memory).max())
     # the jump at the first turning point (end of the first loading, then a 1 s hold) is released
     peak = int(np.flatnonzero((b.cycle == 1) & (b.direction == 1))[-1])
     around = slice(peak, int(np.searchsorted(t, t[peak] + 3 * tau)))
@@ -284,10 +306,23 @@ def test_memory_lag_releases_the_force_after_a_turning_point(params, base_trace)
     assert np.abs(lagged.contact_force - base.contact_force)[later].max() < 0.05 * np.abs(memory).max()
 
 
+def _first_order_along_the_path(params, t, x, tau, refine=200):
+    """Reference: the model's damping + residual on a uniform grid refine x finer than the samples
+    (the path piecewise linear between them), stepped explicitly through y' = (u - y)/tau there."""
+    fine = np.linspace(t[0], t[-1], refine * len(t))
+    xf = np.interp(fine, t, x)
+    comps = evaluate(params, fine, xf, label_history(xf))
+    return _stepped(t, fine, comps.damping + comps.residual, tau)
+
+
 def _first_order(t, u, tau):
     """Reference: y' = (u - y)/tau by fine explicit stepping of the linear interpolant."""
     fine = np.linspace(t[0], t[-1], 200 * len(t))
-    uf = np.interp(fine, t, u)
+    return _stepped(t, fine, np.interp(fine, t, u), tau)
+
+
+def _stepped(t, fine, uf, tau):
+    """Explicit Euler of y' = (u - y)/tau on the fine grid, read at t."""
     y = np.empty_like(uf)
     y[0] = uf[0]
     dt = fine[1] - fine[0]

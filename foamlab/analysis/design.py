@@ -52,6 +52,7 @@ from foamlab.model.effects import (
 )
 from foamlab.model.history import HistoryLabels
 from foamlab.model.layout import Layout
+from foamlab.model.turns import respond_with, times_after, turn_instants, with_times
 
 #: The active (contact) set is iterated at most this many times per solve.
 MAX_CONTACT_ITERATIONS = 12
@@ -184,6 +185,24 @@ class Series:
             else:                        # an exact history (tests): the samples are the path
                 self._bases[key] = ModelBasis(f.t, f.x if src is None else src, f.labels, self.samples,
                                               layout, x_scale_mm, self.step_s)
+        return self._bases[key]
+
+    def turn_basis(self, layout: Layout, x_scale_mm: float, frame_tau_s: float | None = None
+                   ) -> tuple[np.ndarray, ModelBasis]:
+        """(times, the design there) at finer times than the samples after each turn (model.turns):
+        what the memory stage (memory_lag) reads the model's jump at a turn from. As ``basis``: of
+        the displacement's path with its nodes, or of the force the frame deflects under."""
+        key = ("turns", layout, x_scale_mm, frame_tau_s)
+        if key not in self._bases:
+            f = self.source
+            t, x, labels, corners = ((f.nodes.t, f.nodes.x, f.nodes.labels, f.nodes.corners) if f.nodes is not None
+                                     else (f.t, f.x, f.labels, ()))
+            if frame_tau_s is not None:     # the frame's force, piecewise linear between samples
+                x = np.interp(t, f.t, f.frame_force(frame_tau_s))
+            extra = times_after(turn_instants(t, labels), f.step_s, float(self.t[0]), float(self.t[-1]))
+            t_all, x_all, labels_all, corners_all, rows = with_times(t, x, labels, extra, corners)
+            self._bases[key] = (extra, ModelBasis(t_all, x_all, labels_all, rows, layout, x_scale_mm, self.step_s,
+                                                  corners_all))
         return self._bases[key]
 
     def specimen_x(self, compliance: float, frame_tau_s: float) -> np.ndarray:
@@ -391,7 +410,7 @@ class ExtendedModel:
         else:
             x_s = s.x
         if any(type(e).memory_batch is not Effect.memory_batch for e in chain.specimen_effects):
-            cols, deriv = self._memory(s, chain, cols, deriv)
+            cols, deriv = self._memory(s, chain, phi, cols, deriv)
         gains, offset = specimen_gains(chain, s.cycle, s.velocity, s.rate)
         g = np.stack(gains, axis=1)                      # (n, 3)
         cols = cols * g[:, self._component]
@@ -399,16 +418,28 @@ class ExtendedModel:
             deriv = deriv * g[:, self._component[self._column_of]]
         return cols, offset, x_s, deriv
 
-    def _memory(self, s: Series, chain: EffectChain, cols, deriv):
+    def _memory(self, s: Series, chain: EffectChain, phi, cols, deriv):
         """The specimen effects' responses in time (memory_lag) applied to the damping and
-        residual columns and their derivatives: linear in each, so column by column."""
+        residual columns and their derivatives: linear in each, so column by column, with the
+        columns also at finer times after each turn (Series.turn_basis, model.turns)."""
+        lay, xs_mm = self.layout, self.params.x_scale_mm
+        extra, fine = s.turn_basis(lay, xs_mm)
+        f_cols = fine.design(phi)
+        f_deriv = fine.design_derivatives(phi) if deriv is not None else None
+        if chain.compliance:
+            _, frame = s.turn_basis(lay, xs_mm, chain.frame_tau_s)
+            f_cols = f_cols - chain.compliance * frame.design(phi)
+            if deriv is not None:
+                f_deriv = f_deriv - chain.compliance * frame.design_derivatives(phi)
         damping, residual = self._component == 1, self._component == 2
-        d, r = chain.memory_batch(s.t, cols[:, damping], cols[:, residual])
+        d, r = respond_with(s.t, (cols[:, damping], cols[:, residual]), extra,
+                            (f_cols[:, damping], f_cols[:, residual]), chain.memory_batch)
         cols = cols.copy()
         cols[:, damping], cols[:, residual] = d, r
         if deriv is not None:
             comp = self._component[self._column_of]
-            dd, dr = chain.memory_batch(s.t, deriv[:, comp == 1], deriv[:, comp == 2])
+            dd, dr = respond_with(s.t, (deriv[:, comp == 1], deriv[:, comp == 2]), extra,
+                                  (f_deriv[:, comp == 1], f_deriv[:, comp == 2]), chain.memory_batch)
             deriv = deriv.copy()
             deriv[:, comp == 1], deriv[:, comp == 2] = dd, dr
         return cols, deriv
