@@ -37,6 +37,7 @@ from foamlab.model import (
 from foamlab.model.response import paper_residual
 from foamlab.model.components import elastic_force
 from foamlab.model.effects import estimate_velocity, loading_rate
+from foamlab.model.turns import on_grid
 from foamlab.rundata import RunData
 from foamlab.segmentation import HalfCycle, Segmentation
 
@@ -91,13 +92,7 @@ def force_late(params: ModelParameters, fd: "PreparedRun", delays_s: Sequence[fl
 def _on_grid(params: ModelParameters, fd: "PreparedRun") -> tuple[np.ndarray, ModelResponse]:
     """The model on a uniform grid RESPONSE_REFINE times finer than the samples through the path's
     nodes, each turning point at the last grid point not after its node: (grid, response)."""
-    nodes = fd.nodes
-    step = fd.native_step_s / RESPONSE_REFINE
-    grid = nodes.t[0] + step * np.arange(int(np.ceil((nodes.t[-1] - nodes.t[0]) / step)) + 1)
-    grid_x = np.interp(grid, nodes.t, nodes.x)
-    # each turning point at the last grid point not after its node (there x is at the extreme)
-    at = lambda idx: [int(np.searchsorted(grid, nodes.t[i] + 1e-9 * step, side="right")) - 1 for i in idx]
-    labels = labels_from_extrema(len(grid), at(nodes.labels.starts), at(nodes.labels.peaks))
+    grid, grid_x, labels = on_grid(fd.nodes.t, fd.nodes.x, fd.nodes.labels, fd.native_step_s / RESPONSE_REFINE)
     return grid, evaluate(params, grid, grid_x, labels)
 
 

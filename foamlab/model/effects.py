@@ -34,10 +34,10 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.signal import lfilter, savgol_filter
 
-from foamlab.model.history import HistoryLabels, labels_from_extrema
+from foamlab.model.history import HistoryLabels
 from foamlab.model.params import ModelParameters
 from foamlab.model.response import ModelResponse, evaluate
-from foamlab.model.turns import JUST_AFTER, REFINE
+from foamlab.model.turns import JUST_AFTER, REFINE, on_grid
 
 ModelFn = Callable[[np.ndarray, np.ndarray, "HistoryLabels | None"], ModelResponse]
 
@@ -874,13 +874,12 @@ class EffectChain:
         if len(t) < 3:
             return self.memory_batch(t, base.damping, base.residual)
         step = float(np.median(np.diff(t))) / REFINE
-        grid = t[0] + step * np.arange(int(np.ceil((t[-1] - t[0]) / step - 1e-9)) + 1)
-        at = lambda idx: [int(np.searchsorted(grid, t[i] + 1e-9 * step, side="right")) - 1 for i in idx]
-        labels = labels_from_extrema(len(grid), at(base.labels.starts), at(base.labels.peaks))
-        fine = fn(grid, np.interp(grid, t, x_s), labels)
+        grid, x_grid, labels = on_grid(t, x_s, base.labels, step)
+        fine = fn(grid, x_grid, labels)
         turns = np.array(sorted(p for p in labels.peaks if p + 2 < len(grid)), int)   # the jumps: at the peaks
         times = np.insert(grid, turns + 1, grid[turns] + JUST_AFTER * REFINE * step)
-        back = lambda u: np.insert(u, turns + 1, u[turns + 1] + (u[turns + 1] - u[turns + 2]) * (1 - JUST_AFTER * REFINE))
+        far = lambda u: u[turns + 1] + (u[turns + 1] - u[turns + 2]) * (1 - JUST_AFTER * REFINE)
+        back = lambda u: np.insert(u, turns + 1, far(u))
         damping, residual = self.memory_batch(times, back(fine.damping), back(fine.residual))
         keep = np.ones(len(times), bool)
         keep[turns + 1 + np.arange(len(turns))] = False

@@ -68,3 +68,13 @@ def respond_with(t: np.ndarray, values: Sequence[np.ndarray], t_extra: np.ndarra
     rank = np.empty(len(order), int)
     rank[order] = np.arange(len(order))
     return tuple(o[rank[:len(t)]] for o in out)
+
+
+def on_grid(t: np.ndarray, x: np.ndarray, labels: HistoryLabels, step_s: float
+            ) -> tuple[np.ndarray, np.ndarray, HistoryLabels]:
+    """A uniform grid of step_s from t[0] through t[-1] along the path (t, x: piecewise linear
+    through its nodes): (times, x there, the labels with each turning point at the last grid time
+    not after it - there x is at the extreme)."""
+    grid = t[0] + step_s * np.arange(int(np.ceil((t[-1] - t[0]) / step_s)) + 1)
+    at = lambda idx: [int(np.searchsorted(grid, t[i] + 1e-9 * step_s, side="right")) - 1 for i in idx]
+    return grid, np.interp(grid, t, x), labels_from_extrema(len(grid), at(labels.starts), at(labels.peaks))
