@@ -391,22 +391,10 @@ class ExtendedModel:
         derivative the phi-derivative columns (n, D) (Layout.derivative_pairs: each of its own
         design column)."""
         lay, xs_mm = self.layout, self.params.x_scale_mm
-        basis = s.basis(lay, xs_mm)
-        if self.free_base and not derivative:
-            # a free base's Jacobian follows almost every solve: computing the columns with
-            # their derivatives fills identification's column cache for both at once
-            basis.design_derivatives(phi)
-        cols = basis.design(phi)
-        deriv = basis.design_derivatives(phi) if derivative else None
+        cols, deriv = self._design(lambda tau: s.basis(lay, xs_mm, tau), chain, phi, derivative)
         if chain.compliance:
             x_s = s.specimen_x(chain.compliance, chain.frame_tau_s)
-            frame = s.basis(lay, xs_mm, chain.frame_tau_s)
-            if self.free_base and not derivative:
-                frame.design_derivatives(phi)
-            cols = cols - chain.compliance * frame.design(phi)
             cols[:, :lay.P + 1] = np.vander(x_s / xs_mm, lay.P + 1, increasing=True)
-            if derivative:
-                deriv = deriv - chain.compliance * frame.design_derivatives(phi)
         else:
             x_s = s.x
         if any(type(e).memory_batch is not Effect.memory_batch for e in chain.specimen_effects):
@@ -418,19 +406,34 @@ class ExtendedModel:
             deriv = deriv * g[:, self._component[self._column_of]]
         return cols, offset, x_s, deriv
 
+    def _design(self, basis_of, chain: EffectChain, phi, derivative: bool):
+        """The base's design and, with derivative, its phi-derivative columns from basis_of(None)
+        (a basis of the displacement's path), less compliance times those of basis_of(frame_tau_s)
+        (the frame's force) under machine_compliance."""
+        basis = basis_of(None)
+        frame = basis_of(chain.frame_tau_s) if chain.compliance else None
+        if self.free_base and not derivative:
+            # a free base's Jacobian follows almost every solve: computing the columns with
+            # their derivatives fills identification's column cache for both at once
+            for b in (basis, frame):
+                if b is not None:
+                    b.design_derivatives(phi)
+        cols = basis.design(phi)
+        deriv = basis.design_derivatives(phi) if derivative else None
+        if frame is not None:
+            cols = cols - chain.compliance * frame.design(phi)
+            if derivative:
+                deriv = deriv - chain.compliance * frame.design_derivatives(phi)
+        return cols, deriv
+
     def _memory(self, s: Series, chain: EffectChain, phi, cols, deriv):
         """The specimen effects' responses in time (memory_lag) applied to the damping and
         residual columns and their derivatives: linear in each, so column by column, with the
         columns also at finer times after each turn (Series.turn_basis, model.turns)."""
         lay, xs_mm = self.layout, self.params.x_scale_mm
-        extra, fine = s.turn_basis(lay, xs_mm)
-        f_cols = fine.design(phi)
-        f_deriv = fine.design_derivatives(phi) if deriv is not None else None
-        if chain.compliance:
-            _, frame = s.turn_basis(lay, xs_mm, chain.frame_tau_s)
-            f_cols = f_cols - chain.compliance * frame.design(phi)
-            if deriv is not None:
-                f_deriv = f_deriv - chain.compliance * frame.design_derivatives(phi)
+        extra, _ = s.turn_basis(lay, xs_mm)
+        fine = lambda tau: s.turn_basis(lay, xs_mm, tau)[1]
+        f_cols, f_deriv = self._design(fine, chain, phi, deriv is not None)
         damping, residual = self._component == 1, self._component == 2
         d, r = respond_with(s.t, (cols[:, damping], cols[:, residual]), extra,
                             (f_cols[:, damping], f_cols[:, residual]), chain.memory_batch)
