@@ -397,7 +397,7 @@ class ExtendedModel:
             cols[:, :lay.P + 1] = np.vander(x_s / xs_mm, lay.P + 1, increasing=True)
         else:
             x_s = s.x
-        if any(type(e).memory_batch is not Effect.memory_batch for e in chain.specimen_effects):
+        if chain.has_memory:
             cols, deriv = self._memory(s, chain, phi, cols, deriv)
         gains, offset = specimen_gains(chain, s.cycle, s.velocity, s.rate)
         g = np.stack(gains, axis=1)                      # (n, 3)

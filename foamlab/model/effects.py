@@ -797,6 +797,11 @@ class EffectChain:
         """Sensor-stage effects in the order they act (lag before drift)."""
         return list(self._sensor)
 
+    @property
+    def has_memory(self) -> bool:
+        """Some specimen effect responds in time to the memory components (memory_batch: memory_lag)."""
+        return any(type(e).memory_batch is not Effect.memory_batch for e in self._specimen)
+
     def __repr__(self) -> str:
         return f"EffectChain({self.effects!r})"
 
@@ -869,7 +874,7 @@ class EffectChain:
         be a line across a sampling step (model.turns). Just after each peak, the grid's next two
         values extrapolated back stand for the other side of the jump (the fit's ExtendedModel
         evaluates the model there: the two within 0.05 N at the samples, 4 Hz, tau 0.2 s)."""
-        if not any(type(e).memory_batch is not Effect.memory_batch for e in self._specimen):
+        if not self.has_memory:
             return base.damping, base.residual
         if len(t) < 3:
             return self.memory_batch(t, base.damping, base.residual)
