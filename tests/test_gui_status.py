@@ -9,6 +9,8 @@ import os
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
+import threading
+
 import numpy as np
 import pytest
 from test_gui import (
@@ -80,6 +82,25 @@ def test_status_after_an_estop_and_a_later_run_is_current(qtbot, win):
     text, style = status(w)
     assert text.startswith("Run finished") and style != ERROR_STYLE, (text, style)
     assert w.run_status.text().startswith("Run finished") and w.run_status.styleSheet() != ERROR_STYLE
+
+
+def test_a_reset_is_sent_after_an_estop_clicked_before_it(qtbot, win):
+    """ci 63: the run's e-stop waited for the link's lock until after the operator's reset, and
+    stopped the drive the reset had just freed."""
+    w = win
+    conn = connect(qtbot, w)
+    release = threading.Event()
+
+    def late_estop() -> None:      # an e-stop still waiting for the link when Reset is clicked
+        release.wait(WAIT_MS / 1000)
+        conn.machine.crosshead.emergency_stop()
+
+    w.estop_queue.submit(late_estop)
+    click(qtbot, w.reset_button)
+    release.set()
+    qtbot.waitUntil(lambda: status(w) == ("e-stop reset: the crosshead may move again", ""), timeout=WAIT_MS)
+    w.estop_queue.submit(lambda: None).result(WAIT_MS / 1000)     # the late e-stop has been sent
+    assert not conn.simulator.crosshead_status()["emergency_stop"]
 
 
 def test_a_run_with_many_missed_samples_is_flagged_not_just_finished(qtbot, win):

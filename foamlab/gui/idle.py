@@ -9,6 +9,7 @@ from collections.abc import Callable
 
 from foamlab import FoamlabError
 from foamlab.acquisition.safety import check_safe_to_tare, shift_contact
+from foamlab.gui.background import BackgroundQueue
 from foamlab.gui.controls import ControlPanel
 from foamlab.gui.machine_link import MachineLink
 
@@ -31,11 +32,13 @@ def _tare_if_safe(machine, what: str) -> None:
 
 class IdleCommands:
     """`status(text, error=False, timeout_ms=0)`: the window's status line; `start_mm()`:
-    where "Return to start" goes (the last run's start, 0 mm before any run)."""
+    where "Return to start" goes (the last run's start, 0 mm before any run); `estops`: the
+    window's e-stop queue (its own thread, so an e-stop never waits behind a slow link call)."""
 
     def __init__(self, link: MachineLink, controls: ControlPanel, status: Callable[..., None],
-                 start_mm: Callable[[], float]) -> None:
+                 start_mm: Callable[[], float], estops: BackgroundQueue) -> None:
         self.link, self.controls, self._status, self._start_mm = link, controls, status, start_mm
+        self.estops = estops
 
     def move_speed(self, what: str) -> float | None:
         """The jog speed, capped by the speed limit entered; None (and why) if an entry is wrong."""
@@ -68,6 +71,12 @@ class IdleCommands:
         self._status(f"returning to the start position, {target:.2f} mm, at {speed:g} mm/min (Stop or Esc halts)")
 
     def reset_estop(self) -> None:
+        """Reset once every e-stop clicked before it has been sent: an e-stop still waiting for the
+        link's lock (the run's last requests hold it) would land after the reset and undo it (ci 63:
+        the reset said "may move again", the drive stayed stopped)."""
+        self.estops.submit(lambda: None, lambda _: self._reset_estop_now())
+
+    def _reset_estop_now(self) -> None:
         conn = self.link.connection
         if conn is not None:     # the red EMERGENCY STOP line is replaced once the drive is reset
             self.link.submit(conn.machine.crosshead.reset_fault,

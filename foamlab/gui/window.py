@@ -79,7 +79,8 @@ class MainWindow(FileActions, QtWidgets.QMainWindow):
         self._build_ui(auto_diagnose)
         self.connection = ConnectionView(self.link, self.controls, self._status, self._update_controls, self)
         self.poll_timer = self.connection.poll_timer
-        self.idle = IdleCommands(self.link, self.controls, self._status, lambda: self._run_start_mm)
+        self.idle = IdleCommands(self.link, self.controls, self._status, lambda: self._run_start_mm,
+                                 self.estop_queue)
         self._fill_choices(profile, method)
         self._wire()
         self._update_controls()
