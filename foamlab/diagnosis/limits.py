@@ -225,38 +225,52 @@ def _extended(series: list[Series], base: Fit, causes: list[type[Cause]], whiten
     return model, nu, free, white, int(free[:model.n_phi].sum())
 
 
-def gain_on_top(series: list[Series], fit: Fit, cause: type[Cause], whitener: ArWhitener) -> float:
+def gain_on_top(series: list[Series], fit: Fit, cause: type[Cause], whitener: ArWhitener,
+                within_bounds: bool = False) -> float:
     """What one more cause would gain on top of the fit, linearised (a score test): the likelihood
     ratio, in noise variances, of its columns at zero with alpha/beta and the fit's own effects free
     and the linear parameters projected out, on the acceptance rule's prewhitened scale.
 
-    The linearised step is held inside the parameters' bounds (bounded least squares): a direction of
-    alpha/beta the run leaves ill-determined otherwise takes a step thousands of times its range and
-    promises what no fit reaches (a 300 ms memory lag found, A causal 1008: friction 62 unbounded,
-    14.9 bounded, 15 fitted; docs/analysis.md, "The score test held inside the bounds"). An effect
-    that is zero at its bound gains nothing where the data pull it below it."""
+    within_bounds: the linearised step held inside the parameters' bounds (bounded least squares),
+    where a direction of alpha/beta the run leaves ill-determined otherwise takes a step thousands of
+    times its range and promises what no fit reaches (a 300 ms memory lag found, A causal 1008:
+    friction 62 unbounded, 14.9 bounded, 15 fitted). The stop gate asks it so; the search's depth and
+    the limits' check keep the free step their limits were measured with (held, the 1.5 x rows fell:
+    docs/analysis.md, "The score test held inside the bounds")."""
     at = _at_zero(series, fit, [cause], whitener)
-    q = len(cause.effect.fitted_parameters())
-    lower, upper = at.steps
-    with_cause = lsq_linear(at.Jw, -at.rw, bounds=(lower, upper), method="bvls").cost
-    without = lsq_linear(at.Jw[:, :-q], -at.rw, bounds=(lower[:-q], upper[:-q]), method="bvls").cost \
-        if at.Jw.shape[1] > q else 0.5 * float(at.rw @ at.rw)
-    return 2.0 * (without - with_cause) / (float(at.rw @ at.rw) / len(at.rw))
+    q, rw, Jw = len(cause.effect.fitted_parameters()), at.rw, at.Jw
+    s2 = float(rw @ rw) / len(rw)
+    if within_bounds:      # an effect zero at its bound cannot step below it: the one-sided rule too
+        lower, upper = at.steps
+        with_cause = lsq_linear(Jw, -rw, bounds=(lower, upper), method="bvls").cost
+        without = lsq_linear(Jw[:, :-q], -rw, bounds=(lower[:-q], upper[:-q]), method="bvls").cost \
+            if Jw.shape[1] > q else 0.5 * float(rw @ rw)
+        return 2.0 * (without - with_cause) / s2
+    coef = np.linalg.lstsq(Jw, rw, rcond=None)[0]
+    if cause.bounds()[0][0] >= 0.0 >= -coef[-q]:       # Gauss-Newton's step: the residual's Jacobian is -df
+        # one-sided: an effect that is zero at its bound gains nothing where the data pull it below
+        # (a frame of negative compliance flagged 110 on a 1 Hz softened run; fitted, -3.8)
+        return 0.0
+    fitted = Jw @ coef
+    base = Jw[:, :-q] @ np.linalg.lstsq(Jw[:, :-q], rw, rcond=None)[0]
+    return (float(fitted @ fitted) - float(base @ base)) / s2
 
 
 def clearing_on_top(series: list[Series], fit: Fit, causes: list[type[Cause]], settings: DiagnosisSettings,
-                    n_full: int | None = None) -> list[type[Cause]]:
+                    n_full: int | None = None, within_bounds: bool = False) -> list[type[Cause]]:
     """The causes whose gain on top of the fit, linearised (gain_on_top), would clear the evidence
     rule: Delta BIC = gain - q ln n above settings.delta_bic_min. series may be the search's
     decimated ones, the fit on them: every sample's information is then the decimated samples'
     times n_full / n (as detection_limits)."""
     whitener = ArWhitener.fit(fit.solution.used_residuals)
-    return [c for c in causes if _clears(_gain(series, fit, c, whitener, n_full), c, settings, n_full or fit.n)]
+    return [c for c in causes
+            if _clears(_gain(series, fit, c, whitener, n_full, within_bounds), c, settings, n_full or fit.n)]
 
 
-def _gain(series: list[Series], fit: Fit, cause: type[Cause], whitener: ArWhitener, n_full: int | None) -> float:
+def _gain(series: list[Series], fit: Fit, cause: type[Cause], whitener: ArWhitener, n_full: int | None,
+          within_bounds: bool = False) -> float:
     """gain_on_top on the scale of n_full samples (the fit's own where None)."""
-    return gain_on_top(series, fit, cause, whitener) * (n_full or fit.n) / fit.n
+    return gain_on_top(series, fit, cause, whitener, within_bounds) * (n_full or fit.n) / fit.n
 
 
 def _clears(gain: float, cause: type[Cause], settings: DiagnosisSettings, n: int) -> bool:
