@@ -68,7 +68,7 @@ from foamlab.diagnosis.extend import (
     screen,
     without,
 )
-from foamlab.diagnosis.limits import checked, clearing_on_top, detection_limits, opens_search, quiet
+from foamlab.diagnosis.limits import checked, detection_limits, left_on_top, opens_search, quiet
 from foamlab.diagnosis.pairs import fit_pair, members, named, redundant_first, screened
 from foamlab.diagnosis.residuals import analyse
 from foamlab.diagnosis.result import Candidate, Diagnosis
@@ -166,17 +166,10 @@ class Procedure:
         "Two causes"). Nor is the noise level alone: a second cause can leave the first's model at
         1.00 x the noise's variance (the estimate's own scatter) and clear the evidence rule by far
         (a 250 N/mm frame under softening: Delta BIC 257 on top), so a quiet model is searched again
-        where a cause left would, linearised, clear the rule (limits.clearing_on_top: a score test
-        with its step inside the bounds, about 0.2 s for every cause). Screened on the decimated
-        runs, decided on every sample: the decimated runs' score, scaled by the samples, promised
-        friction 44 where every sample's gave 15, and its fit 15 (docs/analysis.md, "The score test
+        where a cause left would, linearised, clear the rule (limits.left_on_top, "The score test
         held inside the bounds")."""
-        if not (self.findings and quiet(self.current, self.sigma, self.settings)):
-            return False
-        screened = clearing_on_top(self.coarse, self._coarse(self.current), self.remaining, self.settings,
-                                   self.current.n, within_bounds=True)
-        return not (screened and clearing_on_top(self.series, self.current, screened, self.settings,
-                                                 within_bounds=True))
+        return bool(self.findings) and quiet(self.current, self.sigma, self.settings) and not left_on_top(
+            self.coarse, self._coarse(self.current), self.series, self.current, self.remaining, self.settings)
 
     # -- the procedure
     @threadpool_limits.wrap(1, user_api="blas")

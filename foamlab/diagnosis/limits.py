@@ -267,6 +267,16 @@ def clearing_on_top(series: list[Series], fit: Fit, causes: list[type[Cause]], s
             if _clears(_gain(series, fit, c, whitener, n_full, within_bounds), c, settings, n_full or fit.n)]
 
 
+def left_on_top(coarse: list[Series], on: Fit, series: list[Series], fit: Fit, causes: list[type[Cause]],
+                settings: DiagnosisSettings) -> list[type[Cause]]:
+    """The causes that would clear the rule on top of the fit, their score's step inside the bounds:
+    screened on the decimated runs `coarse` (the fit carried to them `on`), decided on every sample
+    (the decimated, scaled score promised friction 44 where every sample's gave 15, and its fit 15;
+    docs/analysis.md, "The score test held inside the bounds"). About 0.2 s a cause."""
+    screened = clearing_on_top(coarse, on, causes, settings, fit.n, within_bounds=True)
+    return clearing_on_top(series, fit, screened, settings, within_bounds=True) if screened else []
+
+
 def _gain(series: list[Series], fit: Fit, cause: type[Cause], whitener: ArWhitener, n_full: int | None,
           within_bounds: bool = False) -> float:
     """gain_on_top on the scale of n_full samples (the fit's own where None)."""
