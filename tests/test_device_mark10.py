@@ -58,13 +58,13 @@ def gauge(command: bytes, reply: bytes = b"") -> list:
 # ================================================================= (a) the driver, recorded peer
 
 @contextmanager
-def driver(exchanges, *, connect=False, timeout_s=0.3, retries=1, **profile_changes):
+def driver(exchanges, *, connect=False, timeout_s=0.3, retries=1, setter_window_s=0.05, **profile_changes):
     profile = load_profile("sim-serial")
     for section, values in profile_changes.items():
         profile[section] = {**profile[section], **values}
     with RecordedPeer(exchanges, transport="pty") as peer:
         machine = open_machine(profile, connect=False, port_url=peer.url, timeout_s=timeout_s, retries=retries)
-        machine.commands = machine.link.commands = _quick(machine.commands)
+        machine.commands = machine.link.commands = _quick(machine.commands, setter_window_s)
         if connect:
             machine.connect()
         else:
@@ -76,10 +76,10 @@ def driver(exchanges, *, connect=False, timeout_s=0.3, retries=1, **profile_chan
         peer.verify()
 
 
-def _quick(commands: CommandSet) -> CommandSet:
+def _quick(commands: CommandSet, setter_window_s: float) -> CommandSet:
     """The device file with the pass-through pause and setter window shortened (tests only)."""
     from dataclasses import replace
-    return replace(commands, passthrough_pause_s=0.0, setter_window_s=0.05)
+    return replace(commands, passthrough_pause_s=0.0, setter_window_s=setter_window_s)
 
 
 CONNECT = [(b"i", b""), *gauge(b"N"), *gauge(b"FULL"), (b"h-020.00", b""), (b"g070.00", b""), (b"l", b"")]
@@ -186,7 +186,8 @@ def test_error_codes_are_refusals_named_as_the_vendor_names_them(code, meaning):
 
 
 def test_a_gauge_setter_refused_is_an_error_reply():
-    with driver(gauge(b"Z", b"*10\r\n")) as machine:
+    # a window long enough for a busy host: the refusal ends the wait as soon as it arrives
+    with driver(gauge(b"Z", b"*10\r\n"), setter_window_s=5.0) as machine:
         with pytest.raises(DeviceErrorReply, match=r"'Z': \*10 illegal command"):
             machine.load_cell.zero()
 
