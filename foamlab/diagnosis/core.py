@@ -207,7 +207,7 @@ class Procedure:
             # every other cause is tried again on top: one the first hid (a friction under a lag)
             # had no evidence of its own in this round
             self.remaining = [c.cause for c in cands if c is not chosen]
-        self.drop_redundant_provisional()
+        self.drop_redundant_first()
         self.pairs()
         return self.verdict()
 
@@ -235,10 +235,10 @@ class Procedure:
                 self.findings, self.current, self.first_partial, self.partial = cands, full, [], []
                 return
 
-    def drop_redundant_provisional(self) -> None:
-        """A provisional first finding that the finding on top of it made redundant is dropped,
-        and that finding judged alone against the base (pairs.redundant_first)."""
-        if len(self.findings) != 2 or not self.first_partial:
+    def drop_redundant_first(self) -> None:
+        """A first finding the one on top of it made redundant (provisional, or imitating it: a damping
+        drop for a frame) is dropped, and that finding judged alone against the base (pairs.redundant_first)."""
+        if len(self.findings) != 2:
             return
         kept = redundant_first(self.series, self.current, self.base, self.findings, self.sigma, self.settings,
                                self._coarse)

@@ -118,11 +118,14 @@ def named(cands: list[Candidate], pair: Fit, base: Fit, sigma: float, s: Diagnos
 
 def redundant_first(series: list[Series], current: Fit, base: Fit, findings: list[Candidate], sigma: float,
                     s: DiagnosisSettings, coarse: Callable[[Fit], Fit]) -> Candidate | None:
-    """The second of two findings judged alone against the base, when the first (provisional:
-    partial) is redundant on top of it - the final model without the first is as good (a damping
-    change fitted at a local optimum first lost to softening, then took its place: softening 2e-7
-    per cycle in the final model). None when the first is not redundant or the second alone fails
-    the rules; else the second, passed, and the first marked as dropped."""
+    """The second of two findings judged alone against the base, when the first is redundant on
+    top of it - the final model without the first is as good. The first can be provisional (a
+    damping change fitted at a local optimum first lost to softening, then took its place:
+    softening 2e-7 per cycle in the final model), or have passed every rule by imitating the
+    second (a 250 N/mm frame, independent A causal 1016: a damping drop of 12 %/cycle first, the
+    frame on top at its size, without which the drop gains nothing; docs/analysis.md). None when
+    the first is not redundant or the second alone fails the rules; else the second, passed, and
+    the first marked as dropped."""
     first, second = findings
     alone = without(series, current, 0)
     on_top = Candidate(first.cause, current, alone)
@@ -139,6 +142,6 @@ def redundant_first(series: list[Series], current: Fit, base: Fit, findings: lis
         return None
     c.passed = True
     first.passed = False
-    first.reason = (f"partial, made redundant by {second.name}: without it the final model is as good "
+    first.reason = (f"made redundant by {second.name}: without it the final model is as good "
                     f"(delta BIC {on_top.delta_bic:.1f} <= {s.delta_bic_min:g})")
     return c
