@@ -23,6 +23,7 @@ from foamlab.analysis.prepared import PreparedRun, model_response, prepare
 from foamlab.analysis.solve import Fit, converged, polish, solved_at
 from foamlab.identification.apart import HeldApart, coalesced, hold_apart
 from foamlab.identification.forms import choose as forms_choose
+from foamlab.identification.forms import core_fit_of
 from foamlab.identification.forms import likelier_first
 from foamlab.identification.forms import settles as forms_settle
 from foamlab.identification.joint import (
@@ -121,7 +122,9 @@ def fit_prepared(fd: PreparedRun, orders: Orders | str | tuple | None = None,
     for i, f in enumerate(forms):
         def scaled(stage: str, fraction: float, i=i, f=f) -> None:
             report(f"{f} form: {stage}" if len(forms) > 1 else stage, (i + fraction) / steps)
-        rival = min((r.rmse for r in results), default=np.inf)
+        # on the core fit's used samples: the measure the polish's gate compares with (a report's RMSE
+        # over every sample is up to 8.5 x it where a lag misfits the turns; docs/analysis.md)
+        rival = min((core_fit_of(r).rmse for r in results), default=np.inf)
         # the turns' placement is the path's, not the form's: a form starts where the last one placed them
         placed = results[-1].prepared if results and results[-1].prepared is not None else fd
         results.append(_fit_placed(placed, replace(orders, form=f), select and len(forms) == 1, scaled, paper,
@@ -170,7 +173,7 @@ def _fit_placed(fd: PreparedRun, orders: Orders, select: bool, progress: Progres
     # has turns without a stop it is fitted ahead on another core while the first fit shows
     # whether it is needed (the same computation; cancelled when not)
     other = fd.other_turns() if len(fd.nodes.turns_between) else None
-    ahead = fork_ahead(lambda: _fit_prepared(other, orders, select, None, hold=hold, settings=settings),
+    ahead = fork_ahead(lambda: _fit_prepared(other, orders, select, None, rival=rival, hold=hold, settings=settings),
                        [fd, fd.series, other, other.series]) if other is not None else None
     try:
         return _placed_best(fd, orders, select, progress, paper, rival, hold, settings, other, ahead)
@@ -192,7 +195,7 @@ def _placed_best(fd: PreparedRun, orders: Orders, select: bool, progress: Progre
     lost = select and len(fd.nodes.turns_between) > 0 and result.rmse > FAR_FROM_NOISE * fd.noise_N
     placements = []
     # a form far off its rival's RMSE is not kept (forms.choose): its turns are not placed one by one
-    misplaced = _misplaced_turns(result, fd) if result.rmse <= RIVAL_RATIO * rival else ()
+    misplaced = _misplaced_turns(result, fd) if core_fit_of(result).rmse <= RIVAL_RATIO * rival else ()
     if misplaced and len(misplaced) < len(fd.nodes.turns_between):
         placements.append((fd.with_flipped(tuple(sorted(set(fd.nodes.flipped) ^ set(misplaced)))), True))
     if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around) or lost:
@@ -215,7 +218,7 @@ def _placed_best(fd: PreparedRun, orders: Orders, select: bool, progress: Progre
                      FIRST_SHARE + (1.0 - FIRST_SHARE) * (i + fraction) / len(placements))
         # result.orders is orders where the structure is not selected: the fit ahead's too
         return _fit_prepared(placements[i], orders if select else result.orders, select,
-                             (lambda stage, f: None) if quiet else within, hold=hold, settings=settings)
+                             (lambda stage, f: None) if quiet else within, rival=rival, hold=hold, settings=settings)
 
     # independent whole fits: on the machine's cores (the same results; analysis.parallel)
     done = lambda i, _: progress("turns placed the other way: done", FIRST_SHARE + (1.0 - FIRST_SHARE) * (i + 1)
