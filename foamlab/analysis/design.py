@@ -195,14 +195,14 @@ class Series:
         key = ("turns", layout, x_scale_mm, frame_tau_s)
         if key not in self._bases:
             f = self.source
-            t, x, labels, corners = ((f.nodes.t, f.nodes.x, f.nodes.labels, f.nodes.corners) if f.nodes is not None
-                                     else (f.t, f.x, f.labels, ()))
-            if frame_tau_s is not None:     # the frame's force, piecewise linear between samples
-                x = np.interp(t, f.t, f.frame_force(frame_tau_s))
+            # the frame's force where frame_tau_s is given, piecewise linear between samples
+            src = None if frame_tau_s is None else f.frame_force(frame_tau_s)
+            t, x, labels, corners = ((f.nodes.t, f.nodes.along(src), f.nodes.labels, f.nodes.corners)
+                                     if f.nodes is not None else (f.t, f.x if src is None else src, f.labels, ()))
             extra = times_after(turn_instants(t, labels), f.step_s, float(self.t[0]), float(self.t[-1]))
-            t_all, x_all, labels_all, corners_all, rows = with_times(t, x, labels, extra, corners)
-            self._bases[key] = (extra, ModelBasis(t_all, x_all, labels_all, rows, layout, x_scale_mm, self.step_s,
-                                                  corners_all))
+            path = with_times(t, x, labels, extra, corners)
+            self._bases[key] = (extra, ModelBasis(path.t, path.x, path.labels, path.extra_rows, layout, x_scale_mm,
+                                                  self.step_s, path.corners))
         return self._bases[key]
 
     def specimen_x(self, compliance: float, frame_tau_s: float) -> np.ndarray:
@@ -498,7 +498,8 @@ class ExtendedModel:
         return self._predict_unfitted(best, columns, rows, chain)
 
     def _active_set(self, columns, chain: EffectChain, rows, keep_all, start) -> Solution:
-        """Least squares with the contact set iterated to consistency from ``start``."""
+        """Least squares with the contact set iterated to consistency from ``start``; where the set
+        cycles (or the iterations run out), the best solution seen."""
         masks = list(start)
         best = None
         seen: list[list[np.ndarray]] = []
@@ -519,7 +520,10 @@ class ExtendedModel:
             fitted = [m[r] for m, r in zip(new_masks, rows)]
             old = [m[r] for m, r in zip(masks, rows)]
             if all(np.array_equal(a_, b_) for a_, b_ in zip(fitted, old)):
-                break
+                # consistent: the set its own solution pushes on, even where an earlier iterate fitted
+                # better - that one pushed where its own force is negative (docs/analysis.md, "The
+                # contact set its own solution pushes on")
+                return sol
             seen.append(old)
             if any(all(np.array_equal(a_, b_) for a_, b_ in zip(fitted, prev)) for prev in seen):
                 break   # the active set cycles: keep the best solution seen

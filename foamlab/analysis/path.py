@@ -130,6 +130,11 @@ class PathNodes:
         """The path at the samples (the displacement that drives the model there)."""
         return self.x[self.of_sample]
 
+    def along(self, source: np.ndarray | None = None) -> np.ndarray:
+        """The displacement at the nodes, or (source) another history on the samples there, taken
+        piecewise linear between samples as the path is."""
+        return self.x if source is None else np.interp(self.t, self.t[self.of_sample], source)
+
     def basis(self, samples: np.ndarray, layout: Layout, x_scale_mm: float, step_s: float,
               source: np.ndarray | None = None) -> ModelBasis:
         """The model's design matrix at these samples, its operators driven by the path
@@ -137,8 +142,7 @@ class PathNodes:
 
         source: another history on the samples to drive the memory operators with instead
         of the displacement (taken piecewise linear between samples, as the path is)."""
-        drive = self.x if source is None else np.interp(self.t, self.t[self.of_sample], source)
-        return ModelBasis(self.t, drive, self.labels, self.of_sample[np.asarray(samples, dtype=int)], layout,
+        return ModelBasis(self.t, self.along(source), self.labels, self.of_sample[np.asarray(samples, dtype=int)], layout,
                           x_scale_mm, step_s, self.corners)
 
 

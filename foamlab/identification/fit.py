@@ -195,7 +195,8 @@ def _placed_best(fd: PreparedRun, orders: Orders, select: bool, progress: Progre
     lost = select and len(fd.nodes.turns_between) > 0 and result.rmse > FAR_FROM_NOISE * fd.noise_N
     placements = []
     # a form far off its rival's RMSE is not kept (forms.choose): its turns are not placed one by one
-    misplaced = _misplaced_turns(result, fd) if core_fit_of(result).rmse <= RIVAL_RATIO * rival else ()
+    near_rival = not np.isfinite(rival) or core_fit_of(result).rmse <= RIVAL_RATIO * rival   # no rival: no solve
+    misplaced = _misplaced_turns(result, fd) if near_rival else ()
     if misplaced and len(misplaced) < len(fd.nodes.turns_between):
         placements.append((fd.with_flipped(tuple(sorted(set(fd.nodes.flipped) ^ set(misplaced)))), True))
     if at_turns > TURN_MISFIT_MULTIPLE * max(fd.noise_N, around) or lost:

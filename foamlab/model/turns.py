@@ -13,7 +13,7 @@ and the fit's ExtendedModel (its columns there from a second basis, Series.turn_
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -43,15 +43,25 @@ def times_after(turns: np.ndarray, step_s: float, t_first: float, t_last: float)
     return np.unique(out[(out >= t_first) & (out <= t_last)])
 
 
+class TimedPath(NamedTuple):
+    """A path with extra times as nodes (with_times): its times, x there, the half-cycles' labels,
+    the corners' indices, and each extra time's index."""
+
+    t: np.ndarray
+    x: np.ndarray
+    labels: HistoryLabels
+    corners: np.ndarray
+    extra_rows: np.ndarray
+
+
 def with_times(t: np.ndarray, x: np.ndarray, labels: HistoryLabels, extra: np.ndarray,
-               corners: Sequence[int] = ()) -> tuple[np.ndarray, np.ndarray, HistoryLabels, np.ndarray, np.ndarray]:
-    """The path (t, x: piecewise linear through its nodes) with the extra times as nodes:
-    (times, x there, the half-cycles' labels, the corners, each extra time's index)."""
+               corners: Sequence[int] = ()) -> TimedPath:
+    """The path (t, x: piecewise linear through its nodes) with the extra times as nodes."""
     t_all = np.union1d(t, extra)
     x_all = np.interp(t_all, t, x)
     at = lambda idx: [int(i) for i in np.searchsorted(t_all, np.asarray(t, float)[np.asarray(idx, int)])]
     labels_all = labels_from_extrema(len(t_all), at(labels.starts), at(labels.peaks))
-    return t_all, x_all, labels_all, np.asarray(at(corners), int), np.searchsorted(t_all, extra)
+    return TimedPath(t_all, x_all, labels_all, np.asarray(at(corners), int), np.searchsorted(t_all, extra))
 
 
 def respond_with(t: np.ndarray, values: Sequence[np.ndarray], t_extra: np.ndarray,
