@@ -498,8 +498,10 @@ class ExtendedModel:
         return self._predict_unfitted(best, columns, rows, chain)
 
     def _active_set(self, columns, chain: EffectChain, rows, keep_all, start) -> Solution:
-        """Least squares with the contact set iterated to consistency from ``start``; where the set
-        cycles (or the iterations run out), the best solution seen."""
+        """Least squares with the contact set iterated to consistency from ``start``, the best
+        solution seen kept: after a step, the first iterate (the last solve's set) often fits better
+        than the consistent one, and keeping it lets a fit's contact set lag its parameters - which
+        restarts from far off need (docs/analysis.md, "The contact set its own solution pushes on")."""
         masks = list(start)
         best = None
         seen: list[list[np.ndarray]] = []
@@ -520,10 +522,7 @@ class ExtendedModel:
             fitted = [m[r] for m, r in zip(new_masks, rows)]
             old = [m[r] for m, r in zip(masks, rows)]
             if all(np.array_equal(a_, b_) for a_, b_ in zip(fitted, old)):
-                # consistent: the set its own solution pushes on, even where an earlier iterate fitted
-                # better - that one pushed where its own force is negative (docs/analysis.md, "The
-                # contact set its own solution pushes on")
-                return sol
+                break
             seen.append(old)
             if any(all(np.array_equal(a_, b_) for a_, b_ in zip(fitted, prev)) for prev in seen):
                 break   # the active set cycles: keep the best solution seen
