@@ -18,3 +18,28 @@ def _garbage_collected_between_tests():
     background = sys.modules.get("foamlab.gui.background")   # only where a test imported the window
     if background is not None:
         background.collect_pending_garbage()
+
+
+#: Window tests assert what the window shows, not the link's timing: there a machine gets this long
+#: to answer (a device's own 40 ms is the schedule tests' and the fault tests'). In the first phase's
+#: idle class the window's client can wait tens of ms for a core with the reply already sent (run 85,
+#: docs/benchmarks.md: a move unanswered 3 x 2 x 40 ms, the replies arriving 4 transactions late), as
+#: tests/test_drivers_hil.py's functional tests allow for (PATIENT).
+PATIENT_WINDOW_TIMEOUT_S = 0.25
+
+
+@pytest.fixture(autouse=True)
+def _patient_window_link(request, monkeypatch):
+    """A window test (marked gui, not schedule) opens its machine with PATIENT_WINDOW_TIMEOUT_S."""
+    node = request.node
+    if node.get_closest_marker("gui") is not None and node.get_closest_marker("schedule") is None:
+        import drivers.profile as profiles    # where foamlab.session opens a machine from
+
+        opened = profiles.open_machine
+
+        def patient(profile, *, connect: bool = True, **overrides):
+            overrides["timeout_s"] = max(PATIENT_WINDOW_TIMEOUT_S, float(overrides.get("timeout_s") or 0.0))
+            return opened(profile, connect=connect, **overrides)
+
+        monkeypatch.setattr(profiles, "open_machine", patient)
+    yield
