@@ -142,8 +142,8 @@ class PathNodes:
 
         source: another history on the samples to drive the memory operators with instead
         of the displacement (taken piecewise linear between samples, as the path is)."""
-        return ModelBasis(self.t, self.along(source), self.labels, self.of_sample[np.asarray(samples, dtype=int)], layout,
-                          x_scale_mm, step_s, self.corners)
+        return ModelBasis(self.t, self.along(source), self.labels, self.of_sample[np.asarray(samples, dtype=int)],
+                          layout, x_scale_mm, step_s, self.corners)
 
 
 def _lines_meet(t: np.ndarray, path: np.ndarray, first: int, last: int, v_in: float, v_out: float):
