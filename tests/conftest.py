@@ -38,8 +38,11 @@ def _patient_window_link(request, monkeypatch):
         opened = profiles.open_machine
 
         def patient(profile, *, connect: bool = True, **overrides):
-            overrides["timeout_s"] = max(PATIENT_WINDOW_TIMEOUT_S, float(overrides.get("timeout_s") or 0.0))
-            return opened(profile, connect=connect, **overrides)
+            # never shorter than the profile's own (or a caller's) timeout
+            loaded = profile if isinstance(profile, dict) else profiles.load_profile(profile)
+            own = overrides.get("timeout_s") or loaded["connection"]["timeout_s"]
+            overrides["timeout_s"] = max(PATIENT_WINDOW_TIMEOUT_S, float(own))
+            return opened(loaded, connect=connect, **overrides)
 
         monkeypatch.setattr(profiles, "open_machine", patient)
     yield
