@@ -502,8 +502,7 @@ class ExtendedModel:
         """Least squares with the contact set iterated to consistency from ``start``, the best
         solution seen kept: after a step, the first iterate (the last solve's set) often fits better
         than the consistent one, and keeping it lets a fit's contact set lag its parameters - which
-        restarts from far off need (docs/analysis.md, "The contact set its own solution pushes on").
-        consistent: where the set converges, that set's solution (a fit's optimum: solve.varpro)."""
+        restarts from far off need (docs/analysis.md, "The contact set its own solution pushes on")."""
         masks = list(start)
         best = None
         seen: list[list[np.ndarray]] = []
