@@ -475,11 +475,10 @@ class ExtendedModel:
         return m, const
 
     # -- solve
-    def solve(self, nu=(), keep: list[np.ndarray] | None = None, consistent: bool = False) -> Solution:
+    def solve(self, nu=(), keep: list[np.ndarray] | None = None) -> Solution:
         """Linear parameters by least squares on the kept samples, for nonlinear parameters nu.
 
-        The contact set (where the model pushes) is iterated to consistency; consistent: where it
-        converges, that set's solution, not the best seen (a fit's end: _active_set).
+        The contact set (where the model pushes) is iterated to consistency.
         """
         phi, eta = self.split(nu)
         chain = EffectChain(self.effects(eta))
@@ -493,12 +492,12 @@ class ExtendedModel:
         # the parameters do), at first from the one this model was made with
         start = [(m if m is not None else compressed & (s.y > 0)) & compressed
                  for m, (s, _, _, compressed) in zip(self._last_masks, columns)]
-        best = self._active_set(columns, chain, rows, keep_all, start, consistent)
+        best = self._active_set(columns, chain, rows, keep_all, start)
         if keep is None:
             self._last_masks = [m.copy() for m in best.masks]
         return self._predict_unfitted(best, columns, rows, chain)
 
-    def _active_set(self, columns, chain: EffectChain, rows, keep_all, start, consistent: bool = False) -> Solution:
+    def _active_set(self, columns, chain: EffectChain, rows, keep_all, start) -> Solution:
         """Least squares with the contact set iterated to consistency from ``start``, the best
         solution seen kept: after a step, the first iterate (the last solve's set) often fits better
         than the consistent one, and keeping it lets a fit's contact set lag its parameters - which
@@ -523,7 +522,7 @@ class ExtendedModel:
             fitted = [m[r] for m, r in zip(new_masks, rows)]
             old = [m[r] for m, r in zip(masks, rows)]
             if all(np.array_equal(a_, b_) for a_, b_ in zip(fitted, old)):
-                return sol if consistent else best
+                break
             seen.append(old)
             if any(all(np.array_equal(a_, b_) for a_, b_ in zip(fitted, prev)) for prev in seen):
                 break   # the active set cycles: keep the best solution seen

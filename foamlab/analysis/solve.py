@@ -153,9 +153,7 @@ def varpro(model: ExtendedModel, nu0: np.ndarray, keep: list[np.ndarray] | None 
     # stop when a step gains less than a tenth of the noise variance: below what the data resolve
     ftol = max(0.1 / max(len(r0), 1), 1e-10)
     res = trust_region(fun, nu0, jac, lo, hi, xtol=1e-8, ftol=ftol, max_nfev=max_nfev)
-    # the optimum with the contact set its own solution pushes on: inside the optimisation the set
-    # lags the parameters (the best seen), which far starts need; at its end it is the fit's own
-    sol = model.solve(res.x, keep, consistent=True)
+    sol = model.solve(res.x, keep)
     # standard errors of the effect parameters (linear parameters profiled out)
     r = res.fun
     dof = max(len(r) - model.n_linear - model.n_nonlinear, 1)
