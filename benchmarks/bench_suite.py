@@ -36,6 +36,14 @@ def _cpu() -> tuple[float, float]:
     return own.ru_utime + own.ru_stime, children.ru_utime + children.ru_stime
 
 
+_failed: dict[str, str] = {}
+
+
+def pytest_runtest_logreport(report):
+    if report.failed:
+        _failed[report.nodeid] = report.when
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
     """The plugin: one record per test (setup, call and teardown together)."""
@@ -44,19 +52,22 @@ def pytest_runtest_protocol(item, nextitem):
     (own1, child1), out = _cpu(), os.environ.get(OUT_ENV)
     if out:
         record = {"id": item.nodeid, "worker": os.environ.get("PYTEST_XDIST_WORKER", "phase 2"),
-                  "wall": time.time() - t0, "cpu": own1 - own0 + child1 - child0}
+                  "wall": time.time() - t0, "cpu": own1 - own0 + child1 - child0,
+                  "failed": _failed.pop(item.nodeid, "")}
         with open(out, "a", encoding="utf-8") as fh:
             fh.write(json.dumps(record) + "\n")
 
 
 def run_suite(out: Path) -> dict:
-    """scripts/test.sh with this plugin; the whole run's wall and CPU (every reaped descendant)."""
+    """scripts/test.sh with this plugin; the whole run's wall and CPU (every reaped descendant). Its
+    output goes to FILE.log beside the records."""
     out.unlink(missing_ok=True)
     env = dict(os.environ, PYTEST_ADDOPTS=f"{os.environ.get('PYTEST_ADDOPTS', '')} -p bench_suite".strip(),
                PYTHONPATH=os.pathsep.join(p for p in (str(HERE), os.environ.get("PYTHONPATH", "")) if p),
                **{OUT_ENV: str(out)})
     t0, (_, child0) = time.time(), _cpu()
-    code = subprocess.call(["bash", "scripts/test.sh"], cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
+    with out.with_suffix(".log").open("w", encoding="utf-8") as log:
+        code = subprocess.call(["bash", "scripts/test.sh"], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
     whole = {"wall": time.time() - t0, "cpu": _cpu()[1] - child0, "exit": code}
     out.with_suffix(".run.json").write_text(json.dumps(whole), encoding="utf-8")
     return whole
@@ -74,6 +85,8 @@ def table(records: list[dict], whole: dict | None, top: int) -> list[str]:
              f"phase 2 (schedule tests, beside it): {len(phase2)} tests, {sum(r['cpu'] for r in phase2):.0f} CPU s."]
     if whole:
         lines.append(f"The whole run: {whole['wall']:.0f} s wall, {whole['cpu']:.0f} CPU s, exit {whole['exit']}.")
+    failed = [f"{r['id']} ({r['failed']})" for r in records if r.get("failed")]
+    lines.append(f"Failed: {', '.join(failed)}." if failed else "No test failed.")
     lines += ["", "| file (phase 1) | tests | CPU s | worker wall s |", "|---|---:|---:|---:|"]
     for name, (cpu, wall, n) in sorted(by_file.items(), key=lambda kv: -kv[1][0])[:top]:
         lines.append(f"| {name} | {n} | {cpu:.0f} | {wall:.0f} |")
