@@ -60,13 +60,13 @@ def pytest_runtest_protocol(item, nextitem):
 
 def run_suite(out: Path) -> dict:
     """scripts/test.sh with this plugin; the whole run's wall and CPU (every reaped descendant). Its
-    output goes to FILE.log beside the records."""
+    output goes to FILE.pytest.log beside the records."""
     out.unlink(missing_ok=True)
     env = dict(os.environ, PYTEST_ADDOPTS=f"{os.environ.get('PYTEST_ADDOPTS', '')} -p bench_suite".strip(),
                PYTHONPATH=os.pathsep.join(p for p in (str(HERE), os.environ.get("PYTHONPATH", "")) if p),
                **{OUT_ENV: str(out)})
     t0, (_, child0) = time.time(), _cpu()
-    with out.with_suffix(".log").open("w", encoding="utf-8") as log:
+    with out.with_suffix(".pytest.log").open("w", encoding="utf-8") as log:
         code = subprocess.call(["bash", "scripts/test.sh"], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
     whole = {"wall": time.time() - t0, "cpu": _cpu()[1] - child0, "exit": code}
     out.with_suffix(".run.json").write_text(json.dumps(whole), encoding="utf-8")
@@ -82,7 +82,8 @@ def table(records: list[dict], whole: dict | None, top: int) -> list[str]:
         row[0], row[1], row[2] = row[0] + r["cpu"], row[1] + r["wall"], row[2] + 1
     lines = [f"scripts/test.sh with this plugin (not a fresh clone: `bash .ci/run` adds its setup, ~30 s). "
              f"Phase 1 (parallel workers): {len(phase1)} tests, {sum(r['cpu'] for r in phase1):.0f} CPU s; "
-             f"phase 2 (schedule tests, beside it): {len(phase2)} tests, {sum(r['cpu'] for r in phase2):.0f} CPU s."]
+             f"phase 2 (schedule tests, beside it): {len(phase2)} tests, {sum(r['cpu'] for r in phase2):.0f} CPU s. "
+             "A child's CPU counts when it is reaped: a module's Dask cluster in the test its teardown follows."]
     if whole:
         lines.append(f"The whole run: {whole['wall']:.0f} s wall, {whole['cpu']:.0f} CPU s, exit {whole['exit']}.")
     failed = [f"{r['id']} ({r['failed']})" for r in records if r.get("failed")]
