@@ -40,6 +40,7 @@ _failed: dict[str, str] = {}
 
 
 def pytest_runtest_logreport(report):
+    """Which phase of a test failed (setup, call, teardown): kept with the test's record."""
     if report.failed:
         _failed[report.nodeid] = report.when
 
