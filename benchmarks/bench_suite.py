@@ -77,10 +77,9 @@ def run_suite(out: Path) -> dict:
 def table(records: list[dict], whole: dict | None, top: int) -> list[str]:
     phase1 = [r for r in records if r["worker"] != "phase 2"]
     phase2 = [r for r in records if r["worker"] == "phase 2"]
-    by_file: dict[str, list[float]] = defaultdict(lambda: [0.0, 0.0, 0])
+    by_file: dict[str, list[dict]] = defaultdict(list)
     for r in phase1:
-        row = by_file[r["id"].split("::")[0]]
-        row[0], row[1], row[2] = row[0] + r["cpu"], row[1] + r["wall"], row[2] + 1
+        by_file[r["id"].split("::")[0]].append(r)
     lines = [f"scripts/test.sh with this plugin (not a fresh clone: `bash .ci/run` adds its setup, ~30 s). "
              f"Phase 1 (parallel workers): {len(phase1)} tests, {sum(r['cpu'] for r in phase1):.0f} CPU s; "
              f"phase 2 (schedule tests, beside it): {len(phase2)} tests, {sum(r['cpu'] for r in phase2):.0f} CPU s. "
@@ -90,7 +89,8 @@ def table(records: list[dict], whole: dict | None, top: int) -> list[str]:
     failed = [f"{r['id']} ({r['failed']})" for r in records if r.get("failed")]
     lines.append(f"Failed: {', '.join(failed)}." if failed else "No test failed.")
     lines += ["", "| file (phase 1) | tests | CPU s | worker wall s |", "|---|---:|---:|---:|"]
-    for name, (cpu, wall, n) in sorted(by_file.items(), key=lambda kv: -kv[1][0])[:top]:
+    rows = [(name, len(rs), sum(r["cpu"] for r in rs), sum(r["wall"] for r in rs)) for name, rs in by_file.items()]
+    for name, n, cpu, wall in sorted(rows, key=lambda row: -row[2])[:top]:
         lines.append(f"| {name} | {n} | {cpu:.0f} | {wall:.0f} |")
     lines += ["", "| test (either phase) | CPU s | wall s |", "|---|---:|---:|"]
     for r in sorted(records, key=lambda r: -r["cpu"])[:top]:
