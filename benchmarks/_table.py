@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import platform
 import re
 import statistics
@@ -31,6 +32,13 @@ def publish(section: str, lines: list[str]) -> None:
     pattern = re.compile(rf"^## {re.escape(section)}\n.*?(?=^## |\Z)", re.S | re.M)
     new = pattern.sub(body + "\n", old) if pattern.search(old) else old.rstrip() + "\n\n" + body
     DOC.write_text(new, encoding="utf-8")
+
+
+def cpu_seconds() -> tuple[float, float]:
+    """CPU seconds (user + system) of this process, and of its children ended and reaped so far
+    (forked diagnosis workers, a Dask cluster's processes, a subprocess)."""
+    t = os.times()
+    return t.user + t.system, t.children_user + t.children_system
 
 
 def median_seconds(fn, repeats: int) -> float:

@@ -46,7 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from _table import load_jsonl as load, publish  # noqa: E402
+from _table import cpu_seconds, load_jsonl as load, publish  # noqa: E402
 
 SECTION = "Diagnosis: detection on independent runs (benchmarks/bench_detection_independent.py)"
 SECTION_PAIRS = "Diagnosis: two causes on independent runs (benchmarks/bench_detection_independent.py --two)"
@@ -90,9 +90,9 @@ def one_case(cause: str | None, size: float, seed: int, regime: str, form: str, 
     else:
         hidden = {c: SIZES[c][1] for c in cause.split("+")} if pair else {cause: size} if cause else None
         runs = [ie.independent_run(regime, seed, hidden, form=form, hz=hz)]
-    t0, c0 = time.perf_counter(), _cpu()
+    t0, c0 = time.perf_counter(), sum(cpu_seconds())      # with the workers a diagnosis forked (reaped)
     d = diagnose(runs)
-    seconds, cpu = time.perf_counter() - t0, _cpu() - c0     # cpu: what load does not inflate
+    seconds, cpu = time.perf_counter() - t0, sum(cpu_seconds()) - c0     # cpu: what load does not inflate
     rec = {"cause": cause or "clean", "size": size, "seed": seed, "regime": regime, "form": form, "hz": hz,
            "verdict": d.verdict, "findings": [f.name for f in d.findings], "seconds": round(seconds, 2),
            "cpu_seconds": round(cpu, 2), "load": round(os.getloadavg()[0], 1),
@@ -141,13 +141,6 @@ def key(case: tuple) -> tuple:
 
 def record_key(r: dict) -> tuple:
     return (r["cause"], float(r["size"]), int(r["seed"]), r["regime"], r["form"], float(r["hz"]))
-
-
-def _cpu() -> float:
-    """CPU seconds of this process and of the workers a diagnosis forked (analysis.parallel; ended
-    and reaped by then, so counted in os.times' children)."""
-    t = os.times()
-    return t.user + t.system + t.children_user + t.children_system
 
 
 def run_all(cases: list[tuple], out: Path, workers: int) -> None:

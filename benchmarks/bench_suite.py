@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -25,15 +24,12 @@ from pathlib import Path
 
 import pytest
 
+from _table import cpu_seconds, load_jsonl, publish
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 OUT_ENV = "BENCH_SUITE_OUT"
 SECTION = "The test suite's CPU by test (benchmarks/bench_suite.py)"
-
-
-def _cpu() -> tuple[float, float]:
-    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime, children.ru_utime + children.ru_stime
 
 
 _failed: dict[str, str] = {}
@@ -48,9 +44,9 @@ def pytest_runtest_logreport(report):
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
     """The plugin: one record per test (setup, call and teardown together)."""
-    t0, (own0, child0) = time.time(), _cpu()
+    t0, (own0, child0) = time.time(), cpu_seconds()
     yield
-    (own1, child1), out = _cpu(), os.environ.get(OUT_ENV)
+    (own1, child1), out = cpu_seconds(), os.environ.get(OUT_ENV)
     if out:
         record = {"id": item.nodeid, "worker": os.environ.get("PYTEST_XDIST_WORKER", "phase 2"),
                   "wall": time.time() - t0, "cpu": own1 - own0 + child1 - child0,
@@ -66,10 +62,10 @@ def run_suite(out: Path) -> dict:
     env = dict(os.environ, PYTEST_ADDOPTS=f"{os.environ.get('PYTEST_ADDOPTS', '')} -p bench_suite".strip(),
                PYTHONPATH=os.pathsep.join(p for p in (str(HERE), os.environ.get("PYTHONPATH", "")) if p),
                **{OUT_ENV: str(out)})
-    t0, (_, child0) = time.time(), _cpu()
+    t0, (_, child0) = time.time(), cpu_seconds()
     with out.with_suffix(".pytest.log").open("w", encoding="utf-8") as log:
         code = subprocess.call(["bash", "scripts/test.sh"], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
-    whole = {"wall": time.time() - t0, "cpu": _cpu()[1] - child0, "exit": code}
+    whole = {"wall": time.time() - t0, "cpu": cpu_seconds()[1] - child0, "exit": code}
     out.with_suffix(".run.json").write_text(json.dumps(whole), encoding="utf-8")
     return whole
 
@@ -99,9 +95,6 @@ def table(records: list[dict], whole: dict | None, top: int) -> list[str]:
 
 
 def main(argv=None) -> int:
-    sys.path.insert(0, str(HERE))
-    from _table import load_jsonl, publish
-
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path(tempfile.gettempdir()) / "bench_suite.jsonl")
     ap.add_argument("--top", type=int, default=15)
