@@ -48,6 +48,9 @@ class Cause:
     #: (alpha/beta with the linear ones), so a short joint probe from the base stays near zero:
     #: it is always fitted jointly to convergence in the search, however its probe ranked.
     imitated_by_base: ClassVar[bool] = False
+    #: Sizes (the first fitted parameter's, each sign it can take) the search walks the effect out
+    #: to from zero, each fit continued from the last (extend.walk); () none.
+    walk_sizes: ClassVar[tuple[float, ...]] = ()
     #: Multiples of its scale such an effect is started from (extend.multistart); None: MULTISTART_SIZES.
     multistart_sizes: ClassVar[tuple[float, ...] | None] = None
     #: The base holds this effect in its own terms from the base's start at any size the search
@@ -184,6 +187,9 @@ class DampingCycleChange(Cause):
     # identification takes the damping from the first loading and gives the later loadings'
     # change to the residual terms of the earlier cycles (docs/analysis.md, "Restarts")
     absorbed_by_identification = True
+    # a change identification took up leaves a dip in the walked profile at its size (causal form:
+    # 4 of 5 missed rises of 17-52 %/cycle; docs/analysis.md, "A walk")
+    walk_sizes = tuple(np.round(np.arange(0.05, 0.501, 0.05), 2))
 
     @classmethod
     def applicable(cls, series):

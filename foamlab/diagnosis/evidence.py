@@ -6,12 +6,13 @@ was not named."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.stats import chi2, norm
 
 from foamlab.analysis.design import ExtendedModel, Solution
 from foamlab.analysis.heldout import heldout_gain
 from foamlab.analysis.noise import WHITE_P, ArWhitener, whiteness
 from foamlab.analysis.solve import Fit
+from foamlab.diagnosis.extend import without
 from foamlab.diagnosis.result import Candidate
 from foamlab.diagnosis.settings import DiagnosisSettings
 
@@ -66,10 +67,28 @@ def rule_not_pinned(c: Candidate, s: DiagnosisSettings) -> str:
 
 def rule_effect_determined(c: Candidate, s: DiagnosisSettings) -> str:
     """The fit improves, but is the effect itself determined? The base model's alpha/beta can
-    take its place (its standard error is that of the joint fit; docs/findings.md)."""
+    take its place (its standard error is that of the joint fit; docs/findings.md). Where that
+    standard error says no, the likelihood ratio says: the model
+    without the effect refitted from the candidate's start (profile_z). A change of the damping
+    that identification takes up is fitted in a valley along which the base trades with it: its
+    standard error there is 3-5 x what the likelihood holds (A causal 3184, +30 %/cycle: d = 0.11,
+    1.9 standard errors, the fit without it 59.5 BIC points worse; docs/analysis.md, "A walk")."""
     z = c.z_score
-    return "" if z >= s.effect_z_min else \
-        f"effect not determined: {z:.2g} standard errors from zero (< {s.effect_z_min:g})"
+    if z >= s.effect_z_min:
+        return ""
+    if profile_z(c) >= s.effect_z_min:
+        return ""
+    return f"effect not determined: {z:.2g} standard errors from zero (< {s.effect_z_min:g})"
+
+
+def profile_z(c: Candidate) -> float:
+    """The effect's distance from zero in its own basin as a normal deviate: the likelihood ratio
+    of the candidate against its model without the effect, refitted from the candidate's alpha/beta
+    and other effects (extend.without), turned into the z of the same p-value."""
+    alt = without(c.fit.model.series, c.fit, c.effect)
+    against = Candidate(c.cause, c.fit, alt)
+    compare([against], alt)
+    return float(norm.isf(against.lr_p / 2)) if np.isfinite(against.lr_p) else float("nan")
 
 
 def explained_share(c: Candidate, current: Fit, sigma: float) -> float:
