@@ -226,9 +226,6 @@ def probe(ref: PreparedRun, series: list[Series], current: Fit, causes: list[typ
     screened = screen(series, current, causes)
     fit = fit_joint(series, screened, current, PROBE_NFEV)
     cause = causes[-1]
-    if cause.walk_sizes and restarts:
-        walked = walk(series, current, causes, cause.walk_sizes)
-        fit = walked if walked.rss < fit.rss else fit
     if cause.absorbed_by_identification and restarts:
         lo, hi = cause.bounds()
         side = -1.0 if screened.eta[-1] < 0 and lo[0] < 0 else 1.0
@@ -242,6 +239,11 @@ def probe(ref: PreparedRun, series: list[Series], current: Fit, causes: list[typ
             eta = fit.eta.copy()
             eta[-1] = float(np.clip(value, lo[0], hi[0]))
             fit = reidentify(ref, series, _joint_at(series, fit, eta), eta)
+    if cause.walk_sizes and restarts:
+        # beside the restarts, not before them: their path from the probe is kept whole (A causal seed
+        # 500, +100 %/cycle: continued from the walk's 50 %/cycle they ended at a third of it)
+        walked = walk(series, current, causes, cause.walk_sizes)
+        fit = walked if walked.rss < fit.rss else fit
     return fit
 
 
