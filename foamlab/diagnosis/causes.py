@@ -188,8 +188,8 @@ class DampingCycleChange(Cause):
     # change to the residual terms of the earlier cycles (docs/analysis.md, "Restarts")
     absorbed_by_identification = True
     # a change identification took up leaves a dip in the walked profile at its size (causal form:
-    # 4 of 5 missed rises of 17-52 %/cycle; docs/analysis.md, "A walk")
-    walk_sizes = tuple(np.round(np.arange(0.05, 0.501, 0.05), 2))
+    # 7 of 9 missed rises of 17-52 %/cycle; docs/analysis.md, "A walk")
+    walk_sizes = tuple(round(0.05 * k, 2) for k in range(1, 11))
 
     @classmethod
     def applicable(cls, series):

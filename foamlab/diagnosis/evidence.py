@@ -68,11 +68,11 @@ def rule_not_pinned(c: Candidate, s: DiagnosisSettings) -> str:
 def rule_effect_determined(c: Candidate, s: DiagnosisSettings) -> str:
     """The fit improves, but is the effect itself determined? The base model's alpha/beta can
     take its place (its standard error is that of the joint fit; docs/findings.md). Where that
-    standard error says no, the likelihood ratio says: the model
-    without the effect refitted from the candidate's start (profile_z). A change of the damping
-    that identification takes up is fitted in a valley along which the base trades with it: its
-    standard error there is 3-5 x what the likelihood holds (A causal 3184, +30 %/cycle: d = 0.11,
-    1.9 standard errors, the fit without it 59.5 BIC points worse; docs/analysis.md, "A walk")."""
+    standard error says no, the likelihood ratio against the model without the effect, refitted
+    from the candidate's start, says (profile_z): a damping change identification takes up is
+    fitted in a valley along which the base trades with it, and the standard error read at its
+    floor counts its width (A causal 3188, +18.2 %/cycle: d = 0.116, 2.9 standard errors, Delta
+    BIC 40.1; docs/analysis.md, "A walk")."""
     z = c.z_score
     if z >= s.effect_z_min:
         return ""
