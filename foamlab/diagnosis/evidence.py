@@ -74,9 +74,7 @@ def rule_effect_determined(c: Candidate, s: DiagnosisSettings) -> str:
     floor counts its width (A causal 3188, +18.2 %/cycle: d = 0.116, 2.9 standard errors, Delta
     BIC 40.1; docs/analysis.md, "A walk")."""
     z = c.z_score
-    if z >= s.effect_z_min:
-        return ""
-    if profile_z(c) >= s.effect_z_min:
+    if z >= s.effect_z_min or profile_z(c) >= s.effect_z_min:
         return ""
     return f"effect not determined: {z:.2g} standard errors from zero (< {s.effect_z_min:g})"
 

@@ -145,8 +145,7 @@ def walk(series: list[Series], current: Fit, causes: list[type[Cause]], sizes: t
         at, floor = current, np.inf
         for size in (float(np.clip(side * m, lo, hi)) for m in sizes):
             model = model_at({**free, cause.effect.name: (np.array([size - HOLD]), np.array([size + HOLD]))}, at)
-            phi = at.model.split(at.nu)[0] if at.model.free_base else at.model.phi0
-            nu = np.concatenate([phi, at.eta[:model.n_eta - 1], [size]])
+            nu = np.concatenate([at.model.split(at.nu)[0], at.eta[:model.n_eta - 1], [size]])   # phi0 if held
             at = Fit.of(list(causes), model, varpro(model, nu, max_nfev=WALK_NFEV))
             best = at if best is None or at.rss < best.rss else best
             floor = min(floor, at.rss)
