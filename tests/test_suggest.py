@@ -149,8 +149,14 @@ def test_a_damping_change_one_run_blames_on_the_frame_is_named_with_the_suggeste
 #: A damping change of 30 %/cycle, B causal seed 1004, was the third case until session 29: its one
 #: run now names the damping change, the frame the second finding (the score test of the causes
 #: left, docs/analysis.md, "Two causes"); two runs named it (5 794, the next 435).
+#: - a damping rise of 32 %/cycle, B causal seed 3400 (session 58, the naming curve's seeds, fixed
+#:   before any run): one run of that specimen names friction about as often as the rise (10 and 11 of
+#:   24 such runs; docs/analysis.md, "What the check reads on an injected run"), this one friction; a
+#:   second run at 4 x the speed names the rise (8 279, the next 307). Four such first runs (3400,
+#:   3403, 3405, 3406: friction 3, none 1) all named the rise with their second run.
 MISNAMED_AT_16_HZ = [({"machine_compliance": 250.0}, 1016, "A", "causal"),
-                     ({"cycle_softening": 10.0}, 790, "A", "causal")]
+                     ({"cycle_softening": 10.0}, 790, "A", "causal"),
+                     ({"damping_cycle_change": 32.0}, 3400, "B", "causal")]
 
 
 @pytest.mark.parametrize("causes, seed, regime, form", MISNAMED_AT_16_HZ,
