@@ -15,7 +15,9 @@ however exact.
     python benchmarks/bench_naming_curve.py --seeds 20 --cells "A:causal:8,16,32"
     python benchmarks/bench_naming_curve.py --publish-only          # the table from --out
 
-Results go line by line to --out (JSON lines): an interrupted run resumes where it stopped.
+Results go line by line to --out (JSON lines): an interrupted run resumes where it stopped. The
+table in docs/benchmarks.md: the default run, then `--cells "A:paper:0.15,0.3,0.42,0.6,1.2"`, then
+`--seeds 24 --cells "B:causal:4,8,16,22.6,32,45,64"`, into one --out.
 """
 
 from __future__ import annotations
@@ -28,7 +30,6 @@ import sys
 import tempfile
 import time
 from collections import Counter, defaultdict
-from dataclasses import replace
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -61,13 +62,12 @@ def parse_cells(text: str) -> list[tuple[str, str, float]]:
 
 def run_cell(cause: str, regime: str, form: str, size: float, seed: int) -> dict:
     import independent_effects as ie
+    from diagnosis_support import VERDICT_ONLY
 
     from foamlab.diagnosis import diagnose
-    from foamlab.diagnosis.settings import DEFAULT
 
     t = time.perf_counter()
-    d = diagnose([ie.independent_run(regime, seed, {cause: size}, form=form, hz=16.0)],
-                 settings=replace(DEFAULT, limit_injections=0))
+    d = diagnose([ie.independent_run(regime, seed, {cause: size}, form=form, hz=16.0)], settings=VERDICT_ONLY)
     return dict(cause=cause, regime=regime, form=form, size=size, seed=seed, verdict=d.verdict,
                 findings=[c.name for c in d.findings], seconds=round(time.perf_counter() - t, 2))
 
@@ -82,8 +82,10 @@ def crossings(shares: list[tuple[float, float]]) -> tuple[float, float, float, f
         if share < HIGH:
             break
         high = size
-    lows = [s for s, share in sizes if share <= LOW and high is not None and s < high]
-    if high is None or not lows:
+    if high is None:
+        return None
+    lows = [s for s, share in sizes if share <= LOW and s < high]
+    if not lows:
         return None
     tried = [s for s, _ in sizes]
     low = lows[-1]
