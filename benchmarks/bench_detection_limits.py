@@ -130,9 +130,9 @@ def table(records: list[dict]) -> list[str]:
         "diagnosis.limits.checked: 'raised by injection' counts the clean runs where that raised it). "
         "Sizes in the generator's units.",
         "",
-        "| cause | named at 0.5x | named at 1.5x | sizes at 1.5x (min..max) | verdicts at 1.5x when not named | "
-        "raised by injection | meets |",
-        "|---|---:|---:|---|---|---:|---|",
+        "| cause | named at 0.5x | named at 1.5x | by regime/form (0.5x; 1.5x) | sizes at 1.5x (min..max) | "
+        "verdicts at 1.5x when not named | raised by injection | meets |",
+        "|---|---:|---:|---|---|---|---:|---|",
     ]
     def raised(cause: str, sign: int) -> int:
         limit = lambda r: r["limits"][cause] if sign > 0 else r.get("limits_below", {}).get(cause, float("nan"))
@@ -155,7 +155,7 @@ def table(records: list[dict]) -> list[str]:
                 missed[r["verdict"]] = missed.get(r["verdict"], 0) + 1
         meets = n_high >= NAMED_AT_1_5 * len(high) and n_low <= NAMED_AT_0_5 * len(low)
         label = cause + ("" if not two_signed(cause) else " (rise)" if sign > 0 else " (drop)")
-        lines.append(f"| {label} | {n_low}/{len(low)} | {n_high}/{len(high)} | "
+        lines.append(f"| {label} | {n_low}/{len(low)} | {n_high}/{len(high)} | {by_form(cause, low, high)} | "
                      f"{min(sizes):.3g}..{max(sizes):.3g} {ie.UNITS[cause]} | "
                      f"{', '.join(f'{k} {v}' for k, v in missed.items()) or '-'} | {raised(cause, sign)} | "
                      f"{'yes' if meets else 'no'} |")
@@ -175,6 +175,15 @@ def table(records: list[dict]) -> list[str]:
     return lines
 
 
+def by_form(cause: str, low: list[dict], high: list[dict]) -> str:
+    """Named at 0.5x and at 1.5x per regime/form ("A/causal 0/5; 5/5, ..."): how sharp detection can be
+    differs between them (bench_naming_curve.py), and a pooled row can meet the bar where one fails."""
+    named = lambda recs, rf: f"{sum(r['verdict'] == cause for r in recs if (r['regime'], r['form']) == rf)}/" \
+                             f"{sum((r['regime'], r['form']) == rf for r in recs)}"
+    present = [rf for rf in COMBOS if any((r["regime"], r["form"]) == rf for r in low + high)]
+    return ", ".join(f"{rf[0]}/{rf[1]} {named(low, rf)}; {named(high, rf)}" for rf in present)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=10)
@@ -182,6 +191,8 @@ def main(argv=None) -> int:
     ap.add_argument("--causes", default=",".join(TO_GENERATOR))
     ap.add_argument("--out", type=Path, default=Path(tempfile.gettempdir()) / "bench_detection_limits.jsonl")
     ap.add_argument("--publish-only", action="store_true")
+    ap.add_argument("--section", default=SECTION, help="the docs/benchmarks.md section the table goes to (a run of "
+                                                       "some causes beside the table of all)")
     a = ap.parse_args(argv)
     causes = [c for c in a.causes.split(",") if c]
     unknown = [c for c in causes if c not in TO_GENERATOR]
@@ -207,7 +218,7 @@ def main(argv=None) -> int:
     if not records:
         print(f"bench_detection_limits: no results in {a.out}", file=sys.stderr)
         return 1
-    publish(SECTION, table(records))
+    publish(a.section, table(records))
     return 0
 
 

@@ -19,6 +19,8 @@ import pytest
 from diagnosis_support import VERDICT_ONLY
 
 from foamlab.diagnosis import diagnose
+from foamlab.diagnosis.causes import CAUSES
+from foamlab.diagnosis.limits import UNCHECKED
 from foamlab.gui.report import Report
 
 SEED = 320
@@ -38,6 +40,7 @@ def test_every_tested_cause_has_a_limit_in_words(limits):
                            "machine_compliance", "direction_friction", "memory_lag"}
     for limit in limits.values():
         assert limit.limit > 0 and limit.stderr > 0 and limit.text.startswith("no ")
+        assert not limit.unchecked and "unchecked" not in limit.text     # `none`: checked by injection
     assert limits["machine_compliance"].text.startswith("no frame softer than")
     assert limits["channel_lag"].text.endswith(" ms")
 
@@ -67,6 +70,11 @@ def test_a_cause_at_its_limit_times_1_5_is_named_and_at_half_is_not(limits, caus
     # the verdict is the subject: the check of this run's own limits (15-25 s at 0.5 x) is not
     d = diagnose([ie.independent_run("A", SEED, {cause: size})], settings=VERDICT_ONLY)
     assert (d.verdict == cause) is named, (size, d.verdict, [(c.name, round(c.delta_bic, 1)) for c in d.tested[0]])
+    # no check ran (VERDICT_ONLY; a named cause): the limits the base can hold say they are linearised
+    for limit in d.limits:
+        held = CAUSES[limit.cause].held_by_base() and limit.limit > 0
+        assert limit.unchecked is held and limit.text.endswith(UNCHECKED) is held, limit.text
+        assert limit.to_dict()["unchecked"] is held
 
 
 def test_the_window_says_what_a_clean_run_could_have_seen():
@@ -81,7 +89,6 @@ def test_the_window_says_what_a_clean_run_could_have_seen():
 def test_limits_the_base_can_hold_are_checked_by_identification_and_only_raised(limits):
     """Cause.held_by_base: injected into the run's own fitted model and identification refitted
     (limits.checked); the others keep the linearised limit, unchecked."""
-    from foamlab.diagnosis.causes import CAUSES
     for name, limit in limits.items():
         if CAUSES[name].held_by_base():
             assert limit.injections and limit.limit >= limit.linearised > 0, (name, limit)
@@ -95,7 +102,6 @@ def _placed(response, injections=3, linear=1e-3):
     variances), no refits; the size and the sizes tried come back in linearised limits too."""
     from types import SimpleNamespace
 
-    from foamlab.diagnosis.causes import CAUSES
     from foamlab.diagnosis.limits import _Injector
     from foamlab.diagnosis.settings import DiagnosisSettings
     injector = _Injector.__new__(_Injector)
@@ -141,7 +147,6 @@ def test_a_cause_of_either_sign_is_checked_on_both_and_has_a_limit_for_each(monk
     own limit (one limit for both was too high for the other sign: named at half of it), and every
     injection is listed with its sign."""
     from foamlab.diagnosis import limits as L
-    from foamlab.diagnosis.causes import CAUSES
     from foamlab.diagnosis.settings import DiagnosisSettings
     linear = 0.1
 
@@ -174,7 +179,6 @@ def test_where_the_refit_misses_the_runs_own_fit_injections_are_read_from_the_ba
     There the check reads what identification leaves in the basin it found: the run as it is and
     each injection polished from the base (limits._Injector.lost)."""
     from foamlab.diagnosis import limits as L
-    from foamlab.diagnosis.causes import CAUSES
     from foamlab.diagnosis.settings import DEFAULT
     from foamlab.identification import fit_run
 
@@ -212,7 +216,6 @@ def test_a_lag_is_injected_as_a_real_channel_reads_it():
     the path")."""
     from foamlab.analysis.prepared import force_late
     from foamlab.diagnosis import limits as L
-    from foamlab.diagnosis.causes import CAUSES
     from foamlab.diagnosis.settings import DEFAULT
     from foamlab.identification import fit_run
     from foamlab.model.effects import ChannelLag
@@ -236,7 +239,6 @@ def test_orders_identification_held_apart_are_held_in_the_linearised_limit():
     held orders: se 0.00087 free, 0.00042 held, 0.00046 from the profile likelihood;
     docs/analysis.md, "Held orders and the quiet gate")."""
     from foamlab.analysis.solve import at_full_resolution, decimation
-    from foamlab.diagnosis.causes import CAUSES
     from foamlab.diagnosis.limits import detection_limits
     from foamlab.diagnosis.run import _coalesced
     from foamlab.diagnosis.settings import DEFAULT
