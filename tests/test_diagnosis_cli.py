@@ -36,6 +36,8 @@ def test_json_is_the_design_object_and_the_report_has_its_figures(softened, tmp_
     assert set(limits) == {"cycle_softening", "damping_cycle_change", "channel_lag", "force_zero_drift",
                            "machine_compliance", "direction_friction", "memory_lag"}
     assert all(item["limit"] > 0 and item["text"].startswith("no ") for item in limits.values())
+    # a cause is named, so no injection checked them: the limits of causes the base can hold say so
+    assert {c for c, item in limits.items() if item["unchecked"]} == set(limits) - {"force_zero_drift"}
     assert obj["base"]["form"] in ("causal", "paper") and "held-out" in obj["base"]["why"]
     assert obj["verdict"] == "cycle_softening"
     first = obj["findings"][0]
