@@ -98,7 +98,8 @@ def run_seed(i: int, causes: list[str], done: set, keep) -> None:
         keep({"cause": "clean", "multiple": 0.0, "seed": seed, "regime": regime, "form": form,
               "verdict": clean.verdict, "seconds": seconds, "limits": limits, "limits_below": below,
               "linearised": {lim.cause: lim.linearised for lim in clean.limits if lim.injections},
-              "injections": {lim.cause: len(lim.injections) for lim in clean.limits if lim.injections}})
+              "injections": {lim.cause: len(lim.injections) for lim in clean.limits if lim.injections},
+              "unchecked": [lim.cause for lim in clean.limits if lim.unchecked]})
     for cause in causes:
         for m in multiples(cause):
             if (cause, m, seed) in done:
@@ -130,9 +131,9 @@ def table(records: list[dict]) -> list[str]:
         "diagnosis.limits.checked: 'raised by injection' counts the clean runs where that raised it). "
         "Sizes in the generator's units.",
         "",
-        "| cause | named at 0.5x | named at 1.5x | by regime/form (0.5x; 1.5x) | sizes at 1.5x (min..max) | "
-        "verdicts at 1.5x when not named | raised by injection | meets |",
-        "|---|---:|---:|---|---|---|---:|---|",
+        "| cause | named at 0.5x | named at 1.5x | 95 % interval (0.5x; 1.5x) | by regime/form (0.5x; 1.5x) | "
+        "sizes at 1.5x (min..max) | verdicts at 1.5x when not named | raised by injection | meets |",
+        "|---|---:|---:|---|---|---|---|---:|---|",
     ]
     def raised(cause: str, sign: int) -> int:
         limit = lambda r: r["limits"][cause] if sign > 0 else r.get("limits_below", {}).get(cause, float("nan"))
@@ -155,7 +156,8 @@ def table(records: list[dict]) -> list[str]:
                 missed[r["verdict"]] = missed.get(r["verdict"], 0) + 1
         meets = n_high >= NAMED_AT_1_5 * len(high) and n_low <= NAMED_AT_0_5 * len(low)
         label = cause + ("" if not two_signed(cause) else " (rise)" if sign > 0 else " (drop)")
-        lines.append(f"| {label} | {n_low}/{len(low)} | {n_high}/{len(high)} | {by_form(cause, low, high)} | "
+        lines.append(f"| {label} | {n_low}/{len(low)} | {n_high}/{len(high)} | {interval(n_low, len(low))}; "
+                     f"{interval(n_high, len(high))} | {by_form(cause, low, high)} | "
                      f"{min(sizes):.3g}..{max(sizes):.3g} {ie.UNITS[cause]} | "
                      f"{', '.join(f'{k} {v}' for k, v in missed.items()) or '-'} | {raised(cause, sign)} | "
                      f"{'yes' if meets else 'no'} |")
@@ -164,6 +166,10 @@ def table(records: list[dict]) -> list[str]:
     if beyond:
         which = ", ".join(f"{r['cause']} x{r['multiple']:g} seed {r['seed']}" for r in beyond)
         lines += ["", f"Not hidden, beyond the effect's range (multiple x limit outside its bounds): {which}."]
+    unchecked = [f"{c} seed {r['seed']}" for r in clean for c in r.get("unchecked", [])]
+    if unchecked:
+        lines += ["", f"Limits the clean run reported unchecked (a cause named: no injection checked them), hidden "
+                      f"at 0.5x and 1.5x all the same: {', '.join(unchecked)}."]
     if clean:
         none = sum(r["verdict"] == "none" for r in clean)
         lines += ["", f"Clean runs: `none` in {none}/{len(clean)}; the others: "
@@ -171,8 +177,19 @@ def table(records: list[dict]) -> list[str]:
     seconds = [r["seconds"] for r in records if r["seconds"] > 0]
     lines.append(f"Time per diagnosis (identification included, wall, this machine): median "
                  f"{statistics.median(seconds):.1f} s, max {max(seconds):.1f} s over {len(seconds)}.")
-    lines.append("Done-when (issue 27): named in >= 90 % at 1.5x, <= 10 % at 0.5x; clean `none` >= 95 %.")
+    lines.append("Done-when (issue 27): named in >= 90 % at 1.5x, <= 10 % at 0.5x; clean `none` >= 95 %. "
+                 "The interval is the share's over runs like these (Clopper-Pearson): a row whose intervals hold "
+                 "10 % and 90 % cannot be told from the bar with this many seeds, either way.")
     return lines
+
+
+def interval(k: int, n: int) -> str:
+    """The 95 % interval of a share named, k of n (exact binomial): with 20-40 seeds it spans tens of
+    percent, so one count above or below the bar's 10 % / 90 % does not tell a limit from the bar."""
+    from scipy.stats import binomtest
+
+    ci = binomtest(k, n).proportion_ci(0.95, method="exact")
+    return f"{100 * ci.low:.0f}-{100 * ci.high:.0f} %"
 
 
 def by_form(cause: str, low: list[dict], high: list[dict]) -> str:
