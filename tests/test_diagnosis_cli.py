@@ -8,6 +8,7 @@ import independent_effects as ie
 import pytest
 
 from foamlab import cli
+from foamlab.diagnosis.limits import UNCHECKED
 from foamlab.diagnosis.settings import DEFAULT
 
 
@@ -58,6 +59,21 @@ def test_table_output_and_causes_subset(softened, capsys):
     out = capsys.readouterr().out
     assert out.startswith("verdict: ")
     assert "cycle_softening" not in out.splitlines()[0]
+
+
+def test_linearised_limits_skip_the_check_and_say_so(tmp_path, capsys):
+    """--linearised-limits: a clean run (A, seed 7, 4 Hz, fixed before looking) reports its limits
+    from the slope at the base, without the refits that check them (limits.checked), and every
+    limit of a cause the base can hold says it is unchecked (limits.UNCHECKED)."""
+    clean = _write_csv(tmp_path / "clean.csv", ie.independent_run("A", 7, {}, hz=4.0))
+    assert cli.main(["diagnose", str(clean), "--linearised-limits", "--json", "--no-store"]) == 0
+    obj = json.loads(capsys.readouterr().out)
+    assert obj["verdict"] == "none"       # where a run names nothing the check would otherwise run
+    limits = {item["cause"]: item for item in obj["detection_limits"]}
+    assert all(not item["injections"] for item in limits.values())
+    held = set(limits) - {"force_zero_drift"}
+    assert {c for c, item in limits.items() if item["unchecked"]} == held
+    assert all(limits[c]["text"].endswith(UNCHECKED) for c in held)
 
 
 @pytest.mark.parametrize("argv,message", [

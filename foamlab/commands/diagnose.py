@@ -19,6 +19,7 @@ examples:
   foamlab diagnose slow.csv fast.csv                # runs of one specimen at two speeds (rate_dependence)
   foamlab diagnose run.csv --report out/            # out/index.html with the figures
   foamlab diagnose run.csv --full                   # ...and the thresholds it decided by
+  foamlab diagnose run.csv --linearised-limits      # the verdict sooner; limits not checked by refits, marked so
   foamlab diagnose run.csv --suggest                # a close call? the next test, as ./suggested-run.toml
   foamlab diagnose run.csv --suggest next.toml      # ...written to next.toml; then: foamlab run --method next.toml
 
@@ -62,6 +63,10 @@ def register(subparsers) -> None:
                         "run (rate_dependence), rank the tests that would tell them apart and write the best "
                         "as a method file for `foamlab run --method` (default ./suggested-<run>.toml, never "
                         "overwriting: numbered instead)")
+    p.add_argument("--linearised-limits", action="store_true",
+                   help="report what the run could have seen from the slope at the base alone, without the "
+                        "identification refits that check it where nothing is named (most of a clean run's "
+                        "diagnosis); the limits of causes the base can hold are then marked unchecked")
     p.add_argument("--workers", type=_workers, default=0, metavar="N",
                    help="processes the search's fits run on (default 0: every core; 1: this process only). "
                         "The verdict and its figures are the same at any N")
@@ -104,7 +109,8 @@ def run(args: argparse.Namespace) -> int:
     runs = [load_run(p) for p in args.paths]
     with terminal_progress("diagnose", quiet=args.json) as report:
         result = diagnose(runs, causes=causes, progress=report, form=args.form,
-                          settings=replace(DEFAULT, workers=args.workers))
+                          settings=replace(DEFAULT, workers=args.workers,
+                                           limit_injections=0 if args.linearised_limits else DEFAULT.limit_injections))
     obj = result.to_dict()
     notes: list[str] = []
     suggestion = None
