@@ -113,11 +113,16 @@ def detection_limits(series: list[Series], base: Fit, causes: list[type[Cause]],
             linearised, limit = limit, _sized(at_zero, q, multiple ** 2 * base.n / n, limit)
         p = cause.effect.fitted_parameters()[0]
         unchecked = bool(cause.held_by_base() and np.isfinite(limit) and limit > 0)
-        text = cause.limit_text(limit) + (UNCHECKED if unchecked else "") if np.isfinite(limit) \
+        text = _worded(cause, limit, unchecked=unchecked) if np.isfinite(limit) \
             else f"{cause.name}: not determined by this run"
         out.append(DetectionLimit(cause.name, p.name, p.unit, float(se), float(limit), text, linearised=linearised,
                                   unchecked=unchecked))
     return out
+
+
+def _worded(cause: type[Cause], limit: float, below: float | None = None, unchecked: bool = False) -> str:
+    """The limit in words (Cause.limit_text), marked UNCHECKED where no injection checked it."""
+    return cause.limit_text(limit, below) + (UNCHECKED if unchecked else "")
 
 
 def _multiple(settings: DiagnosisSettings, q: int, n: int) -> float:
@@ -372,8 +377,7 @@ def checked(limits: list[DetectionLimit], ref: PreparedRun, base: Fit, causes: l
         tried = tuple(t for _, side in sides[lim.cause] for t in side)
         # a check whose every injection could not be fitted leaves the linearised limit unchecked
         unchecked = not any(np.isfinite(lam) for _, lam in tried)
-        text = by_name[lim.cause].limit_text(size, below) + (UNCHECKED if unchecked else "") \
-            if np.isfinite(size) else lim.text
+        text = _worded(by_name[lim.cause], size, below, unchecked) if np.isfinite(size) else lim.text
         out.append(replace(lim, limit=float(size), text=text, injections=tried, linearised=lim.limit,
                            limit_below=below, unchecked=unchecked))
     return out
