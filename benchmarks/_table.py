@@ -7,11 +7,22 @@ import os
 import platform
 import re
 import statistics
+import sys
 import time
 from datetime import date
 from pathlib import Path
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"
+
+
+def on_independent_runs() -> None:
+    """What a benchmark diagnosing runs of tests/independent_model.py sets before numpy or foamlab is
+    imported: one BLAS thread a process (a diagnosis forks its own workers), and the repository and
+    tests/ (the independent generator) on sys.path."""
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    root = Path(__file__).resolve().parents[1]
+    for path in (root, root / "tests"):
+        sys.path.insert(0, str(path))
 
 
 def load_jsonl(out: Path) -> list[dict]:

@@ -40,13 +40,9 @@ import sys
 import time
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
+from _table import cpu_seconds, load_jsonl as load, on_independent_runs, publish
 
-from _table import cpu_seconds, load_jsonl as load, publish  # noqa: E402
+on_independent_runs()
 
 SECTION = "Diagnosis: detection on independent runs (benchmarks/bench_detection_independent.py)"
 SECTION_PAIRS = "Diagnosis: two causes on independent runs (benchmarks/bench_detection_independent.py --two)"

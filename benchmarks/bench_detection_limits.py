@@ -24,20 +24,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
+from _table import load_jsonl as load, on_independent_runs, publish
 
-from _table import load_jsonl as load, publish  # noqa: E402
+on_independent_runs()
 
 SECTION = "Diagnosis: do the detection limits mean what they say? (benchmarks/bench_detection_limits.py)"
 COMBOS = (("A", "causal"), ("B", "paper"), ("B", "causal"), ("A", "paper"))

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import sys
 import tempfile
@@ -32,13 +31,9 @@ import time
 from collections import Counter, defaultdict
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
+from _table import load_jsonl, on_independent_runs, publish
 
-from _table import load_jsonl, publish  # noqa: E402
+on_independent_runs()
 
 SECTION = "Diagnosis: how sharp detection is (benchmarks/bench_naming_curve.py)"
 #: Seeds 3400.. (fixed in session 58 before any run of them), the same for every cell.
